@@ -1,0 +1,1 @@
+//! Atomic file output and `.npy` helpers shared by every writer.

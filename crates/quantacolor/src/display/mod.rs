@@ -1,0 +1,3 @@
+//! Display: sRGB transfer function, exposure and tone mapping, colour correction (paper §7).
+
+pub mod srgb;
