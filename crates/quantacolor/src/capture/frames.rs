@@ -1,29 +1,167 @@
-//! Binary frames: bit-packed (T, H, ceil(W/8)) or unpacked 0/1 (T, H, W), memory-mapped.
+//! Binary frames: bit-packed uint8 (T, H, ceil(W/8)), MSB first as `np.packbits` writes them, or
+//! unpacked bool/uint8 0/1 (T, H, W). Files are memory-mapped, never copied whole into memory;
+//! block sums are computed straight from the packed bytes.
 
-use crate::error::Result;
+use super::npy::{NpyDtype, NpyHeader};
+use crate::error::{Error, Result};
+use memmap2::Mmap;
 use ndarray::{Array2, Array3};
+use rayon::prelude::*;
+use std::fs::File;
 use std::ops::Range;
 use std::path::Path;
+
+/// How the bits of one frame row are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameLayout {
+    /// ceil(W/8) bytes per row, MSB first.
+    Packed,
+    /// W bytes per row, each 0 or 1 (nonzero counts as 1).
+    Unpacked,
+}
+
+#[derive(Debug)]
+enum Storage {
+    Owned(Vec<u8>),
+    Mapped { map: Mmap, offset: usize },
+}
 
 /// A stack of T binary frames of H x W pixels.
 #[derive(Debug)]
 pub struct BinaryFrames {
+    storage: Storage,
+    layout: FrameLayout,
     frame_count: usize,
     height: usize,
     width: usize,
 }
 
+/// Byte `v` spread into eight byte lanes of a u64, MSB of `v` in the lowest lane, so that lane
+/// `i` holds bit `7 - i` (pixel `8·k + i` of the row).
+const fn spread_table() -> [u64; 256] {
+    let mut table = [0u64; 256];
+    let mut v = 0;
+    while v < 256 {
+        let mut lanes = 0u64;
+        let mut i = 0;
+        while i < 8 {
+            if (v >> (7 - i)) & 1 == 1 {
+                lanes |= 1u64 << (8 * i);
+            }
+            i += 1;
+        }
+        table[v] = lanes;
+        v += 1;
+    }
+    table
+}
+static SPREAD: [u64; 256] = spread_table();
+
+/// Frames added into the byte lanes of one u64 before they could overflow (255 max per lane).
+const LANE_FLUSH: usize = 255;
+
 impl BinaryFrames {
-    /// Memory-maps `path` (a `.npy`), for frames `width` pixels wide.
+    /// Memory-maps `path` (a `.npy`) holding frames `width` pixels wide: uint8 (T, H, ceil(W/8))
+    /// packed, or bool/uint8 (T, H, W) unpacked.
     pub fn open(path: &Path, width: usize) -> Result<BinaryFrames> {
-        let _ = (path, width);
-        todo!("capture helper")
+        let file = File::open(path).map_err(|e| Error::io(path, e))?;
+        // SAFETY: the file is opened read-only; the capture format treats inputs as immutable.
+        let map = unsafe { Mmap::map(&file) }.map_err(|e| Error::io(path, e))?;
+        let header = NpyHeader::parse(&map).map_err(|m| Error::format(path, m))?;
+        if header.fortran_order {
+            return Err(Error::format(
+                path,
+                "Fortran-ordered arrays are not supported",
+            ));
+        }
+        let shape = &header.shape;
+        if shape.len() != 3 {
+            return Err(Error::format(
+                path,
+                format!("expected a 3-D array (T, H, W or W/8), found shape {shape:?}"),
+            ));
+        }
+        let (t, h, last) = (shape[0], shape[1], shape[2]);
+        let layout =
+            match header.dtype {
+                NpyDtype::Bool => FrameLayout::Unpacked,
+                NpyDtype::U8 if last == width.div_ceil(8) && last != width => FrameLayout::Packed,
+                NpyDtype::U8 if last == width => FrameLayout::Unpacked,
+                NpyDtype::U8 => {
+                    return Err(Error::format(
+                        path,
+                        format!(
+                        "last dimension {last} matches neither the CFA width {width} (unpacked) \
+                         nor ceil({width}/8) = {} (bit-packed)",
+                        width.div_ceil(8)
+                    ),
+                    ))
+                }
+                other => return Err(Error::format(
+                    path,
+                    format!(
+                        "dtype {other:?} is not supported for binary frames (need uint8 or bool)"
+                    ),
+                )),
+            };
+        if layout == FrameLayout::Unpacked && last != width {
+            return Err(Error::format(
+                path,
+                format!("bool frames have width {last}, the CFA has width {width}"),
+            ));
+        }
+        if t == 0 {
+            return Err(Error::format(path, "the capture holds no frames (T = 0)"));
+        }
+        if h == 0 || width == 0 {
+            return Err(Error::format(path, "frames have zero height or width"));
+        }
+        let expected = header.data_offset + t * h * last;
+        if map.len() < expected {
+            return Err(Error::format(
+                path,
+                format!(
+                    "file is truncated: {} bytes, shape {shape:?} needs {expected}",
+                    map.len()
+                ),
+            ));
+        }
+        Ok(BinaryFrames {
+            storage: Storage::Mapped {
+                map,
+                offset: header.data_offset,
+            },
+            layout,
+            frame_count: t,
+            height: h,
+            width,
+        })
     }
 
     /// Wraps packed frames held in memory, uint8 (T, H, ceil(width/8)).
     pub fn from_packed(packed: Array3<u8>, width: usize) -> Result<BinaryFrames> {
-        let _ = (packed, width);
-        todo!("capture helper")
+        let (t, h, bytes) = packed.dim();
+        if bytes != width.div_ceil(8) {
+            return Err(Error::invalid(format!(
+                "packed frames have {bytes} bytes per row, width {width} needs {}",
+                width.div_ceil(8)
+            )));
+        }
+        if t == 0 || h == 0 || width == 0 {
+            return Err(Error::invalid("packed frames are empty"));
+        }
+        let data = if packed.is_standard_layout() {
+            packed.into_raw_vec_and_offset().0
+        } else {
+            packed.iter().copied().collect()
+        };
+        Ok(BinaryFrames {
+            storage: Storage::Owned(data),
+            layout: FrameLayout::Packed,
+            frame_count: t,
+            height: h,
+            width,
+        })
     }
 
     /// Number of frames T.
@@ -41,15 +179,152 @@ impl BinaryFrames {
         self.width
     }
 
-    /// Per-pixel count of ones over `frames`, (H, W).
+    /// How rows are stored.
+    pub fn layout(&self) -> FrameLayout {
+        self.layout
+    }
+
+    fn row_bytes(&self) -> usize {
+        match self.layout {
+            FrameLayout::Packed => self.width.div_ceil(8),
+            FrameLayout::Unpacked => self.width,
+        }
+    }
+
+    fn data(&self) -> &[u8] {
+        match &self.storage {
+            Storage::Owned(v) => v,
+            Storage::Mapped { map, offset } => &map[*offset..],
+        }
+    }
+
+    /// The stored bytes of row `y` of frame `t` (packed or unpacked, see [`Self::layout`]).
+    pub fn raw_row(&self, t: usize, y: usize) -> &[u8] {
+        let rb = self.row_bytes();
+        let start = (t * self.height + y) * rb;
+        &self.data()[start..start + rb]
+    }
+
+    /// The bit of pixel `(y, x)` in frame `t`.
+    pub fn bit(&self, t: usize, y: usize, x: usize) -> bool {
+        let row = self.raw_row(t, y);
+        match self.layout {
+            FrameLayout::Packed => (row[x / 8] >> (7 - x % 8)) & 1 == 1,
+            FrameLayout::Unpacked => row[x] != 0,
+        }
+    }
+
+    /// Per-pixel count of ones over `frames`, (H, W); parallel over rows.
     pub fn sum_range(&self, frames: Range<usize>) -> Array2<u32> {
-        let _ = frames;
-        todo!("capture helper")
+        assert!(
+            frames.start <= frames.end && frames.end <= self.frame_count,
+            "frame range {frames:?} outside 0..{}",
+            self.frame_count
+        );
+        let (h, w) = (self.height, self.width);
+        let mut counts = Array2::<u32>::zeros((h, w));
+        counts
+            .as_slice_mut()
+            .expect("fresh array is contiguous")
+            .par_chunks_mut(w)
+            .enumerate()
+            .for_each(|(y, out)| self.sum_row(frames.clone(), y, out));
+        counts
+    }
+
+    fn sum_row(&self, frames: Range<usize>, y: usize, out: &mut [u32]) {
+        match self.layout {
+            FrameLayout::Packed => {
+                let nbytes = self.row_bytes();
+                let mut lanes = vec![0u64; nbytes];
+                let mut pending = 0;
+                for t in frames {
+                    for (acc, &byte) in lanes.iter_mut().zip(self.raw_row(t, y)) {
+                        *acc += SPREAD[byte as usize];
+                    }
+                    pending += 1;
+                    if pending == LANE_FLUSH {
+                        flush_lanes(&mut lanes, out);
+                        pending = 0;
+                    }
+                }
+                flush_lanes(&mut lanes, out);
+            }
+            FrameLayout::Unpacked => {
+                for t in frames {
+                    for (acc, &v) in out.iter_mut().zip(self.raw_row(t, y)) {
+                        *acc += (v != 0) as u32;
+                    }
+                }
+            }
+        }
     }
 
     /// One frame unpacked to 0/1, (H, W).
     pub fn frame(&self, t: usize) -> Array2<u8> {
-        let _ = t;
-        todo!("capture helper")
+        Array2::from_shape_fn((self.height, self.width), |(y, x)| self.bit(t, y, x) as u8)
+    }
+}
+
+fn flush_lanes(lanes: &mut [u64], out: &mut [u32]) {
+    for (k, acc) in lanes.iter_mut().enumerate() {
+        let bytes = acc.to_le_bytes();
+        for (i, &b) in bytes.iter().enumerate() {
+            if let Some(o) = out.get_mut(8 * k + i) {
+                *o += b as u32;
+            }
+        }
+        *acc = 0;
+    }
+}
+
+/// Packs 0/1 frames (T, H, W) into uint8 (T, H, ceil(W/8)), MSB first (`np.packbits` order).
+pub fn pack_bits(bits: &Array3<u8>) -> Array3<u8> {
+    let (t, h, w) = bits.dim();
+    let mut packed = Array3::<u8>::zeros((t, h, w.div_ceil(8)));
+    for ((ti, y, x), &b) in bits.indexed_iter() {
+        if b != 0 {
+            packed[[ti, y, x / 8]] |= 0x80 >> (x % 8);
+        }
+    }
+    packed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    fn random_bits(t: usize, h: usize, w: usize, seed: u64) -> Array3<u8> {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        Array3::from_shape_fn((t, h, w), |_| rng.gen_bool(0.3) as u8)
+    }
+
+    #[test]
+    fn packed_sums_match_unpacked_counts_across_lane_flushes() {
+        // 600 frames crosses the 255-frame lane flush twice; width 13 leaves a partial byte.
+        let bits = random_bits(600, 5, 13, 7);
+        let frames = BinaryFrames::from_packed(pack_bits(&bits), 13).unwrap();
+        for range in [0..600, 17..300, 5..5] {
+            let sums = frames.sum_range(range.clone());
+            for y in 0..5 {
+                for x in 0..13 {
+                    let expected: u32 = range.clone().map(|t| bits[[t, y, x]] as u32).sum();
+                    assert_eq!(sums[[y, x]], expected, "({y},{x}) over {range:?}");
+                }
+            }
+        }
+        assert_eq!(frames.frame(42), bits.index_axis(ndarray::Axis(0), 42));
+    }
+
+    #[test]
+    fn msb_first_bit_order() {
+        let mut bits = Array3::<u8>::zeros((1, 1, 10));
+        bits[[0, 0, 0]] = 1;
+        bits[[0, 0, 9]] = 1;
+        let packed = pack_bits(&bits);
+        assert_eq!(packed.as_slice().unwrap(), &[0x80, 0x40]);
+        let frames = BinaryFrames::from_packed(packed, 10).unwrap();
+        assert!(frames.bit(0, 0, 0) && frames.bit(0, 0, 9) && !frames.bit(0, 0, 1));
     }
 }

@@ -6,6 +6,7 @@
 
 pub mod frames;
 pub mod io;
+pub mod npy;
 
 pub use frames::BinaryFrames;
 
