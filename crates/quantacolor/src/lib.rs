@@ -16,6 +16,7 @@ pub mod error;
 pub mod metrics;
 pub mod model;
 pub mod naive;
+pub mod pipeline;
 pub mod progress;
 pub mod simulate;
 

@@ -1,0 +1,109 @@
+//! Typed configuration and the stage sequence of a reconstruction. Every stage is also callable
+//! on its own (see the module of each stage).
+
+use crate::capture::Capture;
+use crate::error::{Error, Result};
+use crate::naive::{reconstruct_naive, NaiveConfig};
+use crate::progress::Progress;
+use ndarray::Array3;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// Reconstruction method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// Sum a window of frames without motion compensation (paper Table 2 baseline).
+    Naive,
+}
+
+impl std::str::FromStr for Method {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "naive" => Ok(Method::Naive),
+            other => Err(Error::invalid(format!(
+                "unknown method '{other}' (available: naive)"
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Method::Naive => "naive",
+        })
+    }
+}
+
+/// Configuration of a whole reconstruction.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReconstructConfig {
+    pub method: Method,
+    /// Reference frame (default: the capture's).
+    pub reference_frame: Option<usize>,
+    pub naive: NaiveConfig,
+}
+
+impl Default for ReconstructConfig {
+    fn default() -> Self {
+        ReconstructConfig {
+            method: Method::Naive,
+            reference_frame: None,
+            naive: NaiveConfig::default(),
+        }
+    }
+}
+
+/// Wall-clock time of one stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageTiming {
+    pub stage: String,
+    pub seconds: f64,
+}
+
+/// A finished reconstruction.
+#[derive(Debug, Clone)]
+pub struct Reconstruction {
+    /// Linear RGB (H, W, 3) in detections per frame of an R, G or B pixel, dark counts removed,
+    /// registered to the scene at the reference frame.
+    pub linear: Array3<f32>,
+    pub reference_frame: usize,
+    /// Frames that contributed.
+    pub frames_used: usize,
+    pub timings: Vec<StageTiming>,
+}
+
+/// Runs the configured reconstruction on `capture`.
+pub fn reconstruct(
+    capture: &Capture,
+    config: &ReconstructConfig,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
+    let reference_frame = config
+        .reference_frame
+        .unwrap_or_else(|| capture.reference_frame());
+    let t = capture.frames.frame_count();
+    if reference_frame >= t {
+        return Err(Error::invalid(format!(
+            "reference frame {reference_frame} is outside the capture's {t} frames"
+        )));
+    }
+    let mut timings = Vec::new();
+    let start = Instant::now();
+    progress.start("naive merge", 1);
+    let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
+    progress.advance(1);
+    progress.finish();
+    timings.push(StageTiming {
+        stage: "naive".into(),
+        seconds: start.elapsed().as_secs_f64(),
+    });
+    Ok(Reconstruction {
+        linear: naive.linear,
+        reference_frame,
+        frames_used: naive.frames.len(),
+        timings,
+    })
+}
