@@ -116,16 +116,20 @@ impl BinaryFrames {
         if h == 0 || width == 0 {
             return Err(Error::format(path, "frames have zero height or width"));
         }
-        let expected = header.data_offset + t * h * last;
-        if map.len() < expected {
+        let expected = t
+            .checked_mul(h)
+            .and_then(|n| n.checked_mul(last))
+            .and_then(|n| n.checked_add(header.data_offset));
+        let Some(_end) = expected.filter(|&e| e <= map.len()) else {
             return Err(Error::format(
                 path,
                 format!(
-                    "file is truncated: {} bytes, shape {shape:?} needs {expected}",
-                    map.len()
+                    "file is truncated: {} bytes, shape {shape:?} needs {}",
+                    map.len(),
+                    expected.map_or("more than usize::MAX".to_string(), |e| e.to_string())
                 ),
             ));
-        }
+        };
         Ok(BinaryFrames {
             storage: Storage::Mapped {
                 map,
