@@ -82,28 +82,29 @@ impl BinaryFrames {
             ));
         }
         let (t, h, last) = (shape[0], shape[1], shape[2]);
-        let layout =
-            match header.dtype {
-                NpyDtype::Bool => FrameLayout::Unpacked,
-                NpyDtype::U8 if last == width.div_ceil(8) && last != width => FrameLayout::Packed,
-                NpyDtype::U8 if last == width => FrameLayout::Unpacked,
-                NpyDtype::U8 => {
-                    return Err(Error::format(
-                        path,
-                        format!(
+        let layout = match header.dtype {
+            NpyDtype::Bool => FrameLayout::Unpacked,
+            NpyDtype::U8 if last == width.div_ceil(8) && last != width => FrameLayout::Packed,
+            NpyDtype::U8 if last == width => FrameLayout::Unpacked,
+            NpyDtype::U8 => {
+                return Err(Error::format(
+                    path,
+                    format!(
                         "last dimension {last} matches neither the CFA width {width} (unpacked) \
                          nor ceil({width}/8) = {} (bit-packed)",
                         width.div_ceil(8)
                     ),
-                    ))
-                }
-                other => return Err(Error::format(
+                ))
+            }
+            other => {
+                return Err(Error::format(
                     path,
                     format!(
                         "dtype {other:?} is not supported for binary frames (need uint8 or bool)"
                     ),
-                )),
-            };
+                ))
+            }
+        };
         if layout == FrameLayout::Unpacked && last != width {
             return Err(Error::format(
                 path,

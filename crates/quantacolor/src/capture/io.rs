@@ -22,11 +22,7 @@ pub(crate) fn temp_sibling(path: &Path) -> Result<PathBuf> {
         .file_name()
         .ok_or_else(|| Error::invalid(format!("{} has no file name", path.display())))?;
     let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-    let tmp = format!(
-        ".{}.{}-{n}.tmp",
-        name.to_string_lossy(),
-        std::process::id()
-    );
+    let tmp = format!(".{}.{}-{n}.tmp", name.to_string_lossy(), std::process::id());
     Ok(path.with_file_name(tmp))
 }
 
@@ -257,8 +253,8 @@ fn write_encoded(path: &Path, image: DynamicImage, format: ImageFormat) -> Resul
 pub fn write_png_rgb8(path: impl AsRef<Path>, image: &Array3<u8>) -> Result<()> {
     let path = path.as_ref();
     let (w, h) = rgb_dims(path, image)?;
-    let buf = ImageBuffer::<Rgb<u8>, _>::from_raw(w, h, interleaved(image))
-        .expect("length matches dims");
+    let buf =
+        ImageBuffer::<Rgb<u8>, _>::from_raw(w, h, interleaved(image)).expect("length matches dims");
     write_encoded(path, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
 }
 

@@ -165,7 +165,10 @@ impl CaptureMeta {
                 <[f64; 3]>::try_from(nums).map_err(|n| {
                     Error::format(
                         path,
-                        format!("`w_weights` must hold 3 numbers [wR, wG, wB], found {}", n.len()),
+                        format!(
+                            "`w_weights` must hold 3 numbers [wR, wG, wB], found {}",
+                            n.len()
+                        ),
                     )
                 })?
             }
@@ -293,8 +296,8 @@ impl Capture {
         }
         let meta_path = dir.join(META_FILE);
         let text = fs::read(&meta_path).map_err(|e| Error::io(&meta_path, e))?;
-        let text = String::from_utf8(text)
-            .map_err(|_| Error::format(&meta_path, "not UTF-8 text"))?;
+        let text =
+            String::from_utf8(text).map_err(|_| Error::format(&meta_path, "not UTF-8 text"))?;
         let meta = CaptureMeta::from_toml_str(&text, &meta_path)?;
 
         let cfa = read_cfa(dir)?;
@@ -367,7 +370,10 @@ impl Capture {
         if truth.dim() != want {
             return Err(Error::format(
                 &path,
-                format!("ground truth has shape {:?}, expected {want:?}", truth.dim()),
+                format!(
+                    "ground truth has shape {:?}, expected {want:?}",
+                    truth.dim()
+                ),
             ));
         }
         Ok(Some(truth))
@@ -554,7 +560,9 @@ pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<
     let tmp = TempGuard::dir(io::temp_sibling(dir)?);
     fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
     let t = tmp.path();
-    write_member(t, dir, FRAMES_FILE, |w| write_frames(w, parts.packed_frames))?;
+    write_member(t, dir, FRAMES_FILE, |w| {
+        write_frames(w, parts.packed_frames)
+    })?;
     write_member(t, dir, CFA_NPY_FILE, npy_writer(parts.cfa.codes()))?;
     if let Some(mask) = parts.hot_pixels {
         write_member(t, dir, HOT_PIXELS_FILE, npy_writer(mask))?;
