@@ -96,11 +96,12 @@ impl BinaryFrames {
                     ),
                 ))
             }
-            other => {
+            _ => {
                 return Err(Error::format(
                     path,
                     format!(
-                        "dtype {other:?} is not supported for binary frames (need uint8 or bool)"
+                        "dtype '{}' is not supported for binary frames (need uint8 or bool)",
+                        header.descr
                     ),
                 ))
             }

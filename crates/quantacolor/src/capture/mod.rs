@@ -160,7 +160,17 @@ impl CaptureMeta {
                 let items = v.as_array().ok_or_else(|| bad_type("w_weights", want, v))?;
                 let nums: Vec<f64> = items
                     .iter()
-                    .map(|x| toml_number(x).ok_or_else(|| bad_type("w_weights", want, v)))
+                    .map(|x| {
+                        toml_number(x).ok_or_else(|| {
+                            Error::format(
+                                path,
+                                format!(
+                                    "`w_weights` must hold numbers [wR, wG, wB], found {} in it",
+                                    toml_type(x)
+                                ),
+                            )
+                        })
+                    })
                     .collect::<Result<_>>()?;
                 <[f64; 3]>::try_from(nums).map_err(|n| {
                     Error::format(
