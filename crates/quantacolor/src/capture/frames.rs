@@ -82,28 +82,30 @@ impl BinaryFrames {
             ));
         }
         let (t, h, last) = (shape[0], shape[1], shape[2]);
-        let layout =
-            match header.dtype {
-                NpyDtype::Bool => FrameLayout::Unpacked,
-                NpyDtype::U8 if last == width.div_ceil(8) && last != width => FrameLayout::Packed,
-                NpyDtype::U8 if last == width => FrameLayout::Unpacked,
-                NpyDtype::U8 => {
-                    return Err(Error::format(
-                        path,
-                        format!(
+        let layout = match header.dtype {
+            NpyDtype::Bool => FrameLayout::Unpacked,
+            NpyDtype::U8 if last == width.div_ceil(8) && last != width => FrameLayout::Packed,
+            NpyDtype::U8 if last == width => FrameLayout::Unpacked,
+            NpyDtype::U8 => {
+                return Err(Error::format(
+                    path,
+                    format!(
                         "last dimension {last} matches neither the CFA width {width} (unpacked) \
                          nor ceil({width}/8) = {} (bit-packed)",
                         width.div_ceil(8)
                     ),
-                    ))
-                }
-                other => return Err(Error::format(
+                ))
+            }
+            _ => {
+                return Err(Error::format(
                     path,
                     format!(
-                        "dtype {other:?} is not supported for binary frames (need uint8 or bool)"
+                        "dtype '{}' is not supported for binary frames (need uint8 or bool)",
+                        header.descr
                     ),
-                )),
-            };
+                ))
+            }
+        };
         if layout == FrameLayout::Unpacked && last != width {
             return Err(Error::format(
                 path,
@@ -116,16 +118,20 @@ impl BinaryFrames {
         if h == 0 || width == 0 {
             return Err(Error::format(path, "frames have zero height or width"));
         }
-        let expected = header.data_offset + t * h * last;
-        if map.len() < expected {
+        let expected = t
+            .checked_mul(h)
+            .and_then(|n| n.checked_mul(last))
+            .and_then(|n| n.checked_add(header.data_offset));
+        let Some(_end) = expected.filter(|&e| e <= map.len()) else {
             return Err(Error::format(
                 path,
                 format!(
-                    "file is truncated: {} bytes, shape {shape:?} needs {expected}",
-                    map.len()
+                    "file is truncated: {} bytes, shape {shape:?} needs {}",
+                    map.len(),
+                    expected.map_or("more than usize::MAX".to_string(), |e| e.to_string())
                 ),
             ));
-        }
+        };
         Ok(BinaryFrames {
             storage: Storage::Mapped {
                 map,

@@ -1,6 +1,9 @@
 //! Capture format: a directory with `frames.npy`, `cfa.npy` (or a CFA PNG) and `capture.toml`.
 //! See `docs/capture-format.md`.
 //!
+//! A capture is the raw data of the paper's pipeline (§3 imaging model, §4 burst
+//! reconstruction): T binary frames of a colour SPAD sensor, the colour filter array in front of
+//! it (§5) and the exposure and dark-count rate that turn detection counts into flux (Eq. 2–3).
 //! Binary frames stay bit-packed and memory-mapped; block sums come straight from the packed
 //! bytes.
 
@@ -11,10 +14,35 @@ pub mod npy;
 pub use frames::BinaryFrames;
 
 use crate::cfa::Cfa;
-use crate::error::Result;
+use crate::error::{Error, Result};
+use io::TempGuard;
 use ndarray::{Array2, Array3};
+use ndarray_npy::WriteNpyExt;
 use serde::{Deserialize, Serialize};
+use std::fs::{self, File};
+use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
+
+/// The bit-packed binary frames.
+pub const FRAMES_FILE: &str = "frames.npy";
+/// The colour filter array as uint8 codes.
+pub const CFA_NPY_FILE: &str = "cfa.npy";
+/// The colour filter array as a colour image (used when `cfa.npy` is absent).
+pub const CFA_PNG_FILE: &str = "cfa.png";
+/// The metadata.
+pub const META_FILE: &str = "capture.toml";
+/// The hot-pixel mask written by [`write_capture`].
+pub const HOT_PIXELS_FILE: &str = "hot_pixels.npy";
+/// The linear ground truth of simulated captures.
+pub const GROUND_TRUTH_FILE: &str = "ground_truth.npy";
+
+const META_KEYS: [&str; 5] = [
+    "exposure_s",
+    "dark_count_rate_hz",
+    "w_weights",
+    "hot_pixels",
+    "reference_frame",
+];
 
 /// Contents of `capture.toml`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -39,10 +67,191 @@ fn default_w_weights() -> [f64; 3] {
     [1.0, 1.0, 1.0]
 }
 
+/// A TOML value's type, for error messages.
+fn toml_type(v: &toml::Value) -> &'static str {
+    match v {
+        toml::Value::String(_) => "a string",
+        toml::Value::Integer(_) => "an integer",
+        toml::Value::Float(_) => "a float",
+        toml::Value::Boolean(_) => "a boolean",
+        toml::Value::Datetime(_) => "a date-time",
+        toml::Value::Array(_) => "an array",
+        toml::Value::Table(_) => "a table",
+    }
+}
+
+/// A TOML number (integer or float) as `f64`.
+fn toml_number(v: &toml::Value) -> Option<f64> {
+    match v {
+        toml::Value::Float(f) => Some(*f),
+        toml::Value::Integer(i) => Some(*i as f64),
+        _ => None,
+    }
+}
+
+/// True for `[table]` and `[[array.of.tables]]` values, which `capture.toml` tolerates as
+/// extra data (e.g. the simulator's `[simulation]` table).
+fn is_table_like(v: &toml::Value) -> bool {
+    match v {
+        toml::Value::Table(_) => true,
+        toml::Value::Array(a) => !a.is_empty() && a.iter().all(|x| x.is_table()),
+        _ => false,
+    }
+}
+
 impl CaptureMeta {
+    /// Metadata with the given per-frame exposure and every other key at its default.
+    pub fn new(exposure_s: f64) -> Self {
+        CaptureMeta {
+            exposure_s,
+            dark_count_rate_hz: 0.0,
+            w_weights: default_w_weights(),
+            hot_pixels: None,
+            reference_frame: None,
+        }
+    }
+
     /// Dark counts per binary frame, `d` of paper Eq. 3.
     pub fn dark_counts_per_frame(&self) -> f64 {
         self.dark_count_rate_hz * self.exposure_s
+    }
+
+    /// Parses the text of a `capture.toml`; `path` names it in errors. Unknown top-level keys
+    /// are rejected (typo protection) unless they are tables, which are left for other tools.
+    pub fn from_toml_str(text: &str, path: impl AsRef<Path>) -> Result<CaptureMeta> {
+        let path = path.as_ref();
+        let table: toml::Table = text
+            .parse()
+            .map_err(|e| Error::format(path, format!("invalid TOML: {e}")))?;
+        for (key, value) in &table {
+            if !META_KEYS.contains(&key.as_str()) && !is_table_like(value) {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "unknown key `{key}` (known keys: {}; extra data belongs in a [table])",
+                        META_KEYS.join(", ")
+                    ),
+                ));
+            }
+        }
+        let bad_type = |key: &str, want: &str, v: &toml::Value| {
+            Error::format(
+                path,
+                format!("`{key}` must be {want}, found {}", toml_type(v)),
+            )
+        };
+        let number = |key: &str| -> Result<Option<f64>> {
+            table
+                .get(key)
+                .map(|v| toml_number(v).ok_or_else(|| bad_type(key, "a number", v)))
+                .transpose()
+        };
+        let exposure_s = number("exposure_s")?.ok_or_else(|| {
+            Error::format(
+                path,
+                "missing required key `exposure_s` (exposure of one binary frame, seconds)",
+            )
+        })?;
+        let dark_count_rate_hz = number("dark_count_rate_hz")?.unwrap_or(0.0);
+        let w_weights = match table.get("w_weights") {
+            None => default_w_weights(),
+            Some(v) => {
+                let want = "an array of three numbers [wR, wG, wB]";
+                let items = v.as_array().ok_or_else(|| bad_type("w_weights", want, v))?;
+                let nums: Vec<f64> = items
+                    .iter()
+                    .map(|x| {
+                        toml_number(x).ok_or_else(|| {
+                            Error::format(
+                                path,
+                                format!(
+                                    "`w_weights` must hold numbers [wR, wG, wB], found {} in it",
+                                    toml_type(x)
+                                ),
+                            )
+                        })
+                    })
+                    .collect::<Result<_>>()?;
+                <[f64; 3]>::try_from(nums).map_err(|n| {
+                    Error::format(
+                        path,
+                        format!(
+                            "`w_weights` must hold 3 numbers [wR, wG, wB], found {}",
+                            n.len()
+                        ),
+                    )
+                })?
+            }
+        };
+        let hot_pixels = match table.get("hot_pixels") {
+            None => None,
+            Some(toml::Value::String(s)) => Some(s.clone()),
+            Some(v) => return Err(bad_type("hot_pixels", "a file name (string)", v)),
+        };
+        let reference_frame = match table.get("reference_frame") {
+            None => None,
+            Some(toml::Value::Integer(i)) => Some(usize::try_from(*i).map_err(|_| {
+                Error::format(path, format!("`reference_frame` must be >= 0, found {i}"))
+            })?),
+            Some(v) => return Err(bad_type("reference_frame", "an integer", v)),
+        };
+        let meta = CaptureMeta {
+            exposure_s,
+            dark_count_rate_hz,
+            w_weights,
+            hot_pixels,
+            reference_frame,
+        };
+        meta.check().map_err(|m| Error::format(path, m))?;
+        Ok(meta)
+    }
+
+    /// The metadata as `capture.toml` text, with `extra` tables appended (e.g. `[simulation]`).
+    pub fn to_toml_string(&self, extra: Option<&toml::Table>) -> Result<String> {
+        self.check().map_err(Error::invalid)?;
+        let mut table = toml::Table::try_from(self)
+            .map_err(|e| Error::invalid(format!("cannot serialise capture metadata: {e}")))?;
+        for (key, value) in extra.into_iter().flatten() {
+            if META_KEYS.contains(&key.as_str()) || !is_table_like(value) {
+                return Err(Error::invalid(format!(
+                    "extra capture.toml entry `{key}` must be a table and not a metadata key"
+                )));
+            }
+            table.insert(key.clone(), value.clone());
+        }
+        toml::to_string(&table)
+            .map_err(|e| Error::invalid(format!("cannot serialise capture metadata: {e}")))
+    }
+
+    /// Range checks shared by the reader and the writer; the message names the key.
+    fn check(&self) -> std::result::Result<(), String> {
+        if !(self.exposure_s.is_finite() && self.exposure_s > 0.0) {
+            return Err(format!(
+                "`exposure_s` must be a finite number > 0, found {}",
+                self.exposure_s
+            ));
+        }
+        if !(self.dark_count_rate_hz.is_finite() && self.dark_count_rate_hz >= 0.0) {
+            return Err(format!(
+                "`dark_count_rate_hz` must be a finite number >= 0, found {}",
+                self.dark_count_rate_hz
+            ));
+        }
+        let w = self.w_weights;
+        if w.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || w.iter().all(|&v| v == 0.0) {
+            return Err(format!(
+                "`w_weights` must be finite, >= 0 and not all zero, found {w:?}"
+            ));
+        }
+        if let Some(name) = &self.hot_pixels {
+            if name.is_empty() || Path::new(name).is_absolute() {
+                return Err(format!(
+                    "`hot_pixels` must be a file name relative to the capture directory, \
+                     found {name:?}"
+                ));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -61,11 +270,95 @@ pub struct Capture {
     pub hot_pixels: Option<Array2<bool>>,
 }
 
+/// Reads the CFA of a capture: `cfa.npy` (uint8 (H, W) codes) if present, else `cfa.png`.
+fn read_cfa(dir: &Path) -> Result<Cfa> {
+    let npy = dir.join(CFA_NPY_FILE);
+    let png = dir.join(CFA_PNG_FILE);
+    let (path, codes) = if npy.exists() || !png.exists() {
+        (npy.clone(), io::read_npy_2d::<u8>(&npy)?)
+    } else {
+        (png.clone(), io::read_cfa_png(&png)?)
+    };
+    if codes.is_empty() {
+        return Err(Error::format(&path, "CFA is empty"));
+    }
+    if let Some(((y, x), &c)) = codes.indexed_iter().find(|(_, &c)| c > 3) {
+        return Err(Error::format(
+            &path,
+            format!("CFA code {c} at (y={y}, x={x}) is not one of 0=R 1=G 2=B 3=W"),
+        ));
+    }
+    Cfa::new(codes).map_err(|e| Error::format(&path, e.to_string()))
+}
+
 impl Capture {
-    /// Opens and validates the capture in `dir`.
+    /// Opens and validates the capture in `dir`: reads `capture.toml`, the CFA and the optional
+    /// hot-pixel mask, memory-maps `frames.npy`, and checks that every shape agrees. Any
+    /// problem is an [`Error`] naming the file at fault.
     pub fn open(dir: impl AsRef<Path>) -> Result<Capture> {
-        let _ = dir;
-        todo!("capture helper")
+        let dir = dir.as_ref();
+        let info = fs::metadata(dir).map_err(|e| Error::io(dir, e))?;
+        if !info.is_dir() {
+            return Err(Error::format(
+                dir,
+                "a capture must be a directory holding frames.npy, cfa.npy and capture.toml",
+            ));
+        }
+        let meta_path = dir.join(META_FILE);
+        let text = fs::read(&meta_path).map_err(|e| Error::io(&meta_path, e))?;
+        let text =
+            String::from_utf8(text).map_err(|_| Error::format(&meta_path, "not UTF-8 text"))?;
+        let meta = CaptureMeta::from_toml_str(&text, &meta_path)?;
+
+        let cfa = read_cfa(dir)?;
+        let frames_path = dir.join(FRAMES_FILE);
+        let frames = BinaryFrames::open(&frames_path, cfa.width())?;
+        if frames.height() != cfa.height() {
+            return Err(Error::format(
+                &frames_path,
+                format!(
+                    "frames have height {}, the CFA has height {} (shape {:?})",
+                    frames.height(),
+                    cfa.height(),
+                    cfa.codes().dim()
+                ),
+            ));
+        }
+        let t = frames.frame_count();
+        if let Some(r) = meta.reference_frame {
+            if r >= t {
+                return Err(Error::format(
+                    &meta_path,
+                    format!("`reference_frame` = {r} must be < T = {t} (the number of frames)"),
+                ));
+            }
+        }
+
+        let hot_pixels = match &meta.hot_pixels {
+            None => None,
+            Some(name) => {
+                let path = dir.join(name);
+                let mask = io::read_npy_2d::<bool>(&path)?;
+                if mask.dim() != cfa.codes().dim() {
+                    return Err(Error::format(
+                        &path,
+                        format!(
+                            "hot-pixel mask has shape {:?}, the frames are {:?} (H, W)",
+                            mask.dim(),
+                            cfa.codes().dim()
+                        ),
+                    ));
+                }
+                Some(mask)
+            }
+        };
+        Ok(Capture {
+            dir: dir.to_path_buf(),
+            frames,
+            cfa,
+            meta,
+            hot_pixels,
+        })
     }
 
     /// The reference frame: `meta.reference_frame` or T/2 rounded down.
@@ -73,6 +366,27 @@ impl Capture {
         self.meta
             .reference_frame
             .unwrap_or(self.frames.frame_count() / 2)
+    }
+
+    /// The linear ground truth `ground_truth.npy`, float32 (H, W, 3), of a simulated capture;
+    /// `None` when the file is absent.
+    pub fn ground_truth(&self) -> Result<Option<Array3<f32>>> {
+        let path = self.dir.join(GROUND_TRUTH_FILE);
+        if !path.exists() {
+            return Ok(None);
+        }
+        let truth = io::read_npy_3d::<f32>(&path)?;
+        let want = (self.frames.height(), self.frames.width(), 3);
+        if truth.dim() != want {
+            return Err(Error::format(
+                &path,
+                format!(
+                    "ground truth has shape {:?}, expected {want:?}",
+                    truth.dim()
+                ),
+            ));
+        }
+        Ok(Some(truth))
     }
 }
 
@@ -89,10 +403,203 @@ pub struct CaptureParts<'a> {
     pub hot_pixels: Option<&'a Array2<bool>>,
     /// Written as `ground_truth.npy`, float32 (H, W, 3), when given.
     pub ground_truth: Option<&'a Array3<f32>>,
+    /// Further files `(name, bytes)` written into the same atomic directory (e.g. the
+    /// simulator's motion truth). Plain file names only, not one of the standard names.
+    pub extra_files: Vec<(String, Vec<u8>)>,
+    /// Extra tables merged into `capture.toml` (e.g. `[simulation]`); every value must be a table.
+    pub extra_toml: Option<toml::Table>,
 }
 
-/// Writes a capture directory atomically (a temporary sibling directory renamed into place).
+/// Names reserved for the standard files of a capture.
+const RESERVED: [&str; 6] = [
+    FRAMES_FILE,
+    CFA_NPY_FILE,
+    CFA_PNG_FILE,
+    META_FILE,
+    HOT_PIXELS_FILE,
+    GROUND_TRUTH_FILE,
+];
+
+/// Checks `parts` for consistency before anything touches the disk.
+fn check_parts(parts: &CaptureParts<'_>) -> Result<()> {
+    let (t, h, row_bytes) = parts.packed_frames.dim();
+    let (ch, cw) = parts.cfa.codes().dim();
+    if t == 0 || h == 0 || parts.width == 0 {
+        return Err(Error::invalid(format!(
+            "a capture needs at least one non-empty frame, got T={t}, H={h}, W={}",
+            parts.width
+        )));
+    }
+    if (h, parts.width) != (ch, cw) {
+        return Err(Error::invalid(format!(
+            "frames are {h}x{} (H x W), the CFA is {ch}x{cw}",
+            parts.width
+        )));
+    }
+    if row_bytes != parts.width.div_ceil(8) {
+        return Err(Error::invalid(format!(
+            "packed frames have {row_bytes} bytes per row, width {} needs {}",
+            parts.width,
+            parts.width.div_ceil(8)
+        )));
+    }
+    if let Some(r) = parts.meta.reference_frame {
+        if r >= t {
+            return Err(Error::invalid(format!(
+                "reference_frame {r} must be < T = {t}"
+            )));
+        }
+    }
+    if let Some(mask) = parts.hot_pixels {
+        if mask.dim() != (h, parts.width) {
+            return Err(Error::invalid(format!(
+                "hot-pixel mask is {:?}, the frames are ({h}, {})",
+                mask.dim(),
+                parts.width
+            )));
+        }
+    } else if let Some(name) = &parts.meta.hot_pixels {
+        return Err(Error::invalid(format!(
+            "the metadata names hot-pixel mask {name:?} but no mask was given to write"
+        )));
+    }
+    if let Some(truth) = parts.ground_truth {
+        if truth.dim() != (h, parts.width, 3) {
+            return Err(Error::invalid(format!(
+                "ground truth is {:?}, expected ({h}, {}, 3)",
+                truth.dim(),
+                parts.width
+            )));
+        }
+    }
+    let mut names = std::collections::HashSet::new();
+    for (name, _) in &parts.extra_files {
+        let plain = !name.is_empty()
+            && name != "."
+            && name != ".."
+            && !name.contains(['/', '\\'])
+            && !RESERVED.contains(&name.as_str());
+        if !plain || !names.insert(name.as_str()) {
+            return Err(Error::invalid(format!(
+                "extra capture file name {name:?} must be a plain, unique, non-standard file name"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Writes `name` inside the (temporary) directory `dir`; errors name the final location.
+fn write_member(
+    dir: &Path,
+    final_dir: &Path,
+    name: &str,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<()> {
+    let shown = final_dir.join(name);
+    let file = File::create(dir.join(name)).map_err(|e| Error::io(&shown, e))?;
+    let mut out = BufWriter::with_capacity(1 << 20, file);
+    write(&mut out)
+        .and_then(|_| out.flush())
+        .map_err(|e| Error::io(&shown, e))
+}
+
+/// Streams packed frames to `w`: the `.npy` header, then the raw bytes (no copy when the array
+/// is contiguous).
+fn write_frames(w: &mut dyn Write, packed: &Array3<u8>) -> std::io::Result<()> {
+    let (t, h, b) = packed.dim();
+    w.write_all(&npy::encode_header("|u1", &[t, h, b]))?;
+    match packed.as_slice() {
+        Some(bytes) => w.write_all(bytes),
+        None => packed.rows().into_iter().try_for_each(|row| {
+            let bytes: Vec<u8> = row.iter().copied().collect();
+            w.write_all(&bytes)
+        }),
+    }
+}
+
+fn npy_writer<'b, A, S, D>(
+    array: &'b ndarray::ArrayBase<S, D>,
+) -> impl FnOnce(&mut dyn Write) -> std::io::Result<()> + 'b
+where
+    A: ndarray_npy::WritableElement,
+    S: ndarray::Data<Elem = A>,
+    D: ndarray::Dimension,
+{
+    move |w| array.write_npy(w).map_err(std::io::Error::other)
+}
+
+/// Writes a capture directory atomically: every file goes into a temporary sibling directory
+/// that is renamed to `dir` only when complete. An existing `dir` is replaced only after the new
+/// capture is complete, and only if it is empty or itself a capture (holds `capture.toml` or
+/// `frames.npy`), so a mistyped path cannot wipe an unrelated directory. On error nothing is
+/// left behind and an existing `dir` is untouched.
 pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<()> {
-    let _ = (dir, parts);
-    todo!("capture helper")
+    let dir = dir.as_ref();
+    check_parts(parts)?;
+    let mut meta = parts.meta.clone();
+    if parts.hot_pixels.is_some() {
+        meta.hot_pixels = Some(HOT_PIXELS_FILE.to_string());
+    }
+    let toml_text = meta.to_toml_string(parts.extra_toml.as_ref())?;
+
+    let existing = match fs::symlink_metadata(dir) {
+        Ok(info) if info.is_dir() => {
+            let mut entries = fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+            let is_capture = dir.join(META_FILE).exists() || dir.join(FRAMES_FILE).exists();
+            if !is_capture && entries.next().is_some() {
+                return Err(Error::format(
+                    dir,
+                    "exists and is not a capture directory; refusing to replace it",
+                ));
+            }
+            true
+        }
+        Ok(_) => {
+            return Err(Error::format(
+                dir,
+                "exists and is not a directory; refusing to replace it",
+            ))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => false,
+        Err(e) => return Err(Error::io(dir, e)),
+    };
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+        fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+    }
+
+    let tmp = TempGuard::dir(io::temp_sibling(dir)?);
+    fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
+    let t = tmp.path();
+    write_member(t, dir, FRAMES_FILE, |w| {
+        write_frames(w, parts.packed_frames)
+    })?;
+    write_member(t, dir, CFA_NPY_FILE, npy_writer(parts.cfa.codes()))?;
+    if let Some(mask) = parts.hot_pixels {
+        write_member(t, dir, HOT_PIXELS_FILE, npy_writer(mask))?;
+    }
+    if let Some(truth) = parts.ground_truth {
+        write_member(t, dir, GROUND_TRUTH_FILE, npy_writer(truth))?;
+    }
+    for (name, bytes) in &parts.extra_files {
+        write_member(t, dir, name, |w| w.write_all(bytes))?;
+    }
+    write_member(t, dir, META_FILE, |w| w.write_all(toml_text.as_bytes()))?;
+
+    if existing {
+        // Move the old capture aside, move the new one in, then delete the old one; if the
+        // second rename fails, put the old capture back.
+        let old = TempGuard::dir(io::temp_sibling(&dir.with_extension("old"))?);
+        fs::rename(dir, old.path()).map_err(|e| Error::io(dir, e))?;
+        if let Err(e) = fs::rename(t, dir) {
+            let _ = fs::rename(old.path(), dir);
+            old.keep();
+            return Err(Error::io(dir, e));
+        }
+        tmp.keep();
+        drop(old); // removes the previous capture
+    } else {
+        fs::rename(t, dir).map_err(|e| Error::io(dir, e))?;
+        tmp.keep();
+    }
+    Ok(())
 }
