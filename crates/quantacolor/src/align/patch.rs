@@ -186,8 +186,10 @@ pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
     })
 }
 
-/// Patch distance between the reference tile at origin `(oy, ox)` (clipped to the image) and
-/// the alternate image displaced by `(dy, dx)`, sampled with clamping at the borders.
+/// Mean patch distance between the reference tile at origin `(oy, ox)` (clipped to the image)
+/// and the alternate image displaced by `(dy, dx)`, over the tile pixels whose displaced
+/// position lies inside the image; infinite when fewer than a quarter of the tile's pixels
+/// overlap, so that no offset wins by comparing against padding.
 fn tile_cost(
     reference: &Array2<f32>,
     alternate: &Array2<f32>,
@@ -196,34 +198,29 @@ fn tile_cost(
     (dy, dx): (isize, isize),
     norm: Norm,
 ) -> f32 {
-    let (h, w) = reference.dim();
-    let (y1, x1) = ((oy + ts).min(h), (ox + ts).min(w));
-    let inside = ox as isize + dx >= 0 && x1 as isize + dx <= w as isize;
-    let mut cost = 0.0f32;
-    for y in oy..y1 {
-        let yy = (y as isize + dy).clamp(0, h as isize - 1) as usize;
-        let rrow = reference.row(y);
-        let arow = alternate.row(yy);
-        let (rs, as_) = (rrow.as_slice().unwrap(), arow.as_slice().unwrap());
-        if inside {
-            let a0 = (ox as isize + dx) as usize;
-            let pairs = rs[ox..x1].iter().zip(&as_[a0..a0 + (x1 - ox)]);
-            cost += match norm {
-                Norm::L1 => pairs.map(|(r, a)| (r - a).abs()).sum::<f32>(),
-                Norm::L2 => pairs.map(|(r, a)| (r - a) * (r - a)).sum::<f32>(),
-            };
-        } else {
-            for x in ox..x1 {
-                let xx = (x as isize + dx).clamp(0, w as isize - 1) as usize;
-                let d = rs[x] - as_[xx];
-                cost += match norm {
-                    Norm::L1 => d.abs(),
-                    Norm::L2 => d * d,
-                };
-            }
-        }
+    let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
+    let (oy, ox) = (oy as isize, ox as isize);
+    let ts = ts as isize;
+    // Rows/columns of the tile inside the image, then those whose displaced position is too.
+    let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
+    let (x0, x1) = (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
+    if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
+        return f32::INFINITY;
     }
-    cost
+    let rs = reference.as_slice().expect("standard layout");
+    let as_ = alternate.as_slice().expect("standard layout");
+    let mut cost = 0.0f32;
+    for y in y0..y1 {
+        let r0 = (y * w + x0) as usize;
+        let a0 = ((y + dy) * w + x0 + dx) as usize;
+        let n = (x1 - x0) as usize;
+        let pairs = rs[r0..r0 + n].iter().zip(&as_[a0..a0 + n]);
+        cost += match norm {
+            Norm::L1 => pairs.map(|(r, a)| (r - a).abs()).sum::<f32>(),
+            Norm::L2 => pairs.map(|(r, a)| (r - a) * (r - a)).sum::<f32>(),
+        };
+    }
+    cost / ((y1 - y0) * (x1 - x0)) as f32
 }
 
 /// Bilinear sample of `img` at `(y, x)` with clamping.
@@ -265,7 +262,15 @@ impl ReferenceAligner {
             return Err(Error::invalid("reference image is empty"));
         }
         let reference = reference.as_standard_layout().to_owned();
-        let pyramid = Pyramid::new(&reference, config);
+        let mut pyramid = Pyramid::new(&reference, config);
+        // Levels smaller than their tile carry no usable patch: coarse-to-fine starts below them.
+        let usable = (1..pyramid.levels.len())
+            .find(|&l| {
+                let (h, w) = pyramid.levels[l].dim();
+                h < config.tile_sizes[l] || w < config.tile_sizes[l]
+            })
+            .unwrap_or(pyramid.levels.len());
+        pyramid.levels.truncate(usable);
         let grids: Vec<TileGrid> = pyramid
             .levels
             .iter()
@@ -309,8 +314,9 @@ impl ReferenceAligner {
             )));
         }
         let block = block.as_standard_layout().to_owned();
-        let alt = Pyramid::new(&block, &self.config);
+        let mut alt = Pyramid::new(&block, &self.config);
         let n_levels = self.grids.len();
+        alt.levels.truncate(n_levels);
         // Offsets of the coarser level, in that level's pixels.
         let mut coarse: Option<Array3<f32>> = None;
         for level in (0..n_levels).rev() {
