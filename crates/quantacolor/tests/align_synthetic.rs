@@ -26,7 +26,12 @@ impl Texture {
                 let lambda = rng.gen_range(8.0..32.0f32);
                 let theta = rng.gen_range(0.0..std::f32::consts::TAU);
                 let k = std::f32::consts::TAU / lambda;
-                (k * theta.sin(), k * theta.cos(), rng.gen_range(0.0..std::f32::consts::TAU), amp)
+                (
+                    k * theta.sin(),
+                    k * theta.cos(),
+                    rng.gen_range(0.0..std::f32::consts::TAU),
+                    amp,
+                )
             })
             .collect();
         Texture { waves }
@@ -34,7 +39,11 @@ impl Texture {
 
     /// Relative brightness at scene point (y, x), >= 0, mean 1.
     fn at(&self, y: f32, x: f32) -> f32 {
-        let s: f32 = self.waves.iter().map(|&(ky, kx, ph, a)| a * (ky * y + kx * x + ph).sin()).sum();
+        let s: f32 = self
+            .waves
+            .iter()
+            .map(|&(ky, kx, ph, a)| a * (ky * y + kx * x + ph).sin())
+            .sum();
         (1.0 + s).max(0.02)
     }
 }
@@ -59,7 +68,11 @@ fn render(
         // Per-pixel firing threshold in 2^-32 units.
         let thresh = Array2::from_shape_fn((h, w), |(y, x)| {
             let (sy, sx) = warp(b, y as f32, x as f32);
-            let gain = if cfa.channel(y, x) == Channel::W { 1.0 } else { 1.0 / 3.0 };
+            let gain = if cfa.channel(y, x) == Channel::W {
+                1.0
+            } else {
+                1.0 / 3.0
+            };
             let mut p = 1.0 - (-(mean * gain * tex.at(sy, sx))).exp();
             if let Some((mask, hp)) = hot {
                 if mask[[y, x]] {
@@ -106,7 +119,13 @@ fn median(mut v: Vec<f32>) -> f32 {
     v[v.len() / 2]
 }
 
-const SHIFTS: [(f32, f32); 5] = [(1.3, -2.7), (0.6, -1.15), (0.0, 0.0), (-0.45, 0.8), (-1.2, 2.35)];
+const SHIFTS: [(f32, f32); 5] = [
+    (1.3, -2.7),
+    (0.6, -1.15),
+    (0.0, 0.0),
+    (-0.45, 0.8),
+    (-1.2, 2.35),
+];
 
 fn config(block: usize) -> AlignConfig {
     let mut c = AlignConfig::default();
@@ -125,14 +144,21 @@ fn translation_is_recovered_to_a_fraction_of_a_pixel() {
     let frames = render(&cfa, &plan, 0.1, &warp, None, 11);
     // At this light level the automatic block size is close to the B = 384 used here.
     let auto = BlockPlan::choose(&frames, t / 2, &Default::default()).unwrap();
-    assert!((330..=450).contains(&auto.block_size), "automatic B = {}", auto.block_size);
+    assert!(
+        (330..=450).contains(&auto.block_size),
+        "automatic B = {}",
+        auto.block_size
+    );
     let al = align(&frames, &cfa, None, t / 2, &config(b), &Silent).unwrap();
     assert_eq!(al.plan, plan);
     let r = plan.reference_block;
     let truth = |b: usize, _: f32, _: f32| (SHIFTS[b].0 - SHIFTS[r].0, SHIFTS[b].1 - SHIFTS[r].1);
     let errs = errors(&al, &truth, h, w, 8.0);
     let med = median(errs.clone());
-    eprintln!("translation: median EPE {med:.3} px over {} tiles", errs.len());
+    eprintln!(
+        "translation: median EPE {med:.3} px over {} tiles",
+        errs.len()
+    );
     assert!(med <= 0.15, "median end-point error {med} px");
 }
 
@@ -162,7 +188,10 @@ fn rotation_gives_a_varying_flow_field() {
         let (th, sy, sx) = pose(b);
         let (dy, dx) = (y - cy, x - cx);
         let (c, s) = (th.cos(), th.sin());
-        (c * dy + s * dx + cy + sy - y, -s * dy + c * dx + cx + sx - x)
+        (
+            c * dy + s * dx + cy + sy - y,
+            -s * dy + c * dx + cx + sx - x,
+        )
     };
     let errs = errors(&al, &truth, h, w, 8.0);
     let med = median(errs.clone());
@@ -209,7 +238,13 @@ fn hot_pixels_pull_motion_toward_zero_unless_corrected() {
     );
     // Measured: uncorrected gain 0.91, median error 0.25 px; corrected gain 1.006, 0.14 px.
     assert!(g_raw < 0.95, "uncorrected motion gain {g_raw}");
-    assert!(med_raw > med_fixed + 0.07, "uncorrected median error {med_raw}");
-    assert!((g_fixed - 1.0).abs() < 0.05, "corrected motion gain {g_fixed}");
+    assert!(
+        med_raw > med_fixed + 0.07,
+        "uncorrected median error {med_raw}"
+    );
+    assert!(
+        (g_fixed - 1.0).abs() < 0.05,
+        "corrected motion gain {g_fixed}"
+    );
     assert!(med_fixed <= 0.15, "corrected median error {med_fixed}");
 }

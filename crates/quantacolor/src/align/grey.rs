@@ -100,8 +100,17 @@ impl GreyMethod {
 
 /// Grey image `(H, W)` of one block sum `counts` over `frames` frames, in mean detections per
 /// frame, by `method` for `cfa`.
-pub fn grey_image(counts: &Array2<u32>, frames: usize, cfa: &Cfa, method: GreyMethod) -> Array2<f32> {
-    assert_eq!(counts.dim(), cfa.codes().dim(), "block sum and CFA differ in size");
+pub fn grey_image(
+    counts: &Array2<u32>,
+    frames: usize,
+    cfa: &Cfa,
+    method: GreyMethod,
+) -> Array2<f32> {
+    assert_eq!(
+        counts.dim(),
+        cfa.codes().dim(),
+        "block sum and CFA differ in size"
+    );
     let scale = 1.0 / frames.max(1) as f32;
     let values = counts.mapv(|c| c as f32 * scale);
     match method {
@@ -160,7 +169,11 @@ fn tile_average(values: &Array2<f32>, py: usize, px: usize) -> Array2<f32> {
 /// Normalized convolution (Knutsson & Westin 1993): `G * (m·v) / G * m` with a separable
 /// Gaussian of standard deviation `sigma` px (radius 3σ), i.e. a Gaussian-weighted mean of the
 /// values where `mask` holds. Pixels with no masked neighbour within the radius get 0.
-pub fn normalized_convolution(values: &Array2<f32>, mask: &Array2<bool>, sigma: f32) -> Array2<f32> {
+pub fn normalized_convolution(
+    values: &Array2<f32>,
+    mask: &Array2<bool>,
+    sigma: f32,
+) -> Array2<f32> {
     let radius = (3.0 * sigma).ceil().max(1.0) as usize;
     let kernel: Vec<f32> = (0..=2 * radius)
         .map(|i| {

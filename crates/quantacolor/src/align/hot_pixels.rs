@@ -64,7 +64,9 @@ impl HotPixelCorrector {
             )));
         }
         if k == 0 {
-            return Err(Error::invalid("hot-pixel neighbour count k must be at least 1"));
+            return Err(Error::invalid(
+                "hot-pixel neighbour count k must be at least 1",
+            ));
         }
         let hot: Vec<usize> = mask
             .indexed_iter()
@@ -179,7 +181,7 @@ impl HotPixelCorrector {
 /// where `k` is the pixel's count over all T frames and τ = `exposure_s` the exposure of one
 /// binary frame in seconds. A pixel that fired in every frame gets the rate of k = T − ½.
 pub fn dark_count_rate_map(frames: &BinaryFrames, exposure_s: f64) -> Result<Array2<f32>> {
-    if !(exposure_s > 0.0 && exposure_s.is_finite()) {
+    if exposure_s.is_nan() || exposure_s <= 0.0 || exposure_s.is_infinite() {
         return Err(Error::invalid(format!(
             "binary-frame exposure must be a positive number of seconds, got {exposure_s}"
         )));

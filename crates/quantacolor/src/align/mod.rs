@@ -116,7 +116,10 @@ pub fn align(
         });
     progress.finish();
 
-    let aligner = ReferenceAligner::new(&grey.slice(s![plan.reference_block, .., ..]).to_owned(), &config.patch)?;
+    let aligner = ReferenceAligner::new(
+        &grey.slice(s![plan.reference_block, .., ..]).to_owned(),
+        &config.patch,
+    )?;
     let grid = aligner.grid().clone();
     let mut flow = Flow::zeros((plan.len(), grid.tiles_y, grid.tiles_x, 2));
     progress.start("patch alignment", plan.len() as u64);

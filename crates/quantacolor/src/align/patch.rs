@@ -63,7 +63,9 @@ impl PatchConfig {
     pub fn validate(&self) -> Result<()> {
         let n = self.downsample_factors.len();
         if n == 0 {
-            return Err(Error::invalid("patch alignment needs at least one pyramid level"));
+            return Err(Error::invalid(
+                "patch alignment needs at least one pyramid level",
+            ));
         }
         if self.tile_sizes.len() != n || self.search_radii.len() != n || self.norms.len() != n {
             return Err(Error::invalid(format!(
@@ -74,13 +76,13 @@ impl PatchConfig {
                 self.norms.len()
             )));
         }
-        if self.downsample_factors.iter().any(|&f| f == 0) {
+        if self.downsample_factors.contains(&0) {
             return Err(Error::invalid("downsample factors must be at least 1"));
         }
         if self.tile_sizes.iter().any(|&t| t < 2) {
             return Err(Error::invalid("tile sizes must be at least 2 px"));
         }
-        if !(self.presmooth_sigma >= 0.0) {
+        if self.presmooth_sigma.is_nan() || self.presmooth_sigma < 0.0 {
             return Err(Error::invalid("presmooth sigma must be >= 0"));
         }
         Ok(())
@@ -282,7 +284,10 @@ impl ReferenceAligner {
         let lk = (0..g0.tiles_y * g0.tiles_x)
             .into_par_iter()
             .map(|k| {
-                let (oy, ox) = ((k / g0.tiles_x) * g0.tile_stride, (k % g0.tiles_x) * g0.tile_stride);
+                let (oy, ox) = (
+                    (k / g0.tiles_x) * g0.tile_stride,
+                    (k % g0.tiles_x) * g0.tile_stride,
+                );
                 lk_tile(fine, oy, ox, g0.tile_size)
             })
             .collect();
@@ -360,7 +365,8 @@ impl ReferenceAligner {
                             let d = (seed.0 + dy, seed.1 + dx);
                             let c = cost(d);
                             // Ties go to the smaller displacement.
-                            let closer = (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
+                            let closer =
+                                (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
                             if c < best.0 || (c == best.0 && closer) {
                                 best = (c, d);
                             }
@@ -457,19 +463,14 @@ fn lk_tile(img: &Array2<f32>, oy: usize, ox: usize, ts: usize) -> LkTile {
     let tr = syy + sxx;
     let disc = ((syy - sxx).powi(2) + 4.0 * syx * syx).sqrt();
     let (l_max, l_min) = ((tr + disc) / 2.0, (tr - disc) / 2.0);
-    let inv = (l_max > 0.0 && l_min > 1e-3 * l_max && det > 0.0).then(|| {
-        [
-            (sxx / det) as f32,
-            (-syx / det) as f32,
-            (syy / det) as f32,
-        ]
-    });
+    let inv = (l_max > 0.0 && l_min > 1e-3 * l_max && det > 0.0)
+        .then(|| [(sxx / det) as f32, (-syx / det) as f32, (syy / det) as f32]);
     LkTile { grad, inv }
 }
 
-/// The three seeds from the coarser level for a tile centred at `(cy, cx)` (this level's px):
-/// the nearest parent tile and its neighbours toward the tile in y and in x, each offset scaled
-/// by the factor `f` between the levels.
+/// The seeds from the coarser level for a tile centred at `(cy, cx)` (this level's px): the
+/// nearest parent tile and its neighbours toward the tile in y and in x, each offset scaled by
+/// the factor `f` between the levels (Hasinoff et al. 2016 §4.1), plus zero motion.
 fn parent_candidates(
     coarse: &Array3<f32>,
     pgrid: &TileGrid,
@@ -488,8 +489,12 @@ fn parent_candidates(
     };
     let (iy, oy) = index(cy, &pgrid.tile_centers_y, pgrid.tile_stride);
     let (ix, ox) = index(cx, &pgrid.tile_centers_x, pgrid.tile_stride);
-    [(iy, ix), (oy, ix), (iy, ox)]
+    let mut seeds: Vec<(f32, f32)> = [(iy, ix), (oy, ix), (iy, ox)]
         .iter()
         .map(|&(a, b)| (coarse[[a, b, 0]] * f, coarse[[a, b, 1]] * f))
-        .collect()
+        .collect();
+    // Zero motion as a fourth seed: a coarse level that is ambiguous (aperture problem on a
+    // heavily averaged, nearly one-directional texture) cannot then drag a tile far away.
+    seeds.push((0.0, 0.0));
+    seeds
 }
