@@ -9,6 +9,7 @@
 //! are `(dy, dx)`; linear images are mean photon detections per binary frame of an R, G or B
 //! pixel with dark counts removed (λ of paper Eq. 2–3).
 
+pub mod align;
 pub mod capture;
 pub mod cfa;
 pub mod display;

@@ -1,0 +1,224 @@
+//! Grey block images for alignment (supplement §1.1).
+//!
+//! Block sums are mosaicked: neighbouring pixels sit behind different filters and see different
+//! fractions of the light. Patch matching needs a single-channel image in which a moving scene
+//! moves and nothing else, so each block sum is first turned into a grey image, normalised by
+//! the block length (mean detections per frame) so that blocks of different lengths compare.
+//! How depends on the CFA (see [`GreyMethod::detect`]).
+
+use crate::cfa::{Cfa, Channel};
+use crate::error::{Error, Result};
+use ndarray::{Array2, Zip};
+use serde::{Deserialize, Serialize};
+
+/// How a mosaicked block sum becomes a grey image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GreyMethod {
+    /// Dense W lattice (≥ 50 % W): W pixels keep their value, colour sites get W by normalized
+    /// convolution over their W neighbours (Gaussian σ = 0.75 px). W carries luminance at full
+    /// resolution and the highest photon rate (paper §4.1), so this wins over tile averaging.
+    InterpolateW,
+    /// Periodic CFA with period `py` x `px` ≤ 4 (e.g. Bayer): every pixel takes the mean of the
+    /// `py` x `px` window starting at it, which holds each filter of the period exactly once, so
+    /// the filters' different sensitivities cancel. The window's half-period offset is the same
+    /// in every block and does not bias relative motion.
+    TileAverage { py: usize, px: usize },
+    /// Anything else (sparse or aperiodic colour CFAs): each channel is interpolated by
+    /// normalized convolution (Gaussian σ = 0.6 / √fraction px, about half the channel's
+    /// lattice spacing) and the grey image is the mean of the channel planes present.
+    Demosaic,
+}
+
+/// Which grey method to use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GreyChoice {
+    /// [`GreyMethod::detect`] decides.
+    #[default]
+    Auto,
+    /// Force [`GreyMethod::InterpolateW`].
+    InterpolateW,
+    /// Force [`GreyMethod::TileAverage`] (fails for CFAs not periodic within 4 x 4).
+    TileAverage,
+    /// Force [`GreyMethod::Demosaic`].
+    Demosaic,
+}
+
+/// Smallest period ≤ 4 of `codes` along rows (`axis_y`) or columns, if any.
+fn period(codes: &Array2<u8>, along_y: bool) -> Option<usize> {
+    let (h, w) = codes.dim();
+    let n = if along_y { h } else { w };
+    (1..=4.min(n)).find(|&p| {
+        codes.indexed_iter().all(|((y, x), &c)| {
+            let (yy, xx) = if along_y { (y + p, x) } else { (y, x + p) };
+            yy >= h || xx >= w || codes[[yy, xx]] == c
+        })
+    })
+}
+
+impl GreyMethod {
+    /// Detects the class of `cfa`: W fraction ≥ 50 % → [`GreyMethod::InterpolateW`]; else the
+    /// smallest periods along y and x, tested by comparing the code array with itself shifted
+    /// by 1..=4 pixels, both found → [`GreyMethod::TileAverage`]; else
+    /// [`GreyMethod::Demosaic`]. A uniform CFA (monochrome) is a 1 x 1 tile average.
+    pub fn detect(cfa: &Cfa) -> GreyMethod {
+        let frac = cfa.fractions();
+        if frac[Channel::W.index()] >= 0.5 && frac[Channel::W.index()] < 1.0 {
+            return GreyMethod::InterpolateW;
+        }
+        match (period(cfa.codes(), true), period(cfa.codes(), false)) {
+            (Some(py), Some(px)) => GreyMethod::TileAverage { py, px },
+            _ => GreyMethod::Demosaic,
+        }
+    }
+
+    /// Resolves `choice` for `cfa`.
+    pub fn resolve(choice: GreyChoice, cfa: &Cfa) -> Result<GreyMethod> {
+        Ok(match choice {
+            GreyChoice::Auto => GreyMethod::detect(cfa),
+            GreyChoice::InterpolateW => {
+                if cfa.fractions()[Channel::W.index()] == 0.0 {
+                    return Err(Error::invalid("W interpolation needs a CFA with W pixels"));
+                }
+                GreyMethod::InterpolateW
+            }
+            GreyChoice::Demosaic => GreyMethod::Demosaic,
+            GreyChoice::TileAverage => {
+                match (period(cfa.codes(), true), period(cfa.codes(), false)) {
+                    (Some(py), Some(px)) => GreyMethod::TileAverage { py, px },
+                    _ => {
+                        return Err(Error::invalid(
+                            "tile averaging needs a CFA periodic within 4 x 4 pixels",
+                        ))
+                    }
+                }
+            }
+        })
+    }
+}
+
+/// Grey image `(H, W)` of one block sum `counts` over `frames` frames, in mean detections per
+/// frame, by `method` for `cfa`.
+pub fn grey_image(
+    counts: &Array2<u32>,
+    frames: usize,
+    cfa: &Cfa,
+    method: GreyMethod,
+) -> Array2<f32> {
+    assert_eq!(
+        counts.dim(),
+        cfa.codes().dim(),
+        "block sum and CFA differ in size"
+    );
+    let scale = 1.0 / frames.max(1) as f32;
+    let values = counts.mapv(|c| c as f32 * scale);
+    match method {
+        GreyMethod::TileAverage { py, px } => tile_average(&values, py, px),
+        GreyMethod::InterpolateW => {
+            let w_mask = cfa.mask(Channel::W);
+            let smooth = normalized_convolution(&values, &w_mask, 0.75);
+            let mut out = values;
+            Zip::from(&mut out)
+                .and(&w_mask)
+                .and(&smooth)
+                .for_each(|o, &m, &s| {
+                    if !m {
+                        *o = s;
+                    }
+                });
+            out
+        }
+        GreyMethod::Demosaic => {
+            let frac = cfa.fractions();
+            let mut out = Array2::<f32>::zeros(values.dim());
+            let mut planes = 0.0f32;
+            for ch in Channel::ALL {
+                let f = frac[ch.index()];
+                if f == 0.0 {
+                    continue;
+                }
+                let sigma = (0.6 / f.sqrt()) as f32;
+                let plane = normalized_convolution(&values, &cfa.mask(ch), sigma);
+                out += &plane;
+                planes += 1.0;
+            }
+            out / planes
+        }
+    }
+}
+
+/// Mean of the `py` x `px` window starting at each pixel (clamped at the far edges).
+fn tile_average(values: &Array2<f32>, py: usize, px: usize) -> Array2<f32> {
+    let (h, w) = values.dim();
+    Array2::from_shape_fn((h, w), |(y, x)| {
+        let y0 = y.min(h.saturating_sub(py));
+        let x0 = x.min(w.saturating_sub(px));
+        let mut s = 0.0;
+        let mut n = 0.0;
+        for yy in y0..(y0 + py).min(h) {
+            for xx in x0..(x0 + px).min(w) {
+                s += values[[yy, xx]];
+                n += 1.0;
+            }
+        }
+        s / n
+    })
+}
+
+/// Normalized convolution (Knutsson & Westin 1993): `G * (m·v) / G * m` with a separable
+/// Gaussian of standard deviation `sigma` px (radius 3σ), i.e. a Gaussian-weighted mean of the
+/// values where `mask` holds. Pixels with no masked neighbour within the radius get 0.
+pub fn normalized_convolution(
+    values: &Array2<f32>,
+    mask: &Array2<bool>,
+    sigma: f32,
+) -> Array2<f32> {
+    let radius = (3.0 * sigma).ceil().max(1.0) as usize;
+    let kernel: Vec<f32> = (0..=2 * radius)
+        .map(|i| {
+            let d = i as f32 - radius as f32;
+            (-0.5 * d * d / (sigma * sigma)).exp()
+        })
+        .collect();
+    let weighted = Zip::from(values)
+        .and(mask)
+        .map_collect(|&v, &m| if m { v } else { 0.0 });
+    let weights = mask.mapv(|m| m as u8 as f32);
+    let num = separable(&weighted, &kernel);
+    let den = separable(&weights, &kernel);
+    Zip::from(&num)
+        .and(&den)
+        .map_collect(|&n, &d| if d > 1e-6 { n / d } else { 0.0 })
+}
+
+/// Convolves with `kernel` along x then y, treating pixels outside the image as zero.
+pub(crate) fn separable(img: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
+    let (h, w) = img.dim();
+    let r = (kernel.len() / 2) as isize;
+    let mut tmp = Array2::<f32>::zeros((h, w));
+    for y in 0..h {
+        for x in 0..w {
+            let mut s = 0.0;
+            for (k, &kv) in kernel.iter().enumerate() {
+                let xx = x as isize + k as isize - r;
+                if xx >= 0 && (xx as usize) < w {
+                    s += kv * img[[y, xx as usize]];
+                }
+            }
+            tmp[[y, x]] = s;
+        }
+    }
+    let mut out = Array2::<f32>::zeros((h, w));
+    for y in 0..h {
+        for (k, &kv) in kernel.iter().enumerate() {
+            let yy = y as isize + k as isize - r;
+            if yy >= 0 && (yy as usize) < h {
+                let src = tmp.row(yy as usize);
+                let mut dst = out.row_mut(y);
+                dst.zip_mut_with(&src, |d, &s| *d += kv * s);
+            }
+        }
+    }
+    out
+}

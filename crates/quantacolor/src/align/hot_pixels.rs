@@ -1,0 +1,200 @@
+//! Hot-pixel correction and dark-count calibration (supplement §1.4, Fig. 2; paper Fig. 5).
+//!
+//! A hot pixel fires far more often than its neighbours even in the dark. Left alone, hot pixels
+//! form a static pattern that every block image shares, so block matching is pulled toward zero
+//! motion (paper Fig. 5). Following supplement §1.4, each hot pixel takes, in every binary frame,
+//! the bit of one of its `k` nearest non-hot neighbours behind the same colour filter, drawn at
+//! random. The draw is a function of `(seed, pixel, frame)` only, so block sums do not depend on
+//! block boundaries or thread count.
+
+use crate::capture::BinaryFrames;
+use crate::cfa::Cfa;
+use crate::error::{Error, Result};
+use ndarray::Array2;
+use rand::{RngCore, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+
+/// Settings of hot-pixel correction.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct HotPixelConfig {
+    /// Number of nearest same-colour, non-hot pixels a hot pixel draws from (default 8).
+    ///
+    /// Eight is the ring of nearest sites on any regular colour lattice (the 8-neighbourhood
+    /// on the sub-lattice of one colour), so replacements stay within about one lattice spacing
+    /// while drawing from enough pixels that the replacement is not a copy of a single neighbour
+    /// (a copied neighbour would duplicate its noise and texture at a fixed offset).
+    pub k: usize,
+    /// Seed of the per-(pixel, frame) draws.
+    pub seed: u64,
+}
+
+impl Default for HotPixelConfig {
+    fn default() -> Self {
+        HotPixelConfig { k: 8, seed: 0 }
+    }
+}
+
+/// Precomputed replacement candidates of every hot pixel.
+#[derive(Debug, Clone)]
+pub struct HotPixelCorrector {
+    height: usize,
+    width: usize,
+    seed: u64,
+    /// Flat pixel index `y * W + x` of each hot pixel.
+    hot: Vec<usize>,
+    /// For each hot pixel, its candidates' `(y, x)`, nearest first.
+    candidates: Vec<Vec<(u32, u32)>>,
+}
+
+impl HotPixelCorrector {
+    /// Finds, for each pixel set in `mask` (`(H, W)`, same shape as `cfa`), its `k` nearest
+    /// (Euclidean) non-hot pixels behind the same colour filter; ties break in row-major order.
+    /// Fewer than `k` are kept when the sensor has fewer. Errors when shapes differ, `k` is 0, or
+    /// a hot pixel has no usable same-colour pixel at all.
+    pub fn new(cfa: &Cfa, mask: &Array2<bool>, k: usize, seed: u64) -> Result<Self> {
+        let (h, w) = (cfa.height(), cfa.width());
+        if mask.dim() != (h, w) {
+            return Err(Error::invalid(format!(
+                "hot-pixel mask is {:?}, the CFA is ({h}, {w})",
+                mask.dim()
+            )));
+        }
+        if k == 0 {
+            return Err(Error::invalid(
+                "hot-pixel neighbour count k must be at least 1",
+            ));
+        }
+        let hot: Vec<usize> = mask
+            .indexed_iter()
+            .filter(|(_, &m)| m)
+            .map(|((y, x), _)| y * w + x)
+            .collect();
+        let codes = cfa.codes();
+        let candidates = hot
+            .par_iter()
+            .map(|&idx| {
+                let (y0, x0) = ((idx / w) as isize, (idx % w) as isize);
+                let code = codes[[y0 as usize, x0 as usize]];
+                let max_r = h.max(w) as isize;
+                let mut r: isize = 2;
+                loop {
+                    // Every pixel within Euclidean distance r lies in this square.
+                    let mut found: Vec<(isize, usize, usize)> = Vec::new();
+                    for y in (y0 - r).max(0)..=(y0 + r).min(h as isize - 1) {
+                        for x in (x0 - r).max(0)..=(x0 + r).min(w as isize - 1) {
+                            let (yu, xu) = (y as usize, x as usize);
+                            if codes[[yu, xu]] == code && !mask[[yu, xu]] {
+                                let d2 = (y - y0).pow(2) + (x - x0).pow(2);
+                                found.push((d2, yu, xu));
+                            }
+                        }
+                    }
+                    found.sort_unstable();
+                    let complete = found.len() >= k && found[k - 1].0 <= r * r;
+                    if complete || r >= max_r {
+                        found.truncate(k);
+                        return found
+                            .into_iter()
+                            .map(|(_, y, x)| (y as u32, x as u32))
+                            .collect::<Vec<_>>();
+                    }
+                    r *= 2;
+                }
+            })
+            .collect::<Vec<_>>();
+        if let Some(i) = candidates.iter().position(|c| c.is_empty()) {
+            let (y, x) = (hot[i] / w, hot[i] % w);
+            return Err(Error::invalid(format!(
+                "hot pixel (y={y}, x={x}) has no non-hot pixel of the same colour to borrow from"
+            )));
+        }
+        Ok(HotPixelCorrector {
+            height: h,
+            width: w,
+            seed,
+            hot,
+            candidates,
+        })
+    }
+
+    /// Number of hot pixels.
+    pub fn hot_count(&self) -> usize {
+        self.hot.len()
+    }
+
+    /// The replacement candidates of hot pixel `(y, x)`, nearest first (`None` if not hot).
+    pub fn candidates(&self, y: usize, x: usize) -> Option<&[(u32, u32)]> {
+        let idx = y * self.width + x;
+        self.hot
+            .binary_search(&idx)
+            .ok()
+            .map(|i| self.candidates[i].as_slice())
+    }
+
+    /// Per-pixel count of ones over `range` (`(H, W)`), with each hot pixel's bit in frame `t`
+    /// replaced by the bit of candidate number `draw(seed, pixel, t) mod k` (supplement §1.4).
+    pub fn corrected_block_sum(&self, frames: &BinaryFrames, range: Range<usize>) -> Array2<u32> {
+        assert_eq!(
+            (frames.height(), frames.width()),
+            (self.height, self.width),
+            "frames and hot-pixel corrector disagree in size"
+        );
+        let mut sums = frames.sum_range(range.clone());
+        let replaced: Vec<u32> = self
+            .hot
+            .par_iter()
+            .zip(self.candidates.par_iter())
+            .map(|(&idx, cands)| {
+                let mut rng = self.stream(idx, range.start);
+                let n = cands.len() as u64;
+                let mut count = 0u32;
+                for t in range.clone() {
+                    let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
+                    let (y, x) = cands[pick];
+                    count += frames.bit(t, y as usize, x as usize) as u32;
+                }
+                count
+            })
+            .collect();
+        for (&idx, &c) in self.hot.iter().zip(&replaced) {
+            sums[[idx / self.width, idx % self.width]] = c;
+        }
+        sums
+    }
+
+    /// The random stream of pixel `idx`, positioned so that its next 32-bit word is the draw of
+    /// frame `t`: word `t` of ChaCha8 stream `idx` under the corrector's seed.
+    fn stream(&self, idx: usize, t: usize) -> ChaCha8Rng {
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
+        rng.set_stream(idx as u64);
+        rng.set_word_pos(t as u128);
+        rng
+    }
+}
+
+/// Dark-count rate of every pixel (counts per second, `(H, W)`) from frames captured in the dark:
+/// the Bernoulli maximum-likelihood estimate λ = −ln(1 − k/T) / τ (paper Eq. 6 with no light),
+/// where `k` is the pixel's count over all T frames and τ = `exposure_s` the exposure of one
+/// binary frame in seconds. A pixel that fired in every frame gets the rate of k = T − ½.
+pub fn dark_count_rate_map(frames: &BinaryFrames, exposure_s: f64) -> Result<Array2<f32>> {
+    if exposure_s.is_nan() || exposure_s <= 0.0 || exposure_s.is_infinite() {
+        return Err(Error::invalid(format!(
+            "binary-frame exposure must be a positive number of seconds, got {exposure_s}"
+        )));
+    }
+    let t = frames.frame_count() as f64;
+    let sums = frames.sum_range(0..frames.frame_count());
+    Ok(sums.mapv(|k| {
+        let p = (k as f64).min(t - 0.5) / t;
+        (-(-p).ln_1p() / exposure_s) as f32
+    }))
+}
+
+/// Pixels whose dark-count rate exceeds `threshold_cps` (counts per second).
+pub fn hot_pixel_mask(rate_map: &Array2<f32>, threshold_cps: f32) -> Array2<bool> {
+    rate_map.mapv(|r| r > threshold_cps)
+}

@@ -1,0 +1,208 @@
+//! Alignment: from binary frames to block-level and frame-level motion (paper §4.1 and §4.3;
+//! supplement §1.1 and §1.4; method of Quanta Burst Photography, Ma et al. 2020 §4).
+//!
+//! Stages, each callable on its own:
+//! 1. [`hot_pixels`]: hot-pixel correction by random same-colour neighbours, dark-count map.
+//! 2. [`blocks`]: temporal blocks of 100–1000 frames and the reference block.
+//! 3. [`grey`]: grey block images (W interpolation, tile average or demosaic, by CFA class).
+//! 4. [`patch`]: hierarchical tile alignment of each grey block image to the reference's.
+//! 5. [`motion`]: frame-level flow by interpolation in time, per-pixel flow in space.
+//!
+//! [`align`] runs them in order with memory bounded in T: block sums are made one block at a
+//! time (a few in parallel) and only the grey images, `(H, W)` f32 per block, are kept.
+
+pub mod blocks;
+pub mod grey;
+pub mod hot_pixels;
+pub mod motion;
+pub mod patch;
+
+pub use blocks::{BlockConfig, BlockPlan};
+pub use grey::{grey_image, GreyChoice, GreyMethod};
+pub use hot_pixels::{dark_count_rate_map, hot_pixel_mask, HotPixelConfig, HotPixelCorrector};
+pub use motion::{flow_at, frame_flow};
+pub use patch::{Norm, PatchConfig, ReferenceAligner, TileGrid};
+
+use crate::capture::BinaryFrames;
+use crate::cfa::Cfa;
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use ndarray::{s, Array2, Array3, Array4};
+use ndarray_npy::WriteNpyExt;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::Path;
+
+/// Block-level flow `(n_blocks, tiles_y, tiles_x, 2)` of `(dy, dx)` in pixels: a scene point at
+/// `p` in the reference frame is at `p + flow` in the block's centre frame.
+pub type Flow = Array4<f32>;
+
+/// Settings of the whole alignment stage.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default)]
+pub struct AlignConfig {
+    /// Hot-pixel correction (used when a hot-pixel mask is given).
+    pub hot_pixels: HotPixelConfig,
+    /// Block size.
+    pub blocks: BlockConfig,
+    /// Grey-image method.
+    pub grey: GreyChoice,
+    /// Hierarchical patch alignment.
+    pub patch: PatchConfig,
+}
+
+/// Result of [`align`].
+#[derive(Debug, Clone)]
+pub struct Alignment {
+    /// The blocks.
+    pub plan: BlockPlan,
+    /// The tile grid of the flow (finest level, reference-frame pixel coordinates).
+    pub grid: TileGrid,
+    /// Block-level flow.
+    pub flow: Flow,
+    /// How grey images were made.
+    pub grey_method: GreyMethod,
+    /// Grey image of every block, `(n_blocks, H, W)`, mean detections per frame (not smoothed;
+    /// hot pixels corrected when a mask was given). The reference image stage warps these.
+    pub grey: Array3<f32>,
+}
+
+impl Alignment {
+    /// Flow of frame `t`, `(tiles_y, tiles_x, 2)` (see [`frame_flow`]).
+    pub fn frame_flow(&self, t: usize) -> Array3<f32> {
+        frame_flow(&self.flow, &self.plan, t as f64)
+    }
+}
+
+/// Aligns a burst: plans blocks around `reference_frame`, makes every block's (hot-pixel
+/// corrected) sum and grey image, and aligns each grey image to the reference block's.
+pub fn align(
+    frames: &BinaryFrames,
+    cfa: &Cfa,
+    hot: Option<&Array2<bool>>,
+    reference_frame: usize,
+    config: &AlignConfig,
+    progress: &dyn Progress,
+) -> Result<Alignment> {
+    let (h, w) = (frames.height(), frames.width());
+    if (cfa.height(), cfa.width()) != (h, w) {
+        return Err(Error::invalid(format!(
+            "frames are {h}x{w} but the CFA is {}x{}",
+            cfa.height(),
+            cfa.width()
+        )));
+    }
+    config.patch.validate()?;
+    let plan = BlockPlan::choose(frames, reference_frame, &config.blocks)?;
+    let grey_method = GreyMethod::resolve(config.grey, cfa)?;
+    let corrector = hot
+        .map(|m| HotPixelCorrector::new(cfa, m, config.hot_pixels.k, config.hot_pixels.seed))
+        .transpose()?;
+
+    progress.start("block sums", plan.len() as u64);
+    let mut grey = Array3::<f32>::zeros((plan.len(), h, w));
+    grey.outer_iter_mut()
+        .into_par_iter()
+        .zip(plan.blocks.par_iter())
+        .with_max_len(1)
+        .for_each(|(mut out, range)| {
+            let sums = match &corrector {
+                Some(c) => c.corrected_block_sum(frames, range.clone()),
+                None => frames.sum_range(range.clone()),
+            };
+            out.assign(&grey_image(&sums, range.len(), cfa, grey_method));
+            progress.advance(1);
+        });
+    progress.finish();
+
+    let aligner = ReferenceAligner::new(
+        &grey.slice(s![plan.reference_block, .., ..]).to_owned(),
+        &config.patch,
+    )?;
+    let grid = aligner.grid().clone();
+    let mut flow = Flow::zeros((plan.len(), grid.tiles_y, grid.tiles_x, 2));
+    progress.start("patch alignment", plan.len() as u64);
+    for b in 0..plan.len() {
+        if b != plan.reference_block {
+            let f = aligner.align(&grey.slice(s![b, .., ..]).to_owned())?;
+            flow.slice_mut(s![b, .., .., ..]).assign(&f);
+        }
+        progress.advance(1);
+    }
+    progress.finish();
+    Ok(Alignment {
+        plan,
+        grid,
+        flow,
+        grey_method,
+        grey,
+    })
+}
+
+/// What `flow.toml` holds beside `flow.npy`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FlowMeta {
+    /// Nominal block size, frames.
+    pub block_size: usize,
+    /// First frame of each block.
+    pub block_start_frames: Vec<usize>,
+    /// Centre frame of each block.
+    pub block_center_frames: Vec<f64>,
+    /// Tile side, px.
+    pub tile_size: usize,
+    /// Tile stride, px.
+    pub tile_stride: usize,
+    /// Tile centre rows, px (reference frame).
+    pub tile_centers_y: Vec<f32>,
+    /// Tile centre columns, px.
+    pub tile_centers_x: Vec<f32>,
+}
+
+/// Writes `flow.npy` (float32 `(n_blocks, tiles_y, tiles_x, 2)`) and `flow.toml` (see
+/// [`FlowMeta`]) into `dir` (created if missing), each through a temporary file renamed into
+/// place, so readers never see a half-written file.
+pub fn write_alignment(dir: impl AsRef<Path>, alignment: &Alignment) -> Result<()> {
+    let dir = dir.as_ref();
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let meta = FlowMeta {
+        block_size: alignment.plan.block_size,
+        block_start_frames: alignment.plan.start_frames(),
+        block_center_frames: alignment.plan.center_frames(),
+        tile_size: alignment.grid.tile_size,
+        tile_stride: alignment.grid.tile_stride,
+        tile_centers_y: alignment.grid.tile_centers_y.clone(),
+        tile_centers_x: alignment.grid.tile_centers_x.clone(),
+    };
+    let text = toml::to_string(&meta)
+        .map_err(|e| Error::invalid(format!("cannot serialise flow metadata: {e}")))?;
+    write_atomic(&dir.join("flow.npy"), |f| {
+        alignment
+            .flow
+            .as_standard_layout()
+            .write_npy(f)
+            .map_err(|e| std::io::Error::other(e.to_string()))
+    })?;
+    write_atomic(&dir.join("flow.toml"), |f| f.write_all(text.as_bytes()))
+}
+
+fn write_atomic(
+    path: &Path,
+    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
+) -> Result<()> {
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
+    let tmp = path.with_file_name(format!(".{name}.tmp"));
+    let result = (|| {
+        let file = std::fs::File::create(&tmp)?;
+        let mut buf = std::io::BufWriter::new(file);
+        write(&mut buf)?;
+        buf.flush()?;
+        buf.get_ref().sync_all()?;
+        Ok(())
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(Error::io(path, e));
+    }
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+}

@@ -1,0 +1,500 @@
+//! Hierarchical tile alignment of grey block images (paper §4.1; Ma et al. 2020 §4; the HDR+
+//! coarse-to-fine scheme of Hasinoff et al. 2016 §4).
+//!
+//! Each block image is aligned to the reference block image tile by tile: an image pyramid by
+//! box aggregation, an exhaustive L1/L2 search in a small window on every level seeded by three
+//! candidates from the coarser level, and Lucas–Kanade iterations on the finest level for
+//! sub-pixel accuracy. The result for a tile is the displacement `(dy, dx)` such that the
+//! scene point at `p` in the reference image is at `p + (dy, dx)` in the block image.
+
+use super::grey::separable;
+use crate::error::{Error, Result};
+use ndarray::{Array2, Array3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Patch distance used by the integer search on one pyramid level.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Norm {
+    /// Sum of absolute differences: robust to the few outliers of fine, noisy levels.
+    L1,
+    /// Sum of squared differences: smoother cost on the coarse, averaged levels.
+    L2,
+}
+
+/// Settings of the hierarchical patch alignment. Level 0 is the finest (the grey image itself);
+/// the vectors are indexed by level and must have equal lengths.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct PatchConfig {
+    /// Box-aggregation factor of each level relative to the previous one (level 0: 1).
+    pub downsample_factors: Vec<usize>,
+    /// Tile size of each level, px of that level; tiles overlap by half (stride = size / 2).
+    pub tile_sizes: Vec<usize>,
+    /// Search radius of each level, px of that level: offsets in [−r, r]² around the seed.
+    pub search_radii: Vec<usize>,
+    /// Patch distance of each level.
+    pub norms: Vec<Norm>,
+    /// Lucas–Kanade iterations on level 0 (0 keeps integer offsets).
+    pub lk_iterations: usize,
+    /// Gaussian σ (px) smoothing the grey images before the pyramid is built; reduces the
+    /// photon noise of low-light blocks in the gradients Lucas–Kanade uses (0 disables).
+    pub presmooth_sigma: f32,
+}
+
+impl Default for PatchConfig {
+    fn default() -> Self {
+        // HDR+ / QBP 2020 style: factors [1, 2, 4, 4] (total 32), 16 px tiles on the finest level
+        // and 8 px on the coarse ones, radii growing toward the coarse levels (±297 px in all).
+        PatchConfig {
+            downsample_factors: vec![1, 2, 4, 4],
+            tile_sizes: vec![16, 8, 8, 8],
+            search_radii: vec![1, 4, 4, 8],
+            norms: vec![Norm::L1, Norm::L2, Norm::L2, Norm::L2],
+            lk_iterations: 5,
+            presmooth_sigma: 1.0,
+        }
+    }
+}
+
+impl PatchConfig {
+    /// Checks that the per-level vectors agree and hold usable values.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.downsample_factors.len();
+        if n == 0 {
+            return Err(Error::invalid(
+                "patch alignment needs at least one pyramid level",
+            ));
+        }
+        if self.tile_sizes.len() != n || self.search_radii.len() != n || self.norms.len() != n {
+            return Err(Error::invalid(format!(
+                "pyramid settings disagree in length: {} factors, {} tile sizes, {} radii, {} norms",
+                n,
+                self.tile_sizes.len(),
+                self.search_radii.len(),
+                self.norms.len()
+            )));
+        }
+        if self.downsample_factors.contains(&0) {
+            return Err(Error::invalid("downsample factors must be at least 1"));
+        }
+        if self.tile_sizes.iter().any(|&t| t < 2) {
+            return Err(Error::invalid("tile sizes must be at least 2 px"));
+        }
+        if self.presmooth_sigma.is_nan() || self.presmooth_sigma < 0.0 {
+            return Err(Error::invalid("presmooth sigma must be >= 0"));
+        }
+        Ok(())
+    }
+}
+
+/// A regular grid of square tiles overlapping by `tile_size - tile_stride`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TileGrid {
+    /// Tile side, px.
+    pub tile_size: usize,
+    /// Distance between tile origins, px.
+    pub tile_stride: usize,
+    /// Number of tile rows.
+    pub tiles_y: usize,
+    /// Number of tile columns.
+    pub tiles_x: usize,
+    /// Centre row of each tile row, px (`i · stride + (size − 1) / 2`).
+    pub tile_centers_y: Vec<f32>,
+    /// Centre column of each tile column, px.
+    pub tile_centers_x: Vec<f32>,
+}
+
+impl TileGrid {
+    /// Tiles covering an `height` x `width` image: `ceil((H − size) / stride) + 1` rows (at least
+    /// one), the last tiles reaching past the image where the size does not divide evenly.
+    pub fn new(height: usize, width: usize, tile_size: usize, tile_stride: usize) -> TileGrid {
+        let count = |n: usize| {
+            if n <= tile_size {
+                1
+            } else {
+                (n - tile_size).div_ceil(tile_stride) + 1
+            }
+        };
+        let (ty, tx) = (count(height), count(width));
+        let centre = |i: usize| (i * tile_stride) as f32 + (tile_size as f32 - 1.0) / 2.0;
+        TileGrid {
+            tile_size,
+            tile_stride,
+            tiles_y: ty,
+            tiles_x: tx,
+            tile_centers_y: (0..ty).map(centre).collect(),
+            tile_centers_x: (0..tx).map(centre).collect(),
+        }
+    }
+}
+
+/// Image pyramid: level 0 the (smoothed) grey image, each next level a box aggregate (mean).
+#[derive(Debug, Clone)]
+pub struct Pyramid {
+    /// Levels, finest first.
+    pub levels: Vec<Array2<f32>>,
+}
+
+impl Pyramid {
+    /// Builds the pyramid of `grey` per `config` (factors and pre-smoothing).
+    pub fn new(grey: &Array2<f32>, config: &PatchConfig) -> Pyramid {
+        let base = if config.presmooth_sigma > 0.0 {
+            gaussian_blur(grey, config.presmooth_sigma)
+        } else {
+            grey.clone()
+        };
+        let mut levels = Vec::with_capacity(config.downsample_factors.len());
+        let mut current = base;
+        for &f in &config.downsample_factors {
+            current = box_downsample(&current, f);
+            levels.push(current.clone());
+        }
+        Pyramid { levels }
+    }
+}
+
+/// Gaussian blur with σ px (radius 3σ), normalised near borders so edges do not darken.
+pub fn gaussian_blur(img: &Array2<f32>, sigma: f32) -> Array2<f32> {
+    let radius = (3.0 * sigma).ceil().max(1.0) as usize;
+    let kernel: Vec<f32> = (0..=2 * radius)
+        .map(|i| {
+            let d = i as f32 - radius as f32;
+            (-0.5 * d * d / (sigma * sigma)).exp()
+        })
+        .collect();
+    let num = separable(img, &kernel);
+    let den = separable(&Array2::from_elem(img.dim(), 1.0), &kernel);
+    num / den
+}
+
+/// Mean over `f` x `f` cells (partial cells at the far edges average what they hold).
+pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
+    if f == 1 {
+        return img.clone();
+    }
+    let (h, w) = img.dim();
+    let (oh, ow) = (h.div_ceil(f), w.div_ceil(f));
+    Array2::from_shape_fn((oh, ow), |(y, x)| {
+        let (y1, x1) = (((y + 1) * f).min(h), ((x + 1) * f).min(w));
+        let mut s = 0.0;
+        for yy in y * f..y1 {
+            for xx in x * f..x1 {
+                s += img[[yy, xx]];
+            }
+        }
+        s / ((y1 - y * f) * (x1 - x * f)) as f32
+    })
+}
+
+/// Mean patch distance between the reference tile at origin `(oy, ox)` (clipped to the image)
+/// and the alternate image displaced by `(dy, dx)`, over the tile pixels whose displaced
+/// position lies inside the image; infinite when fewer than a quarter of the tile's pixels
+/// overlap, so that no offset wins by comparing against padding.
+fn tile_cost(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    (oy, ox): (usize, usize),
+    ts: usize,
+    (dy, dx): (isize, isize),
+    norm: Norm,
+) -> f32 {
+    let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
+    let (oy, ox) = (oy as isize, ox as isize);
+    let ts = ts as isize;
+    // Rows/columns of the tile inside the image, then those whose displaced position is too.
+    let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
+    let (x0, x1) = (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
+    if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
+        return f32::INFINITY;
+    }
+    let rs = reference.as_slice().expect("standard layout");
+    let as_ = alternate.as_slice().expect("standard layout");
+    let mut cost = 0.0f32;
+    for y in y0..y1 {
+        let r0 = (y * w + x0) as usize;
+        let a0 = ((y + dy) * w + x0 + dx) as usize;
+        let n = (x1 - x0) as usize;
+        let pairs = rs[r0..r0 + n].iter().zip(&as_[a0..a0 + n]);
+        cost += match norm {
+            Norm::L1 => pairs.map(|(r, a)| (r - a).abs()).sum::<f32>(),
+            Norm::L2 => pairs.map(|(r, a)| (r - a) * (r - a)).sum::<f32>(),
+        };
+    }
+    cost / ((y1 - y0) * (x1 - x0)) as f32
+}
+
+/// Bilinear sample of `img` at `(y, x)` with clamping.
+#[inline]
+fn bilinear(img: &Array2<f32>, y: f32, x: f32) -> f32 {
+    let (h, w) = img.dim();
+    let y = y.clamp(0.0, (h - 1) as f32);
+    let x = x.clamp(0.0, (w - 1) as f32);
+    let (y0, x0) = (y.floor() as usize, x.floor() as usize);
+    let (y1, x1) = ((y0 + 1).min(h - 1), (x0 + 1).min(w - 1));
+    let (fy, fx) = (y - y0 as f32, x - x0 as f32);
+    let top = img[[y0, x0]] * (1.0 - fx) + img[[y0, x1]] * fx;
+    let bottom = img[[y1, x0]] * (1.0 - fx) + img[[y1, x1]] * fx;
+    top * (1.0 - fy) + bottom * fy
+}
+
+/// Reference-side data of a Lucas–Kanade tile: gradients and the inverse of the 2x2 normal
+/// matrix (inverse-compositional style: computed once, reused for every block).
+#[derive(Debug, Clone)]
+struct LkTile {
+    grad: Vec<(f32, f32)>,
+    inv: Option<[f32; 3]>, // (a, b, c) of the symmetric inverse [[a, b], [b, c]]
+}
+
+/// The reference block's pyramid, tile grids and Lucas–Kanade data, shared by all blocks.
+#[derive(Debug, Clone)]
+pub struct ReferenceAligner {
+    config: PatchConfig,
+    pyramid: Pyramid,
+    grids: Vec<TileGrid>,
+    lk: Vec<LkTile>,
+}
+
+impl ReferenceAligner {
+    /// Prepares alignment against the reference grey image `reference` (`(H, W)`).
+    pub fn new(reference: &Array2<f32>, config: &PatchConfig) -> Result<Self> {
+        config.validate()?;
+        if reference.is_empty() {
+            return Err(Error::invalid("reference image is empty"));
+        }
+        let reference = reference.as_standard_layout().to_owned();
+        let mut pyramid = Pyramid::new(&reference, config);
+        // Levels smaller than their tile carry no usable patch: coarse-to-fine starts below them.
+        let usable = (1..pyramid.levels.len())
+            .find(|&l| {
+                let (h, w) = pyramid.levels[l].dim();
+                h < config.tile_sizes[l] || w < config.tile_sizes[l]
+            })
+            .unwrap_or(pyramid.levels.len());
+        pyramid.levels.truncate(usable);
+        let grids: Vec<TileGrid> = pyramid
+            .levels
+            .iter()
+            .zip(&config.tile_sizes)
+            .map(|(img, &ts)| TileGrid::new(img.nrows(), img.ncols(), ts, (ts / 2).max(1)))
+            .collect();
+        let fine = &pyramid.levels[0];
+        let g0 = &grids[0];
+        let lk = (0..g0.tiles_y * g0.tiles_x)
+            .into_par_iter()
+            .map(|k| {
+                let (oy, ox) = (
+                    (k / g0.tiles_x) * g0.tile_stride,
+                    (k % g0.tiles_x) * g0.tile_stride,
+                );
+                lk_tile(fine, oy, ox, g0.tile_size)
+            })
+            .collect();
+        Ok(ReferenceAligner {
+            config: config.clone(),
+            pyramid,
+            grids,
+            lk,
+        })
+    }
+
+    /// Tile grid of the finest level (the grid of the output flow).
+    pub fn grid(&self) -> &TileGrid {
+        &self.grids[0]
+    }
+
+    /// Image size `(H, W)` of the finest level.
+    pub fn dim(&self) -> (usize, usize) {
+        self.pyramid.levels[0].dim()
+    }
+
+    /// Flow `(tiles_y, tiles_x, 2)` of `(dy, dx)` from the reference to the grey image `block`.
+    pub fn align(&self, block: &Array2<f32>) -> Result<Array3<f32>> {
+        if block.dim() != self.dim() {
+            return Err(Error::invalid(format!(
+                "block image is {:?}, the reference is {:?}",
+                block.dim(),
+                self.dim()
+            )));
+        }
+        let block = block.as_standard_layout().to_owned();
+        let mut alt = Pyramid::new(&block, &self.config);
+        let n_levels = self.grids.len();
+        alt.levels.truncate(n_levels);
+        // Offsets of the coarser level, in that level's pixels.
+        let mut coarse: Option<Array3<f32>> = None;
+        for level in (0..n_levels).rev() {
+            let grid = &self.grids[level];
+            let r_img = &self.pyramid.levels[level];
+            let a_img = &alt.levels[level];
+            let norm = self.config.norms[level];
+            let radius = self.config.search_radii[level] as isize;
+            let ts = grid.tile_size;
+            let parent = coarse.as_ref().map(|c| {
+                (
+                    c,
+                    &self.grids[level + 1],
+                    self.config.downsample_factors[level + 1] as f32,
+                )
+            });
+            let offsets: Vec<(f32, f32)> = (0..grid.tiles_y * grid.tiles_x)
+                .into_par_iter()
+                .map(|k| {
+                    let (i, j) = (k / grid.tiles_x, k % grid.tiles_x);
+                    let origin = (i * grid.tile_stride, j * grid.tile_stride);
+                    let seeds = match parent {
+                        None => vec![(0.0, 0.0)],
+                        Some((c, pgrid, f)) => parent_candidates(
+                            c,
+                            pgrid,
+                            f,
+                            grid.tile_centers_y[i],
+                            grid.tile_centers_x[j],
+                        ),
+                    };
+                    let cost = |d: (isize, isize)| tile_cost(r_img, a_img, origin, ts, d, norm);
+                    let seed = seeds
+                        .iter()
+                        .map(|&(dy, dx)| (dy.round() as isize, dx.round() as isize))
+                        .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
+                        .expect("at least one seed");
+                    let mut best = (f32::INFINITY, seed);
+                    for dy in -radius..=radius {
+                        for dx in -radius..=radius {
+                            let d = (seed.0 + dy, seed.1 + dx);
+                            let c = cost(d);
+                            // Ties go to the smaller displacement.
+                            let closer =
+                                (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
+                            if c < best.0 || (c == best.0 && closer) {
+                                best = (c, d);
+                            }
+                        }
+                    }
+                    let mut flow = (best.1 .0 as f32, best.1 .1 as f32);
+                    if level == 0 {
+                        flow = self.refine(k, a_img, origin, flow);
+                    }
+                    flow
+                })
+                .collect();
+            let mut arr = Array3::<f32>::zeros((grid.tiles_y, grid.tiles_x, 2));
+            for (k, (dy, dx)) in offsets.into_iter().enumerate() {
+                arr[[k / grid.tiles_x, k % grid.tiles_x, 0]] = dy;
+                arr[[k / grid.tiles_x, k % grid.tiles_x, 1]] = dx;
+            }
+            coarse = Some(arr);
+        }
+        Ok(coarse.expect("at least one level"))
+    }
+
+    /// Lucas–Kanade refinement of tile `k` from the integer offset `start`: minimises
+    /// Σ (alt(p + u) − ref(p))² by Gauss–Newton steps with the reference gradients; keeps
+    /// `start` when the tile lacks texture in some direction or the steps leave ±1 px.
+    fn refine(
+        &self,
+        k: usize,
+        alt: &Array2<f32>,
+        (oy, ox): (usize, usize),
+        start: (f32, f32),
+    ) -> (f32, f32) {
+        let tile = &self.lk[k];
+        let Some([a, b, c]) = tile.inv else {
+            return start;
+        };
+        let reference = &self.pyramid.levels[0];
+        let (h, w) = reference.dim();
+        let ts = self.grids[0].tile_size;
+        let mut u = start;
+        for _ in 0..self.config.lk_iterations {
+            let (mut by, mut bx) = (0.0f32, 0.0f32);
+            let mut n = 0;
+            for y in oy..(oy + ts).min(h) {
+                for x in ox..(ox + ts).min(w) {
+                    let e = bilinear(alt, y as f32 + u.0, x as f32 + u.1) - reference[[y, x]];
+                    let (gy, gx) = tile.grad[n];
+                    by += gy * e;
+                    bx += gx * e;
+                    n += 1;
+                }
+            }
+            let step = (-(a * by + b * bx), -(b * by + c * bx));
+            u = (u.0 + step.0, u.1 + step.1);
+            if (u.0 - start.0).abs() > 1.0 || (u.1 - start.1).abs() > 1.0 {
+                return start;
+            }
+            if step.0.abs() < 1e-3 && step.1.abs() < 1e-3 {
+                break;
+            }
+        }
+        u
+    }
+}
+
+/// Gradients (central differences, one-sided at borders) and inverse normal matrix of the
+/// reference tile at `(oy, ox)`; no inverse when the smaller eigenvalue is under 1e-3 of the
+/// larger (an edge or flat tile, where sub-pixel motion is not determined in 2-D).
+fn lk_tile(img: &Array2<f32>, oy: usize, ox: usize, ts: usize) -> LkTile {
+    let (h, w) = img.dim();
+    let mut grad = Vec::with_capacity(ts * ts);
+    let (mut syy, mut syx, mut sxx) = (0.0f64, 0.0f64, 0.0f64);
+    for y in oy..(oy + ts).min(h) {
+        for x in ox..(ox + ts).min(w) {
+            let (ym, yp) = (y.saturating_sub(1), (y + 1).min(h - 1));
+            let (xm, xp) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            let gy = if yp > ym {
+                (img[[yp, x]] - img[[ym, x]]) / (yp - ym) as f32
+            } else {
+                0.0
+            };
+            let gx = if xp > xm {
+                (img[[y, xp]] - img[[y, xm]]) / (xp - xm) as f32
+            } else {
+                0.0
+            };
+            grad.push((gy, gx));
+            syy += (gy * gy) as f64;
+            syx += (gy * gx) as f64;
+            sxx += (gx * gx) as f64;
+        }
+    }
+    let det = syy * sxx - syx * syx;
+    let tr = syy + sxx;
+    let disc = ((syy - sxx).powi(2) + 4.0 * syx * syx).sqrt();
+    let (l_max, l_min) = ((tr + disc) / 2.0, (tr - disc) / 2.0);
+    let inv = (l_max > 0.0 && l_min > 1e-3 * l_max && det > 0.0)
+        .then(|| [(sxx / det) as f32, (-syx / det) as f32, (syy / det) as f32]);
+    LkTile { grad, inv }
+}
+
+/// The seeds from the coarser level for a tile centred at `(cy, cx)` (this level's px): the
+/// nearest parent tile and its neighbours toward the tile in y and in x, each offset scaled by
+/// the factor `f` between the levels (Hasinoff et al. 2016 §4.1), plus zero motion.
+fn parent_candidates(
+    coarse: &Array3<f32>,
+    pgrid: &TileGrid,
+    f: f32,
+    cy: f32,
+    cx: f32,
+) -> Vec<(f32, f32)> {
+    // Position in parent tile-index units.
+    let index = |c: f32, centers: &[f32], stride: usize| {
+        let pc = (c + 0.5) / f - 0.5;
+        let t = (pc - centers[0]) / stride as f32;
+        let n = centers.len() as isize;
+        let near = (t.round() as isize).clamp(0, n - 1);
+        let other = if t > near as f32 { near + 1 } else { near - 1 };
+        (near as usize, other.clamp(0, n - 1) as usize)
+    };
+    let (iy, oy) = index(cy, &pgrid.tile_centers_y, pgrid.tile_stride);
+    let (ix, ox) = index(cx, &pgrid.tile_centers_x, pgrid.tile_stride);
+    let mut seeds: Vec<(f32, f32)> = [(iy, ix), (oy, ix), (iy, ox)]
+        .iter()
+        .map(|&(a, b)| (coarse[[a, b, 0]] * f, coarse[[a, b, 1]] * f))
+        .collect();
+    // Zero motion as a fourth seed: a coarse level that is ambiguous (aperture problem on a
+    // heavily averaged, nearly one-directional texture) cannot then drag a tile far away.
+    seeds.push((0.0, 0.0));
+    seeds
+}
