@@ -1,5 +1,6 @@
 //! `quantacolor`: command-line interface to the quantacolor library.
 
+mod cmd_align;
 mod cmd_eval;
 mod cmd_reconstruct;
 mod output;
@@ -23,6 +24,10 @@ enum Command {
     Reconstruct(cmd_reconstruct::ReconstructArgs),
     /// PSNR and SSIM of an estimate against ground truth (scikit-image conventions).
     Eval(cmd_eval::EvalArgs),
+    /// Align the binary frames to the reference frame; writes flow.npy and flow.toml.
+    Align(cmd_align::AlignArgs),
+    /// Per-pixel dark count rates and a hot-pixel mask from a dark capture.
+    CalibrateDcr(cmd_align::CalibrateDcrArgs),
 }
 
 fn main() -> ExitCode {
@@ -31,6 +36,8 @@ fn main() -> ExitCode {
     let result = match &cli.command {
         Command::Reconstruct(args) => cmd_reconstruct::run(args, &progress),
         Command::Eval(args) => cmd_eval::run(args),
+        Command::Align(args) => cmd_align::run_align(args, &progress),
+        Command::CalibrateDcr(args) => cmd_align::run_calibrate_dcr(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
