@@ -88,7 +88,12 @@ pub fn modulation_functions(cfa: &Cfa, w_gain: f64) -> [Array2<f64>; 3] {
         cfa.codes()
             .mapv(|code| if code == c.code() { 1.0 - pc } else { -pc })
     };
-    let (r, g, b, w) = (ind(Channel::R), ind(Channel::G), ind(Channel::B), ind(Channel::W));
+    let (r, g, b, w) = (
+        ind(Channel::R),
+        ind(Channel::G),
+        ind(Channel::B),
+        ind(Channel::W),
+    );
     let ml = w.mapv(|v| (w_gain - 1.0) * v);
     let m1 = Zip::from(&r).and(&g).map_collect(|&r, &g| (r - g) / 2.0);
     let m2 = Zip::from(&r)
@@ -194,7 +199,12 @@ pub fn radial_profile(power: &Array2<f64>, bins: usize) -> Vec<(f64, f64)> {
     }
     (0..bins)
         .filter(|&k| count[k] > 0)
-        .map(|k| ((k as f64 + 0.5) * f_max / bins as f64, sum[k] / count[k] as f64))
+        .map(|k| {
+            (
+                (k as f64 + 0.5) * f_max / bins as f64,
+                sum[k] / count[k] as f64,
+            )
+        })
         .collect()
 }
 
@@ -234,10 +244,22 @@ pub fn write_analysis(
     let reference = a.chroma.mean().unwrap_or(0.0);
     save_png(&super::io::to_rgb_image(cfa), dir.join("pattern.png"))?;
     let lum_ref = a.power[0].mean().unwrap_or(0.0);
-    save_png(&spectrum_image(&a.power[0], lum_ref), dir.join("luminance.png"))?;
-    save_png(&spectrum_image(&a.power[1], reference), dir.join("chroma1.png"))?;
-    save_png(&spectrum_image(&a.power[2], reference), dir.join("chroma2.png"))?;
-    save_png(&spectrum_image(&a.chroma, reference), dir.join("chroma.png"))?;
+    save_png(
+        &spectrum_image(&a.power[0], lum_ref),
+        dir.join("luminance.png"),
+    )?;
+    save_png(
+        &spectrum_image(&a.power[1], reference),
+        dir.join("chroma1.png"),
+    )?;
+    save_png(
+        &spectrum_image(&a.power[2], reference),
+        dir.join("chroma2.png"),
+    )?;
+    save_png(
+        &spectrum_image(&a.chroma, reference),
+        dir.join("chroma.png"),
+    )?;
 
     #[derive(serde::Serialize)]
     struct Report<'a> {

@@ -15,7 +15,15 @@
 //!    of each colour's indicator (mean removed) blurred by a Gaussian `g`. Swapping two sites'
 //!    colours keeps the counts; only swaps that keep the neighbour rule and lower `E` are taken.
 //!
-//! The random initial labelling makes every seed give a different, aperiodic pattern.
+//! The labelling starts in raster order like error diffusion (each site takes the allowed colour
+//! least present in its causal neighbourhood, plus random jitter) and is then refined by swaps.
+//! The jitter is what makes every seed give a different, aperiodic pattern: without it the
+//! greedy choice locks into a periodic layout (measured at 254x496: jitter 0.1 puts 88 % of the
+//! chroma energy into the top 0.1 % of bins). The defaults (σ_K = 1.5, jitter 1) were chosen by
+//! a scan (`scan_blue_noise_tuning` in `tests/cfa_analysis.rs`) trading baseband chrominance
+//! against peakiness: baseband share 0.008 and peak share 0.045, versus 0.049 / 0.005 for i.i.d.
+//! colours and 0.0027 / 0.032 for the fabricated sensor's pattern. Swaps rarely help because
+//! the neighbour rule forbids most of them.
 
 use super::lattice::SiteLattice;
 use crate::error::{Error, Result};
@@ -26,13 +34,31 @@ use rand_chacha::ChaCha8Rng;
 
 /// No site: a lattice-grid cell outside the image.
 const NONE: u8 = u8::MAX;
-/// Standard deviation, in lattice units, of the kernel `K = g ⋆ g` whose values the energy
-/// change of a swap needs (so `g` has σ/√2 ≈ 1.06 lattice units).
-const KERNEL_SIGMA: f64 = 1.5;
 /// Swap partners are searched within this many lattice steps (a 5x5 window).
 const SWAP_RADIUS: i64 = 2;
-/// Upper bound on optimisation sweeps; sweeps stop earlier once no swap is accepted.
-const MAX_SWEEPS: usize = 8;
+
+/// Tuning of the blue-noise optimisation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BlueNoiseConfig {
+    /// Standard deviation, in lattice units, of the kernel `K = g ⋆ g` whose values the energy
+    /// change of a swap needs (`g` has σ/√2).
+    pub kernel_sigma: f64,
+    /// Upper bound on optimisation sweeps; sweeps stop earlier once no swap is accepted.
+    pub max_sweeps: usize,
+    /// Amplitude of the uniform random jitter added to the causal colour densities of the
+    /// initial labelling (0 = deterministic choice; larger = closer to i.i.d.).
+    pub jitter: f64,
+}
+
+impl Default for BlueNoiseConfig {
+    fn default() -> Self {
+        BlueNoiseConfig {
+            kernel_sigma: 1.5,
+            max_sweeps: 4,
+            jitter: 1.0,
+        }
+    }
+}
 
 /// Blue-noise colour labels (0=R 1=G 2=B, 3=W elsewhere) for an `height` x `width` image whose
 /// colour sites are `lattice`. Deterministic in `seed`.
@@ -42,14 +68,25 @@ pub fn blue_noise_codes(
     width: usize,
     seed: u64,
 ) -> Result<Array2<u8>> {
+    blue_noise_codes_with(lattice, height, width, seed, &BlueNoiseConfig::default())
+}
+
+/// [`blue_noise_codes`] with explicit tuning.
+pub fn blue_noise_codes_with(
+    lattice: &SiteLattice,
+    height: usize,
+    width: usize,
+    seed: u64,
+    config: &BlueNoiseConfig,
+) -> Result<Array2<u8>> {
     if height == 0 || width == 0 {
         return Err(Error::invalid("CFA size must be at least 1x1"));
     }
     let grid = SiteGrid::new(lattice, height, width);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut labels = initial_labels(&grid.valid, &mut rng);
+    let mut labels = initial_labels(&grid.valid, &mut rng, config);
     balance_counts(&grid.valid, &mut labels, &mut rng);
-    optimise(&grid.valid, &mut labels, &mut rng);
+    optimise(&grid.valid, &mut labels, &mut rng, config);
     let mut codes = Array2::from_elem((height, width), 3u8);
     for ((gi, gj), &(y, x)) in grid.pixel.indexed_iter() {
         if grid.valid[[gi, gj]] {
@@ -102,23 +139,28 @@ fn neighbours4(valid: &Array2<bool>, i: usize, j: usize) -> impl Iterator<Item =
         .into_iter()
         .filter_map(move |(di, dj)| {
             let (a, b) = (i as i64 + di, j as i64 + dj);
-            (a >= 0 && b >= 0 && (a as usize) < n && (b as usize) < m && valid[[a as usize, b as usize]])
-                .then_some([a as usize, b as usize])
+            (a >= 0
+                && b >= 0
+                && (a as usize) < n
+                && (b as usize) < m
+                && valid[[a as usize, b as usize]])
+            .then_some([a as usize, b as usize])
         })
 }
 
-/// Constrained random initialisation: raster order, each site picks a colour different from its
-/// already labelled upper and left neighbours (so at least one of three remains: no backtracking
-/// is needed), weighted by each colour's remaining quota so the counts come out near equal.
-fn initial_labels(valid: &Array2<bool>, rng: &mut ChaCha8Rng) -> Array2<u8> {
-    let n_sites = valid.iter().filter(|&&v| v).count();
-    let mut quota = [n_sites / 3; 3];
-    // The remainder goes to randomly chosen colours.
-    let mut order = [0usize, 1, 2];
-    order.shuffle(rng);
-    for &c in order.iter().take(n_sites % 3) {
-        quota[c] += 1;
-    }
+/// Constrained random initialisation, in raster order like error diffusion: each site takes,
+/// among the colours its labelled upper and left neighbours do not use (at least one of three
+/// remains, so no backtracking is needed), the one least present in its already labelled
+/// neighbourhood (Gaussian-weighted density minus the colour's expected share, the "largest
+/// void"), after adding uniform random jitter that makes the result aperiodic and seed-dependent.
+fn initial_labels(
+    valid: &Array2<bool>,
+    rng: &mut ChaCha8Rng,
+    config: &BlueNoiseConfig,
+) -> Array2<u8> {
+    let sigma = config.kernel_sigma;
+    let r = (2.0 * sigma).ceil() as i64;
+    let weight = |di: i64, dj: i64| (-((di * di + dj * dj) as f64) / (2.0 * sigma * sigma)).exp();
     let mut labels = Array2::from_elem(valid.dim(), NONE);
     let (n, m) = valid.dim();
     for i in 0..n {
@@ -133,23 +175,37 @@ fn initial_labels(valid: &Array2<bool>, rng: &mut ChaCha8Rng) -> Array2<u8> {
             if j > 0 && labels[[i, j - 1]] != NONE {
                 allowed[labels[[i, j - 1]] as usize] = false;
             }
-            let weights: [f64; 3] =
-                std::array::from_fn(|c| if allowed[c] { quota[c] as f64 } else { 0.0 });
-            let total: f64 = weights.iter().sum();
-            let c = if total > 0.0 {
-                let mut r = rng.gen::<f64>() * total;
-                (0..3)
-                    .find(|&c| {
-                        r -= weights[c];
-                        r < 0.0 && weights[c] > 0.0
-                    })
-                    .unwrap_or_else(|| (0..3).rev().find(|&c| weights[c] > 0.0).unwrap())
-            } else {
-                // Every allowed colour has used up its quota: any allowed one.
-                let free: Vec<usize> = (0..3).filter(|&c| allowed[c]).collect();
-                free[rng.gen_range(0..free.len())]
-            };
-            quota[c] = quota[c].saturating_sub(1);
+            // Causal neighbourhood: rows above within r, and the current row to the left.
+            let mut density = [0.0f64; 3];
+            let mut total = 0.0;
+            for di in -r..=0 {
+                for dj in -r..=r {
+                    if di == 0 && dj >= 0 {
+                        break;
+                    }
+                    let (a, b) = (i as i64 + di, j as i64 + dj);
+                    if a < 0 || b < 0 || b as usize >= m {
+                        continue;
+                    }
+                    let l = labels[[a as usize, b as usize]];
+                    if l != NONE {
+                        let wgt = weight(di, dj);
+                        density[l as usize] += wgt;
+                        total += wgt;
+                    }
+                }
+            }
+            let c = (0..3)
+                .filter(|&c| allowed[c])
+                .map(|c| {
+                    (
+                        c,
+                        density[c] - total / 3.0 + config.jitter * rng.gen::<f64>(),
+                    )
+                })
+                .min_by(|x, y| x.1.total_cmp(&y.1))
+                .map(|(c, _)| c)
+                .expect("at most two of three colours are excluded");
             labels[[i, j]] = c as u8;
         }
     }
@@ -196,10 +252,15 @@ fn colour_counts(labels: &Array2<u8>) -> [usize; 3] {
 /// With `K = g ⋆ g` and `H_c = K ∗ x_c`, swapping colour `a` at site `s` with colour `b` at `t`
 /// changes the energy by `ΔE = 2[H_a(t) − H_a(s) + H_b(s) − H_b(t)] + 4[K(0) − K(t − s)]`, so
 /// each candidate costs O(1) and an accepted swap updates `H_a`, `H_b` in a kernel-sized window.
-fn optimise(valid: &Array2<bool>, labels: &mut Array2<u8>, rng: &mut ChaCha8Rng) {
+fn optimise(
+    valid: &Array2<bool>,
+    labels: &mut Array2<u8>,
+    rng: &mut ChaCha8Rng,
+    config: &BlueNoiseConfig,
+) {
     let (n, m) = valid.dim();
-    let radius = (3.0 * KERNEL_SIGMA).ceil() as i64;
-    let kernel = Kernel::gaussian(KERNEL_SIGMA, radius);
+    let radius = (3.0 * config.kernel_sigma).ceil() as i64;
+    let kernel = Kernel::gaussian(config.kernel_sigma, radius);
     let n_sites = valid.iter().filter(|&&v| v).count().max(1);
     let counts = colour_counts(labels);
     // H_c = K ∗ x_c for the three colours.
@@ -224,7 +285,7 @@ fn optimise(valid: &Array2<bool>, labels: &mut Array2<u8>, rng: &mut ChaCha8Rng)
         .filter(|(_, &l)| l != NONE)
         .map(|((i, j), _)| [i, j])
         .collect();
-    for _ in 0..MAX_SWEEPS {
+    for _ in 0..config.max_sweeps {
         cells.shuffle(rng);
         let mut accepted = 0usize;
         for &s in &cells {
@@ -270,7 +331,12 @@ fn optimise(valid: &Array2<bool>, labels: &mut Array2<u8>, rng: &mut ChaCha8Rng)
 }
 
 /// Whether swapping the labels of `s` and `t` keeps the 4-neighbour rule.
-fn swap_keeps_rule(valid: &Array2<bool>, labels: &Array2<u8>, s: [usize; 2], t: [usize; 2]) -> bool {
+fn swap_keeps_rule(
+    valid: &Array2<bool>,
+    labels: &Array2<u8>,
+    s: [usize; 2],
+    t: [usize; 2],
+) -> bool {
     let (ls, lt) = (labels[s], labels[t]);
     // After the swap s holds lt and t holds ls; the pair itself differs by construction.
     neighbours4(valid, s[0], s[1]).all(|nb| nb == t || labels[nb] != lt)

@@ -2,7 +2,7 @@
 //! PNG pictures of the filter layout (pure red, green, blue = colour filters, white = W), the
 //! format of the real sensor's `rgbw_oh_bn_color_ss2_corrected.png` (paper §6, colour SPAD).
 
-use super::{Cfa, Channel};
+use super::Cfa;
 use crate::error::{Error, Result};
 use image::{Rgb, RgbImage};
 use ndarray::Array2;
@@ -11,7 +11,7 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-/// The colour a PNG uses for each channel, indexed by [`Channel::index`].
+/// The colour a PNG uses for each channel, indexed by [`super::Channel::index`].
 const CHANNEL_RGB: [[u8; 3]; 4] = [[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]];
 
 /// Converts an RGB picture of a CFA into a [`Cfa`]: pure red (255,0,0), green (0,255,0) and
@@ -24,19 +24,16 @@ pub fn from_rgb_image(img: &RgbImage, source: impl AsRef<Path>) -> Result<Cfa> {
     }
     let mut codes = Array2::<u8>::zeros((h as usize, w as usize));
     for (x, y, px) in img.enumerate_pixels() {
-        let code = CHANNEL_RGB
-            .iter()
-            .position(|c| *c == px.0)
-            .ok_or_else(|| {
-                Error::format(
-                    source.as_ref(),
-                    format!(
-                        "pixel (y={y}, x={x}) has colour {:?}; a CFA picture may hold only pure \
+        let code = CHANNEL_RGB.iter().position(|c| *c == px.0).ok_or_else(|| {
+            Error::format(
+                source.as_ref(),
+                format!(
+                    "pixel (y={y}, x={x}) has colour {:?}; a CFA picture may hold only pure \
                          red, green, blue or white",
-                        px.0
-                    ),
-                )
-            })?;
+                    px.0
+                ),
+            )
+        })?;
         codes[[y as usize, x as usize]] = code as u8;
     }
     Cfa::new(codes)
@@ -165,15 +162,5 @@ fn image_error(path: &Path, e: image::ImageError) -> Error {
     match e {
         image::ImageError::IoError(io) => Error::io(path, io),
         other => Error::format(path, other.to_string()),
-    }
-}
-
-/// Channel name used in messages and tables.
-pub(crate) fn channel_name(c: Channel) -> &'static str {
-    match c {
-        Channel::R => "R",
-        Channel::G => "G",
-        Channel::B => "B",
-        Channel::W => "W",
     }
 }

@@ -18,12 +18,12 @@ pub mod lattice;
 pub mod patterns;
 pub mod sheet;
 
+use crate::error::{Error, Result};
 pub use colorspad::{colorspad_cfa, colorspad_hot_pixel_mask};
 pub use io::{from_rgb_image, load, load_npy, load_png, save, to_rgb_image};
 pub use lattice::{SiteLattice, W_FRACTIONS};
-pub use patterns::{generate, Pattern};
-use crate::error::{Error, Result};
 use ndarray::Array2;
+pub use patterns::{generate, Pattern};
 
 /// The colour filter of one pixel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
