@@ -29,16 +29,18 @@ impl SiteLattice {
     ///   (basis (2,2), (2,−2));
     /// - 0.9375: `y ≡ x ≡ 1 (mod 4)`, one per 4x4 (basis (4,0), (0,4)).
     pub fn for_w_fraction(w_fraction: f64) -> Result<Self> {
-        let (origin, a, b) = match w_fraction {
-            f if f == 0.5 => ((0, 1), (1, 1), (1, -1)),
-            f if f == 0.75 => ((1, 1), (2, 0), (0, 2)),
-            f if f == 0.875 => ((1, 1), (2, 2), (2, -2)),
-            f if f == 0.9375 => ((1, 1), (4, 0), (0, 4)),
-            other => {
-                return Err(Error::invalid(format!(
-                    "W fraction {other} is not supported; use one of 0.5, 0.75, 0.875, 0.9375"
-                )))
-            }
+        let (origin, a, b) = if w_fraction == 0.5 {
+            ((0, 1), (1, 1), (1, -1))
+        } else if w_fraction == 0.75 {
+            ((1, 1), (2, 0), (0, 2))
+        } else if w_fraction == 0.875 {
+            ((1, 1), (2, 2), (2, -2))
+        } else if w_fraction == 0.9375 {
+            ((1, 1), (4, 0), (0, 4))
+        } else {
+            return Err(Error::invalid(format!(
+                "W fraction {w_fraction} is not supported; use one of 0.5, 0.75, 0.875, 0.9375"
+            )));
         };
         Ok(SiteLattice { origin, a, b })
     }
