@@ -1,6 +1,7 @@
 //! `quantacolor`: command-line interface to the quantacolor library.
 
 mod cmd_align;
+mod cmd_cfa;
 mod cmd_eval;
 mod cmd_reconstruct;
 mod output;
@@ -28,6 +29,8 @@ enum Command {
     Align(cmd_align::AlignArgs),
     /// Per-pixel dark count rates and a hot-pixel mask from a dark capture.
     CalibrateDcr(cmd_align::CalibrateDcrArgs),
+    /// Colour filter arrays: generate, analyse spectra, compare patterns (paper §5).
+    Cfa(cmd_cfa::CfaArgs),
 }
 
 fn main() -> ExitCode {
@@ -38,6 +41,7 @@ fn main() -> ExitCode {
         Command::Eval(args) => cmd_eval::run(args),
         Command::Align(args) => cmd_align::run_align(args, &progress),
         Command::CalibrateDcr(args) => cmd_align::run_calibrate_dcr(args),
+        Command::Cfa(args) => cmd_cfa::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -343,31 +343,5 @@ pub fn read_rgb_image(path: impl AsRef<Path>) -> Result<(Array3<f32>, PixelEncod
 /// colour-SPAD calibration image of the paper's prototype (§6, Fig. 10). Returns the (H, W)
 /// codes 0=R 1=G 2=B 3=W; any other colour is an error naming the file and the pixel.
 pub fn read_cfa_png(path: impl AsRef<Path>) -> Result<Array2<u8>> {
-    let path = path.as_ref();
-    let (image, _) = decode_image(path)?;
-    let rgb = image.to_rgb8();
-    let (w, h) = (rgb.width() as usize, rgb.height() as usize);
-    if w == 0 || h == 0 {
-        return Err(Error::format(path, "CFA image is empty"));
-    }
-    let mut codes = Array2::<u8>::zeros((h, w));
-    for (x, y, px) in rgb.enumerate_pixels() {
-        let code = match px.0 {
-            [255, 0, 0] => 0,
-            [0, 255, 0] => 1,
-            [0, 0, 255] => 2,
-            [255, 255, 255] => 3,
-            [r, g, b] => {
-                return Err(Error::format(
-                    path,
-                    format!(
-                        "pixel (y={y}, x={x}) has colour ({r}, {g}, {b}); a CFA image may hold \
-                         only pure red, green, blue or white"
-                    ),
-                ))
-            }
-        };
-        codes[[y as usize, x as usize]] = code;
-    }
-    Ok(codes)
+    Ok(crate::cfa::load_png(path)?.codes().clone())
 }

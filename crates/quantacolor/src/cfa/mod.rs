@@ -2,13 +2,28 @@
 //!
 //! A [`Cfa`] maps every pixel `(y, x)` to the colour filter in front of it, coded
 //! 0 = R, 1 = G, 2 = B, 3 = W (clear) as in the capture format's `cfa.npy`.
+//!
+//! - [`patterns`]: the compared patterns ([`Pattern`], [`generate`]);
+//! - [`lattice`], [`bluenoise`]: colour-site lattices and the paper's blue-noise design;
+//! - [`colorspad`]: the fabricated colour SwissSPAD2's CFA and hot-pixel mask (embedded);
+//! - [`io`]: `.npy` / colour `.png` reading and atomic writing;
+//! - [`analysis`]: luminance/chrominance spectra and aliasing scores (Fig. 9);
+//! - [`sheet`]: the side-by-side comparison picture (Fig. 8/9).
 
+pub mod analysis;
+pub mod bluenoise;
+pub mod colorspad;
+pub mod io;
+pub mod lattice;
 pub mod patterns;
-
-pub use patterns::{generate, Pattern};
+pub mod sheet;
 
 use crate::error::{Error, Result};
+pub use colorspad::{colorspad_cfa, colorspad_hot_pixel_mask};
+pub use io::{from_rgb_image, load, load_npy, load_png, save, to_rgb_image};
+pub use lattice::{SiteLattice, W_FRACTIONS};
 use ndarray::Array2;
+pub use patterns::{generate, Pattern};
 
 /// The colour filter of one pixel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
