@@ -33,7 +33,10 @@ fn identity_at_reference_and_inverse_consistent() {
             for t in [0, 7, 119, 121, 299] {
                 let q = m.forward(t, [y, x]);
                 let p = m.inverse(t, q);
-                assert!((p[0] - y).abs() < 1e-9 && (p[1] - x).abs() < 1e-9, "{name} t={t}");
+                assert!(
+                    (p[0] - y).abs() < 1e-9 && (p[1] - x).abs() < 1e-9,
+                    "{name} t={t}"
+                );
             }
         }
     }
@@ -61,8 +64,15 @@ fn model_displacements_match_their_definition() {
     assert!((peak(&hh.dy) - 4.0).abs() < 1e-9 && (peak(&hh.dx) - 4.0).abs() < 1e-9);
     assert!((peak(&hh.theta_rad) - 0.5f64.to_radians()).abs() < 1e-12);
     // Smooth: no frame-to-frame jump above the peak speed of the sinusoid sum.
-    let max_step = hh.dx.windows(2).map(|w| (w[1] - w[0]).abs()).fold(0.0, f64::max);
-    assert!(max_step < 0.2, "handheld jumps {max_step} px between frames");
+    let max_step = hh
+        .dx
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        max_step < 0.2,
+        "handheld jumps {max_step} px between frames"
+    );
     let fast = generate("fast-handheld");
     assert!(peak(&fast.dx) > 3.0 * peak(&hh.dx));
 
@@ -132,7 +142,10 @@ fn motion_description_round_trips_through_toml() {
 fn centroid(sum: &ndarray::Array2<u32>) -> (f64, f64) {
     let mut sorted: Vec<u32> = sum.iter().copied().collect();
     sorted.sort_unstable();
-    let (median, max) = (sorted[sorted.len() / 2] as f64, *sorted.last().unwrap() as f64);
+    let (median, max) = (
+        sorted[sorted.len() / 2] as f64,
+        *sorted.last().unwrap() as f64,
+    );
     let bg = 0.5 * (median + max);
     let (mut m, mut my, mut mx) = (0.0, 0.0, 0.0);
     for ((y, x), &c) in sum.indexed_iter() {
@@ -174,9 +187,14 @@ fn pan_moves_a_bright_dot_by_the_expected_amount() {
     );
     // Mean frame 49.5 vs 349.5: 300 frames apart.
     let (dy, dx) = (b.0 - a.0, b.1 - a.1);
-    assert!((dy - 3.0).abs() < 0.3 && (dx - 9.0).abs() < 0.3, "shift ({dy}, {dx})");
+    assert!(
+        (dy - 3.0).abs() < 0.3 && (dx - 9.0).abs() < 0.3,
+        "shift ({dy}, {dx})"
+    );
     // The ground truth is the reference frame (0): its centroid matches the first block's.
-    let gt = sim.ground_truth.map_axis(ndarray::Axis(2), |v| (v.sum() * 1e4) as u32);
+    let gt = sim
+        .ground_truth
+        .map_axis(ndarray::Axis(2), |v| (v.sum() * 1e4) as u32);
     let g = centroid(&gt);
     assert!((g.0 - (a.0 - 0.495)).abs() < 0.3 && (g.1 - (a.1 - 1.485)).abs() < 0.3);
 }

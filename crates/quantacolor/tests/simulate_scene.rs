@@ -8,7 +8,9 @@ use quantacolor::simulate::{simulate, FluxSpec, Scene, SimulationConfig};
 use std::path::{Path, PathBuf};
 
 fn shared(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes").join(name);
+    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../../shared/data/scenes")
+        .join(name);
     let alt = Path::new("/work/shared/data/scenes").join(name);
     [p, alt].into_iter().find(|p| p.exists()).or_else(|| {
         eprintln!("skipping: shared scene {name} not found");
@@ -25,8 +27,15 @@ fn png_scene_is_decoded_to_linear() {
         panic!("expected an image scene");
     };
     let raw = image::open(&path).unwrap().to_rgb8();
-    assert_eq!(image.dim(), (raw.height() as usize, raw.width() as usize, 3));
-    for &(y, x) in &[(0u32, 0u32), (100, 200), (raw.height() - 1, raw.width() - 1)] {
+    assert_eq!(
+        image.dim(),
+        (raw.height() as usize, raw.width() as usize, 3)
+    );
+    for &(y, x) in &[
+        (0u32, 0u32),
+        (100, 200),
+        (raw.height() - 1, raw.width() - 1),
+    ] {
         let px = raw.get_pixel(x, y).0;
         for k in 0..3 {
             let expected = srgb_to_linear(px[k] as f32 / 255.0);
@@ -60,12 +69,17 @@ fn exr_scene_is_linear_hdr() {
     let mut sorted: Vec<f32> = image.iter().cloned().collect();
     sorted.sort_by(f32::total_cmp);
     let median = sorted[sorted.len() / 2];
-    assert!(max > 1.0 && max > 50.0 * median, "max {max}, median {median}");
+    assert!(
+        max > 1.0 && max > 50.0 * median,
+        "max {max}, median {median}"
+    );
 }
 
 #[test]
 fn bad_scene_paths_name_the_file() {
-    let err = Scene::from_spec("/nonexistent/scene.png").unwrap_err().to_string();
+    let err = Scene::from_spec("/nonexistent/scene.png")
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("/nonexistent/scene.png"), "{err}");
     let dir = tempfile::tempdir().unwrap();
     let junk = dir.path().join("junk.png");
@@ -85,7 +99,12 @@ fn chart_patches_keep_their_published_colours() {
         flux: FluxSpec::Mean { flux: 1.0 },
         ..SimulationConfig::default()
     };
-    let sim = simulate(&config, &Scene::from_spec("builtin:chart").unwrap(), &Silent).unwrap();
+    let sim = simulate(
+        &config,
+        &Scene::from_spec("builtin:chart").unwrap(),
+        &Silent,
+    )
+    .unwrap();
     let qe = sim.sensor.quantum_efficiency;
     let centre = |i: usize| {
         let (row, col) = ((i / 6) as f64, (i % 6) as f64);
@@ -96,12 +115,15 @@ fn chart_patches_keep_their_published_colours() {
     // λ_c ∝ QE_c · linear sRGB value: ratios to the white patch hold per channel.
     let (wy, wx) = centre(18);
     let white = srgb8_to_linear(COLORCHECKER_SRGB[18]);
-    for i in 0..24 {
+    for (i, &srgb) in COLORCHECKER_SRGB.iter().enumerate() {
         let (y, x) = centre(i);
-        let lin = srgb8_to_linear(COLORCHECKER_SRGB[i]);
+        let lin = srgb8_to_linear(srgb);
         for k in 0..3 {
             let ratio = sim.ground_truth[[y, x, k]] / sim.ground_truth[[wy, wx, k]];
-            assert!((ratio - lin[k] / white[k]).abs() < 1e-3, "patch {i} channel {k}");
+            assert!(
+                (ratio - lin[k] / white[k]).abs() < 1e-3,
+                "patch {i} channel {k}"
+            );
         }
         // And the colour balance follows the quantum efficiencies.
         let g = sim.ground_truth[[y, x, 1]] / (lin[1] * qe[1] as f32);
@@ -109,7 +131,12 @@ fn chart_patches_keep_their_published_colours() {
         assert!((r / g - 1.0).abs() < 1e-3);
     }
     // The HDR chart's light is 1000x the white patch.
-    let hdr = simulate(&config, &Scene::from_spec("builtin:chart-hdr").unwrap(), &Silent).unwrap();
+    let hdr = simulate(
+        &config,
+        &Scene::from_spec("builtin:chart-hdr").unwrap(),
+        &Silent,
+    )
+    .unwrap();
     let (ly, lx) = ((0.75 * h as f64) as usize, (0.93 * w as f64) as usize);
     let ratio = hdr.ground_truth[[ly, lx, 1]] / hdr.ground_truth[[wy, wx, 1]];
     assert!((ratio - 1000.0).abs() < 1.0, "light / white = {ratio}");

@@ -77,7 +77,10 @@ fn ground_truth_equals_the_flux_definition() {
     let lambda = flat_lambda([0.09, 0.14, 0.13], flux);
     for ((y, x, k), &v) in sim.ground_truth.indexed_iter() {
         let l = lambda[k];
-        assert!((v as f64 - l).abs() < 1e-5 * l, "({y}, {x}, {k}): {v} vs {l}");
+        assert!(
+            (v as f64 - l).abs() < 1e-5 * l,
+            "({y}, {x}, {k}): {v} vs {l}"
+        );
     }
     assert_eq!(sim.meta.w_weights, [1.0, 1.0, 1.0]);
     assert_eq!(sim.meta.reference_frame, Some(1));
@@ -125,9 +128,15 @@ fn jot_density_includes_read_noise_false_positives() {
         let (sum, n) = mask
             .indexed_iter()
             .filter(|(_, &m)| m)
-            .fold((0.0, 0.0), |(s, n), ((y, x), _)| (s + dens[[y, x]], n + 1.0));
+            .fold((0.0, 0.0), |(s, n), ((y, x), _)| {
+                (s + dens[[y, x]], n + 1.0)
+            });
         let sigma = (p * (1.0 - p) / (n * 300.0)).sqrt();
-        assert!((sum / n - p).abs() < 5.0 * sigma, "{ch:?}: {} vs {p}", sum / n);
+        assert!(
+            (sum / n - p).abs() < 5.0 * sigma,
+            "{ch:?}: {} vs {p}",
+            sum / n
+        );
     }
     assert!((sim.meta.exposure_s - 1e-3).abs() < 1e-15);
 }
@@ -157,7 +166,10 @@ fn hot_pixels_have_the_requested_fraction_and_rates() {
     }
     let mean = normal.iter().sum::<f64>() / normal.len() as f64;
     assert!((sim.meta.dark_count_rate_hz - mean).abs() < 1e-12);
-    assert!((mean - 2.0).abs() < 0.1, "mean normal rate {mean} (Table 1: 2 cps)");
+    assert!(
+        (mean - 2.0).abs() < 0.1,
+        "mean normal rate {mean} (Table 1: 2 cps)"
+    );
     // In the dark, hot pixels fire at 1 − exp(−rate·τ) on average.
     let dens = densities(&sim);
     let (mut measured, mut expected) = (0.0, 0.0);
@@ -168,7 +180,10 @@ fn hot_pixels_have_the_requested_fraction_and_rates() {
         }
     }
     let sigma = (expected / 40.0 / (40.0 * 600.0)).sqrt() * 40.0;
-    assert!((measured - expected).abs() < 5.0 * sigma, "{measured} vs {expected}");
+    assert!(
+        (measured - expected).abs() < 5.0 * sigma,
+        "{measured} vs {expected}"
+    );
 }
 
 #[test]
@@ -183,7 +198,10 @@ fn same_seed_same_bytes_different_seed_different_bytes() {
     let scene = Scene::Chart { hdr: false };
     let a = simulate(&config, &scene, &Silent).unwrap();
     // One worker thread must give the same bytes as the default pool.
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
     let b = pool.install(|| simulate(&config, &scene, &Silent).unwrap());
     assert_eq!(a.packed_frames, b.packed_frames);
     assert_eq!(a.hot_pixels, b.hot_pixels);
@@ -227,7 +245,12 @@ fn cmos_frames_stay_in_ten_bits_and_average_the_flux() {
         .fold((0.0, 0.0), |(s, n), (_, &v)| (s + v as f64, n + 1.0));
     // Poisson(λ) + N(0, 2.4²): std of the mean ≈ sqrt((λ + 5.8) / n).
     let sigma = ((lambda[1] + 5.8) / n).sqrt();
-    assert!((sum / n - lambda[1]).abs() < 5.0 * sigma, "{} vs {}", sum / n, lambda[1]);
+    assert!(
+        (sum / n - lambda[1]).abs() < 5.0 * sigma,
+        "{} vs {}",
+        sum / n,
+        lambda[1]
+    );
     // Saturation clips at 1023.
     let bright = simulate_cmos(
         &SimulationConfig {

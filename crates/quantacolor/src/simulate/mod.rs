@@ -274,7 +274,9 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
     let gain = config.flux.gain(&w_values)? as f32;
     background.planes.mapv_inplace(|v| v * gain);
     if let Some(obj) = object.as_mut() {
-        obj.planes.slice_mut(s![0..4, .., ..]).mapv_inplace(|v| v * gain);
+        obj.planes
+            .slice_mut(s![0..4, .., ..])
+            .mapv_inplace(|v| v * gain);
     }
     let ground_truth = FluxField {
         background: &background,
@@ -338,9 +340,9 @@ pub fn simulate_with_cfa(
 ) -> Result<SimulatedCapture> {
     let readout = match config.sensor {
         SensorKind::Spad => BinaryReadout::Spad,
-        SensorKind::Jot => {
-            BinaryReadout::Jot(JotReadout::new(SensorModel::table1(SensorKind::Jot).read_noise_e))
-        }
+        SensorKind::Jot => BinaryReadout::Jot(JotReadout::new(
+            SensorModel::table1(SensorKind::Jot).read_noise_e,
+        )),
         SensorKind::Cmos => {
             return Err(Error::invalid(
                 "the CMOS sensor has multi-bit frames; use simulate_cmos",

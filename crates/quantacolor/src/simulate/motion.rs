@@ -21,10 +21,11 @@ use std::f64::consts::PI;
 
 /// Which motion to simulate, with its parameters. `FromStr` accepts the command-line names
 /// (`static`, `pan`, `handheld`, `fast-handheld`, `circular`, `object`) with default parameters.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(tag = "model", rename_all = "kebab-case")]
 pub enum MotionConfig {
     /// No motion.
+    #[default]
     Static,
     /// Constant velocity `(dy, dx)` in pixels per frame.
     Pan {
@@ -104,12 +105,6 @@ fn default_object_radius() -> f64 {
 }
 fn default_object_velocity() -> [f64; 2] {
     [0.0, 0.05]
-}
-
-impl Default for MotionConfig {
-    fn default() -> Self {
-        MotionConfig::Static
-    }
 }
 
 impl std::str::FromStr for MotionConfig {
@@ -333,7 +328,10 @@ impl Motion {
             q[0] - self.center[0] - self.dy[t],
             q[1] - self.center[1] - self.dx[t],
         );
-        [c * y - s * x + self.center[0], s * y + c * x + self.center[1]]
+        [
+            c * y - s * x + self.center[0],
+            s * y + c * x + self.center[1],
+        ]
     }
 
     /// The inverse camera map of frame `t` as an affine map `p = A·q + b`, returned as

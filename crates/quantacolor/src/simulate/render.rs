@@ -106,7 +106,7 @@ pub(crate) enum BinaryReadout {
     Jot(JotReadout),
 }
 
-const TWO_POW_32: f64 = 4_294_967_296.0;
+const TWO_POW_32: f32 = 4_294_967_296.0;
 
 /// Renders `frames` binary frames, bit-packed (T, H, ceil(W/8)) MSB first.
 #[allow(clippy::too_many_arguments)]
@@ -136,12 +136,12 @@ pub(crate) fn render_binary(
                 let dark = dark_per_frame.row(y);
                 let mut out = frame.row_mut(y);
                 for (x, (&l, &d)) in lambda.iter().zip(dark.iter()).enumerate() {
-                    let mean = (l + d) as f64;
+                    let mean = l + d;
                     let p = match readout {
                         BinaryReadout::Spad => -(-mean).exp_m1(),
-                        BinaryReadout::Jot(j) => j.one_probability(mean),
+                        BinaryReadout::Jot(j) => j.one_probability(mean as f64) as f32,
                     };
-                    if (rng.next_u32() as f64) < p * TWO_POW_32 {
+                    if (rng.next_u32() as f32) < p * TWO_POW_32 {
                         out[x / 8] |= 0x80 >> (x % 8);
                     }
                 }
@@ -182,12 +182,15 @@ pub(crate) fn render_cmos(
                 for x in 0..w {
                     let mean = (lambda[x] + dark_per_frame[[y, x]]) as f64;
                     let electrons = if mean > 0.0 {
-                        Poisson::new(mean).map(|d| d.sample(&mut rng)).unwrap_or(0.0)
+                        Poisson::new(mean)
+                            .map(|d| d.sample(&mut rng))
+                            .unwrap_or(0.0)
                     } else {
                         0.0
                     };
                     let noise: f64 = StandardNormal.sample(&mut rng);
-                    frame[[y, x]] = (electrons + read_noise_e * noise).round().clamp(0.0, max) as u16;
+                    frame[[y, x]] =
+                        (electrons + read_noise_e * noise).round().clamp(0.0, max) as u16;
                 }
             }
             progress.advance(1);

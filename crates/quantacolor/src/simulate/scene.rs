@@ -182,7 +182,11 @@ fn box_downsample(image: &Array3<f32>, f: usize) -> Array3<f32> {
     let norm = 1.0 / (f * f) as f32;
     Array3::from_shape_fn((3, ho, wo), |(k, i, j)| {
         image
-            .slice(s![i * f..((i + 1) * f).min(h), j * f..((j + 1) * f).min(w), k])
+            .slice(s![
+                i * f..((i + 1) * f).min(h),
+                j * f..((j + 1) * f).min(w),
+                k
+            ])
             .sum()
             * norm
     })
@@ -245,7 +249,7 @@ impl SceneRaster {
             plane.assign(&t.reversed_axes());
         }
         SceneRaster {
-            planes,
+            planes: planes.as_standard_layout().to_owned(),
             origin,
             step,
         }
@@ -265,9 +269,16 @@ impl SceneRaster {
         let rx = ((p[1] - self.origin[1]) / self.step).clamp(0.0, (wr - 1) as f64);
         let (i, j) = ((ry as usize).min(hr - 2), (rx as usize).min(wr - 2));
         let (fy, fx) = ((ry - i as f64) as f32, (rx - j as f64) as f32);
-        let plane = self.planes.index_axis(Axis(0), k);
-        let top = plane[[i, j]] + fx * (plane[[i, j + 1]] - plane[[i, j]]);
-        let bottom = plane[[i + 1, j]] + fx * (plane[[i + 1, j + 1]] - plane[[i + 1, j]]);
+        // Flat indexing into the standard-layout planes: this is the renderer's inner loop.
+        let data = self
+            .planes
+            .as_slice()
+            .expect("raster planes are contiguous");
+        let at = (k * hr + i) * wr + j;
+        let (a, b) = (data[at], data[at + 1]);
+        let (c, d) = (data[at + wr], data[at + wr + 1]);
+        let top = a + fx * (b - a);
+        let bottom = c + fx * (d - c);
         top + fy * (bottom - top)
     }
 

@@ -134,7 +134,7 @@ impl FluxSpec {
         if !(target.is_finite() && target > 0.0) {
             return Err(Error::invalid(format!("flux {target} must be positive")));
         }
-        if !(level > 0.0) {
+        if level.is_nan() || level <= 0.0 {
             return Err(Error::invalid(
                 "the scene is black at the requested flux statistic; cannot scale it",
             ));
@@ -176,7 +176,9 @@ impl DarkCountMap {
             )));
         }
         if !(mean_hz >= 0.0 && variation >= 0.0) {
-            return Err(Error::invalid("dark count rate and its variation must be >= 0"));
+            return Err(Error::invalid(
+                "dark count rate and its variation must be >= 0",
+            ));
         }
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut rates_hz = Array2::from_shape_fn((height, width), |_| {
@@ -230,7 +232,8 @@ pub fn normal_tail(z: f64) -> f64 {
     let t = 1.0 / (1.0 + 0.327_591_1 * x);
     let poly = t
         * (0.254_829_592
-            + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
     let erfc = poly * (-x * x).exp();
     if z >= 0.0 {
         0.5 * erfc
