@@ -4,6 +4,7 @@ mod cmd_align;
 mod cmd_cfa;
 mod cmd_eval;
 mod cmd_reconstruct;
+mod cmd_simulate;
 mod output;
 mod progress;
 
@@ -21,6 +22,8 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Simulate a colour single-photon capture (scenes, motion, sensors of paper Table 1).
+    Simulate(cmd_simulate::SimulateArgs),
     /// Reconstruct a capture into linear.npy, linear.exr, preview.png and report.toml.
     Reconstruct(cmd_reconstruct::ReconstructArgs),
     /// PSNR and SSIM of an estimate against ground truth (scikit-image conventions).
@@ -37,6 +40,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let progress = progress::TerminalProgress::new();
     let result = match &cli.command {
+        Command::Simulate(args) => cmd_simulate::run(args, &progress),
         Command::Reconstruct(args) => cmd_reconstruct::run(args, &progress),
         Command::Eval(args) => cmd_eval::run(args),
         Command::Align(args) => cmd_align::run_align(args, &progress),

@@ -1,1 +1,424 @@
-//! TODO
+//! Simulated captures: scenes, motion, sensors of paper Table 1, and frame rendering.
+//!
+//! The imaging model is paper Eq. 2–3: a pixel behind filter c sees λ_c = φ_c·η_c·τ photon
+//! detections per frame plus d dark counts; a SPAD frame is 1 with probability
+//! 1 − exp(−(λ + d)). A W (clear) pixel sees the sum of the three bands, W = R + G + B, so the
+//! captures carry `w_weights = [1, 1, 1]`.
+//!
+//! Light level ([`FluxSpec`]): `flux` is the mean, over the reference frame's pixels, of the
+//! detections per frame a W pixel would collect (dark counts excluded). A flat grey scene at
+//! flux F therefore gives W bits at density 1 − exp(−F) (plus dark counts) and R, G, B bits at
+//! the share of F set by the sensor's quantum efficiencies. For jot and CMOS sensors
+//! "detections" are photoelectrons per frame.
+//!
+//! The ground truth is λ of R, G, B (dark counts excluded) at the reference frame, float32
+//! (H, W, 3), rendered through the same scene sampler as the frames.
+//!
+//! Everything is seeded: the same configuration, scene and seed give identical bytes, whatever
+//! the number of threads (each frame has its own random stream).
+
+pub mod chart;
+pub mod motion;
+pub mod render;
+pub mod scene;
+pub mod sensor;
+
+pub use motion::{Motion, MotionConfig, ObjectTrack};
+pub use scene::{Scene, SceneRaster};
+pub use sensor::{DarkCountMap, FluxSpec, JotReadout, SensorKind, SensorModel};
+
+use crate::capture::{CaptureMeta, CaptureParts};
+use crate::cfa::{self, Cfa, Pattern};
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use ndarray::{s, Array2, Array3};
+use render::{mix, BinaryReadout, FluxField};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use std::str::FromStr;
+
+/// Everything that defines a simulated capture except the scene. Every field has a default.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SimulationConfig {
+    /// Sensor height H, pixels.
+    pub height: usize,
+    /// Sensor width W, pixels.
+    pub width: usize,
+    /// Number of frames T.
+    pub frames: usize,
+    /// CFA pattern name (`bayer`, `rgbw-75-regular`, ...), see [`cfa::Pattern`].
+    pub cfa: String,
+    /// Seed of pseudorandom CFA patterns.
+    pub cfa_seed: u64,
+    pub sensor: SensorKind,
+    pub flux: FluxSpec,
+    pub motion: MotionConfig,
+    /// Reference frame (default T/2 rounded down); the motion is the identity there.
+    pub reference_frame: Option<usize>,
+    /// Fraction of hot pixels.
+    pub hot_fraction: f64,
+    /// Range of hot-pixel dark count rates, counts per second.
+    pub hot_rate_hz: [f64; 2],
+    /// Log-standard deviation of the normal pixels' dark count rates around the sensor mean.
+    pub dark_variation: f64,
+    /// Seed of the motion, dark counts and frames.
+    pub seed: u64,
+}
+
+impl Default for SimulationConfig {
+    fn default() -> Self {
+        SimulationConfig {
+            height: 254,
+            width: 496,
+            frames: 512,
+            cfa: "rgbw-75-regular".into(),
+            cfa_seed: 0,
+            sensor: SensorKind::Spad,
+            flux: FluxSpec::default(),
+            motion: MotionConfig::Static,
+            reference_frame: None,
+            hot_fraction: 0.02,
+            hot_rate_hz: [200.0, 2000.0],
+            dark_variation: 0.3,
+            seed: 1,
+        }
+    }
+}
+
+/// A simulated binary capture (SPAD or jot), in memory.
+#[derive(Debug, Clone)]
+pub struct SimulatedCapture {
+    /// Bit-packed frames, uint8 (T, H, ceil(W/8)), MSB first.
+    pub packed_frames: Array3<u8>,
+    pub width: usize,
+    pub cfa: Cfa,
+    pub meta: CaptureMeta,
+    /// Hot pixels, (H, W).
+    pub hot_pixels: Array2<bool>,
+    /// λ of R, G, B at the reference frame, (H, W, 3).
+    pub ground_truth: Array3<f32>,
+    pub motion: Motion,
+    /// Dark count rate of every pixel, counts per second, (H, W).
+    pub dark_count_rates_hz: Array2<f64>,
+    pub sensor: SensorModel,
+}
+
+/// A simulated conventional (CMOS) capture, in memory.
+#[derive(Debug, Clone)]
+pub struct SimulatedCmosCapture {
+    /// Digital numbers (1 DN = 1 e-), uint16 (T, H, W) in `0..2^bit_depth`.
+    pub frames: Array3<u16>,
+    pub cfa: Cfa,
+    pub meta: CaptureMeta,
+    pub hot_pixels: Array2<bool>,
+    /// Mean photoelectrons of R, G, B per frame at the reference frame, (H, W, 3).
+    pub ground_truth: Array3<f32>,
+    pub motion: Motion,
+    pub dark_count_rates_hz: Array2<f64>,
+    pub sensor: SensorModel,
+}
+
+/// Name of the motion description inside a capture directory.
+pub const MOTION_FILE: &str = "motion.toml";
+
+impl SimulatedCapture {
+    /// The parts `capture::write_capture` writes, including `motion.toml`.
+    pub fn capture_parts(&self) -> Result<CaptureParts<'_>> {
+        Ok(CaptureParts {
+            packed_frames: &self.packed_frames,
+            width: self.width,
+            cfa: &self.cfa,
+            meta: &self.meta,
+            hot_pixels: Some(&self.hot_pixels),
+            ground_truth: Some(&self.ground_truth),
+            extra_files: vec![self.motion_file()?],
+            extra_toml: None,
+        })
+    }
+
+    /// Writes the capture directory atomically (frames, CFA, metadata, hot pixels, ground
+    /// truth and motion).
+    pub fn write(&self, dir: impl AsRef<Path>) -> Result<()> {
+        crate::capture::write_capture(dir, &self.capture_parts()?)
+    }
+
+    /// `(file name, contents)` of the motion description, `motion.toml`.
+    pub fn motion_file(&self) -> Result<(String, Vec<u8>)> {
+        Ok((MOTION_FILE.into(), self.motion.to_toml()?.into_bytes()))
+    }
+}
+
+impl SimulatedCmosCapture {
+    /// Writes `dir` with `frames.npy` (uint16 (T, H, W)), `cfa.npy`, `hot_pixels.npy`,
+    /// `ground_truth.npy`, `motion.toml` and `capture.toml` (with `bit_depth`). This is a
+    /// baseline format for comparisons; binary-capture readers do not accept it.
+    pub fn write(&self, dir: impl AsRef<Path>) -> Result<()> {
+        let dir = dir.as_ref();
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        let npy = |name: &str, r: std::result::Result<(), ndarray_npy::WriteNpyError>| {
+            r.map_err(|e| Error::format(dir.join(name), format!("cannot write: {e}")))
+        };
+        npy(
+            "frames.npy",
+            ndarray_npy::write_npy(dir.join("frames.npy"), &self.frames),
+        )?;
+        npy(
+            "cfa.npy",
+            ndarray_npy::write_npy(dir.join("cfa.npy"), self.cfa.codes()),
+        )?;
+        npy(
+            "hot_pixels.npy",
+            ndarray_npy::write_npy(dir.join("hot_pixels.npy"), &self.hot_pixels),
+        )?;
+        npy(
+            "ground_truth.npy",
+            ndarray_npy::write_npy(dir.join("ground_truth.npy"), &self.ground_truth),
+        )?;
+        let mut meta = toml::Table::try_from(&self.meta)
+            .map_err(|e| Error::invalid(format!("cannot serialise capture meta: {e}")))?;
+        meta.insert(
+            "bit_depth".into(),
+            toml::Value::Integer(self.sensor.bit_depth as i64),
+        );
+        let write = |name: &str, text: String| {
+            std::fs::write(dir.join(name), text).map_err(|e| Error::io(dir.join(name), e))
+        };
+        write("capture.toml", meta.to_string())?;
+        write(MOTION_FILE, self.motion.to_toml()?)
+    }
+}
+
+/// Everything shared by the binary and CMOS renderers.
+struct Prepared {
+    sensor: SensorModel,
+    motion: Motion,
+    background: SceneRaster,
+    object: Option<SceneRaster>,
+    ground_truth: Array3<f32>,
+    dark: DarkCountMap,
+    dark_per_frame: Array2<f32>,
+    meta: CaptureMeta,
+}
+
+impl Prepared {
+    fn field(&self) -> FluxField<'_> {
+        FluxField {
+            background: &self.background,
+            object: self.object.as_ref(),
+            motion: &self.motion,
+        }
+    }
+}
+
+const MOTION_STREAM: u64 = 0x6d6f_7469_6f6e;
+const DARK_STREAM: u64 = 0x6461_726b;
+
+/// Turns R, G, B planes into R, G, B, W planes in detections per frame (before the flux gain):
+/// channel k scaled by its quantum efficiency, W = R + G + B. Extra planes (coverage) pass through.
+fn to_detection_planes(raster: SceneRaster, qe: [f64; 3]) -> SceneRaster {
+    let (c, h, w) = raster.planes.dim();
+    let planes = Array3::from_shape_fn((c + 1, h, w), |(k, i, j)| match k {
+        0..=2 => raster.planes[[k, i, j]] * qe[k] as f32,
+        3 => (0..3)
+            .map(|m| raster.planes[[m, i, j]] * qe[m] as f32)
+            .sum(),
+        _ => raster.planes[[k - 1, i, j]],
+    });
+    SceneRaster { planes, ..raster }
+}
+
+fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepared> {
+    let (h, w, t) = (config.height, config.width, config.frames);
+    if h == 0 || w == 0 || t == 0 {
+        return Err(Error::invalid(format!(
+            "simulation size must be non-zero, got {w}x{h} pixels and {t} frames"
+        )));
+    }
+    if (cfa.height(), cfa.width()) != (h, w) {
+        return Err(Error::invalid(format!(
+            "CFA is {}x{}, the sensor is {w}x{h}",
+            cfa.width(),
+            cfa.height()
+        )));
+    }
+    let sensor = SensorModel::table1(config.sensor);
+    let reference = config.reference_frame.unwrap_or(t / 2);
+    let motion = Motion::generate(
+        &config.motion,
+        t,
+        reference,
+        h,
+        w,
+        mix(config.seed ^ MOTION_STREAM),
+    )?;
+    let margin = motion.max_excursion(h, w).ceil() + 3.0;
+    let qe = sensor.quantum_efficiency;
+    let mut background = to_detection_planes(scene.rasterise(h, w, margin), qe);
+    let mut object = motion.object.as_ref().map(|track| {
+        let r = track.radius;
+        let step = 0.5;
+        let n = ((2.0 * r + 4.0) / step).ceil() as usize + 1;
+        let origin = [-(n as f64 - 1.0) * step / 2.0; 2];
+        let planes = scene::supersample(n, n, origin, step, |y, x| {
+            let a = if y * y + x * x < r * r { 1.0 } else { 0.0 };
+            let c = chart::object_texture(y, x);
+            [c[0] * a, c[1] * a, c[2] * a, a]
+        });
+        to_detection_planes(SceneRaster::new_filtered(planes, origin, step), qe)
+    });
+
+    // Flux gain from the unscaled ground truth, then the ground truth from the scaled rasters.
+    let field = FluxField {
+        background: &background,
+        object: object.as_ref(),
+        motion: &motion,
+    };
+    let unscaled = field.rgb(reference, h, w);
+    let w_values: Vec<f32> = unscaled
+        .outer_iter()
+        .flat_map(|row| row.outer_iter().map(|v| v.sum()).collect::<Vec<_>>())
+        .collect();
+    let gain = config.flux.gain(&w_values)? as f32;
+    background.planes.mapv_inplace(|v| v * gain);
+    if let Some(obj) = object.as_mut() {
+        obj.planes
+            .slice_mut(s![0..4, .., ..])
+            .mapv_inplace(|v| v * gain);
+    }
+    let ground_truth = FluxField {
+        background: &background,
+        object: object.as_ref(),
+        motion: &motion,
+    }
+    .rgb(reference, h, w);
+
+    let dark = DarkCountMap::generate(
+        h,
+        w,
+        sensor.dark_count_rate_hz,
+        config.dark_variation,
+        config.hot_fraction,
+        config.hot_rate_hz,
+        mix(config.seed ^ DARK_STREAM),
+    )?;
+    let exposure_s = sensor.exposure_s();
+    let dark_per_frame = dark.rates_hz.mapv(|r| (r * exposure_s) as f32);
+    let meta = CaptureMeta {
+        exposure_s,
+        dark_count_rate_hz: dark.mean_normal_rate(),
+        w_weights: [1.0, 1.0, 1.0],
+        hot_pixels: Some("hot_pixels.npy".into()),
+        reference_frame: Some(reference),
+    };
+    Ok(Prepared {
+        sensor,
+        motion,
+        background,
+        object,
+        ground_truth,
+        dark,
+        dark_per_frame,
+        meta,
+    })
+}
+
+/// The CFA named by `config.cfa` at the configured size.
+pub fn config_cfa(config: &SimulationConfig) -> Result<Cfa> {
+    let pattern = Pattern::from_str(&config.cfa)?;
+    cfa::generate(&pattern, config.height, config.width, config.cfa_seed)
+}
+
+/// Simulates a binary capture (SPAD or jot sensor) of `scene` with the CFA named in `config`.
+pub fn simulate(
+    config: &SimulationConfig,
+    scene: &Scene,
+    progress: &dyn Progress,
+) -> Result<SimulatedCapture> {
+    simulate_with_cfa(config, scene, &config_cfa(config)?, progress)
+}
+
+/// Simulates a binary capture (SPAD or jot sensor) of `scene` behind `cfa` (which must be
+/// `config.height` x `config.width`; `config.cfa` is ignored).
+pub fn simulate_with_cfa(
+    config: &SimulationConfig,
+    scene: &Scene,
+    cfa: &Cfa,
+    progress: &dyn Progress,
+) -> Result<SimulatedCapture> {
+    let readout = match config.sensor {
+        SensorKind::Spad => BinaryReadout::Spad,
+        SensorKind::Jot => BinaryReadout::Jot(JotReadout::new(
+            SensorModel::table1(SensorKind::Jot).read_noise_e,
+        )),
+        SensorKind::Cmos => {
+            return Err(Error::invalid(
+                "the CMOS sensor has multi-bit frames; use simulate_cmos",
+            ))
+        }
+    };
+    let prep = prepare(config, scene, cfa)?;
+    let packed_frames = render::render_binary(
+        &prep.field(),
+        cfa,
+        &prep.dark_per_frame,
+        readout,
+        config.frames,
+        config.seed,
+        progress,
+    );
+    Ok(SimulatedCapture {
+        packed_frames,
+        width: config.width,
+        cfa: cfa.clone(),
+        meta: prep.meta,
+        hot_pixels: prep.dark.hot_pixels,
+        ground_truth: prep.ground_truth,
+        motion: prep.motion,
+        dark_count_rates_hz: prep.dark.rates_hz,
+        sensor: prep.sensor,
+    })
+}
+
+/// Simulates a conventional CMOS capture (`config.sensor` is taken as CMOS whatever it says).
+pub fn simulate_cmos(
+    config: &SimulationConfig,
+    scene: &Scene,
+    progress: &dyn Progress,
+) -> Result<SimulatedCmosCapture> {
+    simulate_cmos_with_cfa(config, scene, &config_cfa(config)?, progress)
+}
+
+/// As [`simulate_cmos`] with an explicit CFA.
+pub fn simulate_cmos_with_cfa(
+    config: &SimulationConfig,
+    scene: &Scene,
+    cfa: &Cfa,
+    progress: &dyn Progress,
+) -> Result<SimulatedCmosCapture> {
+    let config = SimulationConfig {
+        sensor: SensorKind::Cmos,
+        ..config.clone()
+    };
+    let prep = prepare(&config, scene, cfa)?;
+    let frames = render::render_cmos(
+        &prep.field(),
+        cfa,
+        &prep.dark_per_frame,
+        prep.sensor.read_noise_e,
+        prep.sensor.bit_depth,
+        config.frames,
+        config.seed,
+        progress,
+    );
+    Ok(SimulatedCmosCapture {
+        frames,
+        cfa: cfa.clone(),
+        meta: prep.meta,
+        hot_pixels: prep.dark.hot_pixels,
+        ground_truth: prep.ground_truth,
+        motion: prep.motion,
+        dark_count_rates_hz: prep.dark.rates_hz,
+        sensor: prep.sensor,
+    })
+}

@@ -1,0 +1,210 @@
+//! The built-in procedural test scene `builtin:chart` (and `builtin:chart-hdr`): the 24
+//! ColorChecker patches, a Siemens star, fine gratings, a fence, small high-contrast glyphs and a
+//! smooth gradient, laid out relative to the sensor size. Values are linear RGB reflectances
+//! (white patch ≈ 0.9); the HDR variant adds a light source 1000x brighter than the white patch.
+
+use crate::display::srgb::srgb_to_linear;
+
+/// ColorChecker Classic patches in reading order (dark skin ... black), 8-bit sRGB as published
+/// by X-Rite for the post-2009 formulation (tabulated in the Wikipedia article "ColorChecker";
+/// BabelColor's "ColorChecker RGB coordinates" (Pascale 2006) agree within a few codes).
+pub const COLORCHECKER_SRGB: [[u8; 3]; 24] = [
+    [115, 82, 68],   // dark skin
+    [194, 150, 130], // light skin
+    [98, 122, 157],  // blue sky
+    [87, 108, 67],   // foliage
+    [133, 128, 177], // blue flower
+    [103, 189, 170], // bluish green
+    [214, 126, 44],  // orange
+    [80, 91, 166],   // purplish blue
+    [193, 90, 99],   // moderate red
+    [94, 60, 108],   // purple
+    [157, 188, 64],  // yellow green
+    [224, 163, 46],  // orange yellow
+    [56, 61, 150],   // blue
+    [70, 148, 73],   // green
+    [175, 54, 60],   // red
+    [231, 199, 31],  // yellow
+    [187, 86, 149],  // magenta
+    [8, 133, 161],   // cyan
+    [243, 243, 242], // white 9.5
+    [200, 200, 200], // neutral 8
+    [160, 160, 160], // neutral 6.5
+    [122, 122, 121], // neutral 5
+    [85, 85, 85],    // neutral 3.5
+    [52, 52, 52],    // black 2
+];
+
+/// Brightness of the HDR light source relative to the white patch.
+pub const LIGHT_TO_WHITE: f32 = 1000.0;
+
+/// 3x5 glyphs ('#' = ink) for the text-like detail.
+const GLYPHS: [[&str; 5]; 14] = [
+    ["###", "#.#", "#.#", "#.#", "###"],
+    [".#.", "##.", ".#.", ".#.", "###"],
+    ["###", "..#", "###", "#..", "###"],
+    ["###", "..#", "###", "..#", "###"],
+    ["#.#", "#.#", "###", "..#", "..#"],
+    ["###", "#..", "###", "..#", "###"],
+    ["###", "#..", "###", "#.#", "###"],
+    ["###", "..#", "..#", "..#", "..#"],
+    ["###", "#.#", "###", "#.#", "###"],
+    ["###", "#.#", "###", "..#", "###"],
+    [".#.", "#.#", "###", "#.#", "#.#"],
+    ["###", "#..", "###", "#..", "###"],
+    ["#.#", "#.#", "###", "#.#", "#.#"],
+    ["#.#", "#.#", ".#.", "#.#", "#.#"],
+];
+
+/// Linear value of an 8-bit sRGB triple.
+pub fn srgb8_to_linear(c: [u8; 3]) -> [f32; 3] {
+    c.map(|v| srgb_to_linear(v as f32 / 255.0))
+}
+
+/// Linear value of the white patch (patch 19).
+pub fn white_patch() -> f32 {
+    srgb8_to_linear(COLORCHECKER_SRGB[18])[1]
+}
+
+const BACKGROUND: [f32; 3] = [0.18, 0.18, 0.18];
+const BRIGHT: f32 = 0.8;
+const DARK: f32 = 0.03;
+
+fn grey(v: f32) -> [f32; 3] {
+    [v, v, v]
+}
+
+fn inside(v: f64, lo: f64, hi: f64) -> bool {
+    v >= lo && v < hi
+}
+
+/// The chart at sensor position `(y, x)` (pixels, reference frame) of a `height` x `width`
+/// sensor; positions outside the sensor show the plain background.
+pub fn chart_value(y: f64, x: f64, height: usize, width: usize, hdr: bool) -> [f32; 3] {
+    let (h, w) = (height as f64, width as f64);
+    let mut out = BACKGROUND;
+
+    // ColorChecker: 6 x 4 patches on a dark frame, left half, top.
+    let (cx0, cx1, cy0, cy1) = (0.02 * w, 0.46 * w, 0.04 * h, 0.56 * h);
+    if inside(x, cx0, cx1) && inside(y, cy0, cy1) {
+        let fx = (x - cx0) / (cx1 - cx0) * 6.0;
+        let fy = (y - cy0) / (cy1 - cy0) * 4.0;
+        let (col, row) = ((fx as usize).min(5), (fy as usize).min(3));
+        let (lx, ly) = (fx - col as f64, fy - row as f64);
+        out = if inside(lx, 0.1, 0.9) && inside(ly, 0.1, 0.9) {
+            srgb8_to_linear(COLORCHECKER_SRGB[row * 6 + col])
+        } else {
+            grey(DARK)
+        };
+    }
+    // Smooth gradient: perceptually uniform grey ramp below the patches.
+    if inside(x, cx0, cx1) && inside(y, 0.60 * h, 0.70 * h) {
+        out = grey(srgb_to_linear(((x - cx0) / (cx1 - cx0)) as f32));
+    }
+    // Text-like detail: three lines of 3x5 glyphs with 1, 1.5 and 2 px strokes, dark on light.
+    if inside(x, cx0, cx1) && inside(y, 0.74 * h, 0.97 * h) {
+        out = grey(BRIGHT);
+        let mut line_top = 0.74 * h + 1.0;
+        for module in [1.0, 1.5, 2.0] {
+            let (ly, lx) = ((y - line_top) / module, (x - cx0 - 1.0) / module);
+            if inside(ly, 0.0, 5.0) && lx >= 0.0 {
+                let (cell, gx) = ((lx / 4.0) as usize, (lx % 4.0) as usize);
+                let glyph = &GLYPHS[cell % GLYPHS.len()];
+                if gx < 3 && glyph[ly as usize].as_bytes()[gx] == b'#' {
+                    out = grey(DARK);
+                }
+            }
+            line_top += 7.0 * module;
+        }
+    }
+    // Siemens star: 18 cycles.
+    let (sy, sx, sr) = (0.32 * h, 0.62 * w, (0.27 * h).min(0.14 * w));
+    let (dy, dx) = (y - sy, x - sx);
+    if dy * dy + dx * dx < sr * sr {
+        out = grey(if (18.0 * dy.atan2(dx)).sin() >= 0.0 {
+            BRIGHT
+        } else {
+            DARK
+        });
+    }
+    // Gratings: four bands of period 2, 3, 4, 6 px; vertical bars left, horizontal bars right.
+    let (gx0, gx1, gy0, gy1) = (0.78 * w, 0.98 * w, 0.04 * h, 0.60 * h);
+    if inside(x, gx0, gx1) && inside(y, gy0, gy1) {
+        let band_h = (gy1 - gy0) / 4.0;
+        let band = (((y - gy0) / band_h) as usize).min(3);
+        let in_band = (y - gy0) - band as f64 * band_h;
+        if inside(in_band, 0.0, band_h - 2.0) {
+            let period = [2.0, 3.0, 4.0, 6.0][band];
+            let along = if x < 0.5 * (gx0 + gx1) {
+                x - gx0
+            } else {
+                in_band
+            };
+            out = grey(if (along / period).fract() < 0.5 {
+                BRIGHT
+            } else {
+                DARK
+            });
+        }
+    }
+    // Fence: dark posts every 8 px and two rails in front of a blue sky gradient.
+    let (fx0, fx1, fy0, fy1) = (0.50 * w, 0.98 * w, 0.66 * h, 0.97 * h);
+    if inside(x, fx0, fx1) && inside(y, fy0, fy1) {
+        let fv = (y - fy0) / (fy1 - fy0);
+        let post = ((x - fx0) % 8.0) < 2.5;
+        let rail = [0.25, 0.7]
+            .iter()
+            .any(|&r| inside(y - (fy0 + r * (fy1 - fy0)), 0.0, 2.0));
+        out = if post || rail {
+            [0.10, 0.06, 0.03]
+        } else {
+            let s = (1.0 - 0.4 * fv) as f32;
+            [0.25 * s, 0.45 * s, 0.85 * s]
+        };
+    }
+    // HDR: a neutral light source 1000x the white patch, in front of the fence's right end.
+    if hdr {
+        let r = (0.035 * h.min(w)).max(2.0);
+        let (ly, lx) = (y - 0.75 * h, x - 0.93 * w);
+        if ly * ly + lx * lx < r * r {
+            out = grey(LIGHT_TO_WHITE * white_patch());
+        }
+    }
+    out
+}
+
+/// Texture of the moving object: a chequerboard of saturated colours with 3 px squares, at
+/// offset `(y, x)` from the object's centre.
+pub fn object_texture(y: f64, x: f64) -> [f32; 3] {
+    const COLOURS: [[f32; 3]; 4] = [
+        [0.7, 0.1, 0.05],
+        [0.1, 0.6, 0.1],
+        [0.05, 0.1, 0.7],
+        [0.8, 0.75, 0.1],
+    ];
+    let (i, j) = ((y / 3.0).floor() as i64, (x / 3.0).floor() as i64);
+    COLOURS[((i + 2 * j).rem_euclid(4)) as usize]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patches_sit_where_the_layout_puts_them() {
+        let (h, w) = (254, 496);
+        // Centre of patch 1 (dark skin) and patch 19 (white).
+        let cell = |row: f64, col: f64| {
+            let x = 0.02 * w as f64 + (col + 0.5) * 0.44 * w as f64 / 6.0;
+            let y = 0.04 * h as f64 + (row + 0.5) * 0.52 * h as f64 / 4.0;
+            chart_value(y, x, h, w, false)
+        };
+        assert_eq!(cell(0.0, 0.0), srgb8_to_linear([115, 82, 68]));
+        assert_eq!(cell(3.0, 0.0), srgb8_to_linear([243, 243, 242]));
+        assert_eq!(cell(3.0, 5.0), srgb8_to_linear([52, 52, 52]));
+        // The light exists only in the HDR chart and is 1000x the white patch.
+        let (ly, lx) = (0.75 * h as f64, 0.93 * w as f64);
+        assert!((chart_value(ly, lx, h, w, true)[0] / white_patch() - 1000.0).abs() < 1e-3);
+        assert!(chart_value(ly, lx, h, w, false)[0] < 1.0);
+    }
+}
