@@ -292,7 +292,16 @@ fn bad_sub_blocks_are_errors() {
         robustness: SubBlockRobustness::Full,
     };
     let c = AccumulateConfig::default();
-    assert!(demosaic_merge(&[good.clone()], &[], &cfa, &kernels, 0.0, W_WEIGHTS, &c).is_ok());
+    assert!(demosaic_merge(
+        std::slice::from_ref(&good),
+        &[],
+        &cfa,
+        &kernels,
+        0.0,
+        W_WEIGHTS,
+        &c
+    )
+    .is_ok());
     let cases = [
         SubBlock {
             frames: 2,

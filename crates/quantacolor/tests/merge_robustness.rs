@@ -66,7 +66,7 @@ fn a_wrong_flow_is_rejected_where_it_misplaces_content() {
     // wrong square under half of the pixels.
     let mut rng = ChaCha8Rng::seed_from_u64(22);
     let board = |y: usize, x: usize| {
-        if (y / 8 + x / 8) % 2 == 0 {
+        if (y / 8 + x / 8) & 1 == 0 {
             0.2f32
         } else {
             0.7

@@ -307,7 +307,7 @@ fn validate(
             config.scale
         )));
     }
-    if !(config.cutoff > 0.0) {
+    if !super::warp::positive(config.cutoff) {
         return Err(Error::invalid("merge: the kernel cutoff must be positive"));
     }
     if kernels.inv_cov.dim() != (h, w, 3) {

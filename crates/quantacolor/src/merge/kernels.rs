@@ -2,6 +2,7 @@
 //! tensor of the reference image decides, per pixel, how far a sample may sit from the output
 //! position along and across the local edge.
 
+use super::warp::positive;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3, Axis};
@@ -108,10 +109,17 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
     if h == 0 || w == 0 {
         return Err(Error::invalid("kernels: the reference image is empty"));
     }
-    if !(config.k_detail > 0.0 && config.k_denoise > 0.0 && config.min_std > 0.0)
-        || !(config.d_tr > 0.0 && config.k_stretch > 0.0 && config.k_shrink > 0.0)
-        || !(config.max_anisotropy >= 1.0)
-    {
+    let all_positive = [
+        config.k_detail,
+        config.k_denoise,
+        config.min_std,
+        config.d_tr,
+        config.k_stretch,
+        config.k_shrink,
+    ]
+    .into_iter()
+    .all(positive);
+    if !all_positive || config.max_anisotropy.is_nan() || config.max_anisotropy < 1.0 {
         return Err(Error::invalid(
             "kernels: k_detail, k_denoise, min_std, d_tr, k_stretch, k_shrink must be positive \
              and max_anisotropy at least 1",

@@ -3,7 +3,7 @@
 //! overlapping DFT tiles (HDR+, Hasinoff et al. 2016, §5). The result is a low-noise grey image
 //! registered to the reference block; it steers the merge kernels and the robustness weights.
 
-use super::warp::warp_to_reference;
+use super::warp::{positive, warp_to_reference};
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
@@ -78,6 +78,9 @@ fn transpose(src: &[Complex32], dst: &mut [Complex32], n: usize) {
     }
 }
 
+/// One row of merged tiles: its y origin and (x origin, n·n values) per tile.
+type TileRow = (isize, Vec<(isize, Vec<f32>)>);
+
 /// Merges grey block images into a reference image (supplement §1.2).
 ///
 /// `grey_blocks[k]` are (H, W) block means (mean bit rate of a grey channel over the block's
@@ -114,13 +117,13 @@ pub fn reference_image(
             "reference image: reference block {ref_index} is outside the {k_count} blocks"
         )));
     }
-    if config.tile < 2 || config.tile % 2 != 0 {
+    if config.tile < 2 || config.tile & 1 == 1 {
         return Err(Error::invalid(format!(
             "reference image: tile size {} must be even and at least 2",
             config.tile
         )));
     }
-    if !(trials > 0.0) || !(config.c >= 0.0) {
+    if !positive(trials) || config.c.is_nan() || config.c < 0.0 {
         return Err(Error::invalid(
             "reference image: trials must be positive and c non-negative",
         ));
@@ -164,7 +167,7 @@ pub fn reference_image(
     };
 
     // Each tile row in parallel: (origin_y, Vec<(origin_x, merged tile)>).
-    let rows: Vec<(isize, Vec<(isize, Vec<f32>)>)> = oy
+    let rows: Vec<TileRow> = oy
         .par_iter()
         .map(|&y0| {
             let mut tiles = Vec::with_capacity(ox.len());

@@ -124,7 +124,7 @@ pub fn robustness(
         )));
     }
     check_flow(flow, h, w, "robustness")?;
-    if !(trials > 0.0) {
+    if !super::warp::positive(trials) {
         return Err(Error::invalid("robustness: trials must be positive"));
     }
     let warped = warp_to_reference(grey_block, flow)?;

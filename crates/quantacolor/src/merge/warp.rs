@@ -21,6 +21,11 @@ pub fn sample_bilinear(image: ArrayView2<f32>, y: f32, x: f32) -> f32 {
     top * (1.0 - fy) + bottom * fy
 }
 
+/// True for a positive number (false for NaN): parameter validation.
+pub(crate) fn positive(v: f32) -> bool {
+    v > 0.0
+}
+
 /// Checks that `flow` is a dense (H, W, 2) field for an (H, W) image; `what` names it.
 pub(crate) fn check_flow(flow: &Array3<f32>, h: usize, w: usize, what: &str) -> Result<()> {
     if flow.dim() != (h, w, 2) {
