@@ -331,3 +331,56 @@ fn bad_sub_blocks_are_errors() {
     let big = AccumulateConfig { scale: 0, ..c };
     assert!(demosaic_merge(&[good], &[], &cfa, &kernels, 0.0, W_WEIGHTS, &big).is_err());
 }
+
+#[test]
+fn grey_from_counts_fills_colour_sites_with_the_w_bit_rate() {
+    let (h, w) = (16, 16);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    // W sites fire 30 of 100 frames, colour sites 5: the grey image is 0.3 everywhere.
+    let counts = Array2::from_shape_fn((h, w), |(y, x)| {
+        if cfa.channel(y, x) == quantacolor::Channel::W {
+            30
+        } else {
+            5
+        }
+    });
+    let grey = grey_from_counts(&counts, 100, &cfa).unwrap();
+    assert!(grey.iter().all(|&g| (g - 0.3).abs() < 1e-5));
+    assert!(grey_from_counts(&counts, 0, &cfa).is_err());
+    assert!(grey_from_counts(&Array2::zeros((h, w + 1)), 100, &cfa).is_err());
+}
+
+#[test]
+fn merge_burst_rejects_inconsistent_input() {
+    let (h, w) = (16, 16);
+    let (cfa, subs, flows) = jitter_burst(36, h, w, 2, 10);
+    let grey: Vec<_> = subs
+        .iter()
+        .map(|s| grey_from_counts(&s.counts, s.frames, &cfa).unwrap())
+        .collect();
+    let input = BurstInput {
+        grey_blocks: &grey,
+        block_flows: &flows,
+        reference_block: 2,
+        grey_trials: 10.0,
+        sub_blocks: &subs,
+        cfa: &cfa,
+        w_weights: W_WEIGHTS,
+        dark_per_frame: DARK,
+    };
+    assert!(merge_burst(&input, &MergeConfig::default()).is_err());
+    let input = BurstInput {
+        reference_block: 0,
+        block_flows: &flows[..1],
+        ..input
+    };
+    assert!(merge_burst(&input, &MergeConfig::default()).is_err());
+    let input = BurstInput {
+        block_flows: &flows,
+        ..input
+    };
+    let out = merge_burst(&input, &MergeConfig::default()).unwrap();
+    assert_eq!(out.linear.dim(), (h, w, 3));
+    assert_eq!(out.robustness.len(), 2);
+    assert!(out.robustness[0].iter().all(|&r| r == 1.0));
+}

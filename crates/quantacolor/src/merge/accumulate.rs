@@ -90,7 +90,8 @@ pub struct MergedPlanes {
 /// ((Y + ½)/s − ½, (X + ½)/s − ½)) and each sub-block k, the CFA sites q of every channel c
 /// within `max_radius` of p + flow_k(p) contribute weight
 /// w = exp(−½ dᵀ Ω_c⁻¹ d)·R_k(p) with d = q − (p + flow_k(p)) (the sample's offset on the
-/// reference grid), Ω_c = Ω(p)·scale_c ([`KernelField::channel_scale`]): num_c += w·counts_k(q),
+/// reference grid), Ω_c = Ω(p)·scale_c^α ([`KernelField::channel_scale`], α =
+/// `spacing_exponent`): num_c += w·counts_k(q),
 /// den_c += w·frames_k. Then p̂_c = num_c/den_c and λ_c = mle_flux(p̂_c·N, N, dark) with the
 /// effective number of frames N = (Σ w·F)² / Σ w²·F (Kish), so the saturation clamp of the MLE
 /// acts at the right count. Flows, kernels and robustness are read at the nearest reference
