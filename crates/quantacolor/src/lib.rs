@@ -14,6 +14,7 @@ pub mod capture;
 pub mod cfa;
 pub mod display;
 pub mod error;
+pub mod merge;
 pub mod metrics;
 pub mod model;
 pub mod naive;

@@ -1,0 +1,179 @@
+//! Motion-compensated merge of a colour quanta burst (paper §4.2, Fig. 4; supplement §1.2–1.3).
+//!
+//! Stages, each a public function with its own config struct (paper defaults):
+//! 1. [`reference_image`]: warp grey block images to the reference grid and merge them by a
+//!    Wiener filter over DFT tiles (supplement §1.2; HDR+).
+//! 2. [`kernel_field`]: anisotropic kernel covariances from the reference's structure tensor
+//!    (Wronski et al. 2019).
+//! 3. [`robustness`]: per-block weights that reject content the reference does not confirm
+//!    (supplement Eq. 4–6).
+//! 4. [`demosaic_merge`]: joint demosaic and merge of sub-block counts by kernel regression
+//!    (supplement Eq. 1–3), MLE flux per channel (paper Eq. 6), optional super-resolution grid,
+//!    W-saturation fallback (supplement §7).
+//! 5. [`merge_burst`]: all of the above, then the RGBW combination of paper Eq. 8
+//!    ([`crate::naive::combine_rgbw`]).
+//!
+//! Alignment is not part of this module: every stage takes dense per-pixel flows (dy, dx),
+//! where the scene point at p in the reference is at p + flow(p) in the (sub-)block.
+
+pub mod accumulate;
+pub mod kernels;
+pub mod reference;
+pub mod robustness;
+pub mod warp;
+
+pub use accumulate::{
+    demosaic_merge, AccumulateConfig, MergedPlanes, SubBlock, SubBlockRobustness,
+};
+pub use kernels::{kernel_field, KernelConfig, KernelField};
+pub use reference::{reference_image, WienerConfig};
+pub use robustness::{robustness, RobustnessConfig};
+pub use warp::{sample_bilinear, warp_to_reference};
+
+use crate::cfa::{Cfa, Channel};
+use crate::error::{Error, Result};
+use crate::naive::{combine_rgbw, normalized_convolution};
+use ndarray::{Array2, Array3, Zip};
+use serde::{Deserialize, Serialize};
+
+/// Configuration of the whole merge.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct MergeConfig {
+    pub wiener: WienerConfig,
+    pub kernels: KernelConfig,
+    pub robustness: RobustnessConfig,
+    pub accumulate: AccumulateConfig,
+}
+
+/// Everything [`merge_burst`] needs besides its config.
+#[derive(Debug, Clone, Copy)]
+pub struct BurstInput<'a> {
+    /// (H, W) grey image per block (e.g. [`grey_from_counts`]), comparable across blocks.
+    pub grey_blocks: &'a [Array2<f32>],
+    /// (H, W, 2) dense flow per block, reference grid -> block.
+    pub block_flows: &'a [Array3<f32>],
+    /// Index of the reference block.
+    pub reference_block: usize,
+    /// Bernoulli trials averaged into one grey value (frames per block x pixels binned).
+    pub grey_trials: f32,
+    /// Sub-blocks to merge; `SubBlockRobustness::Block(i)` refers to block i above.
+    pub sub_blocks: &'a [SubBlock],
+    pub cfa: &'a Cfa,
+    /// W = wR·R + wG·G + wB·B.
+    pub w_weights: [f64; 3],
+    /// Dark counts per binary frame.
+    pub dark_per_frame: f64,
+}
+
+/// Result of [`merge_burst`], with the intermediate stages for inspection.
+#[derive(Debug, Clone)]
+pub struct MergedBurst {
+    /// (H·s, W·s, 3) linear RGB: detections per frame of an R, G or B pixel, dark removed.
+    pub linear: Array3<f32>,
+    /// Per-channel merged planes before Eq. 8.
+    pub planes: MergedPlanes,
+    /// (H, W) Wiener-merged grey reference.
+    pub reference: Array2<f32>,
+    /// (H, W) robustness map per block (the reference block's is all ones).
+    pub robustness: Vec<Array2<f32>>,
+    pub kernels: KernelField,
+}
+
+/// Merges a burst (paper §4.2, Fig. 4): reference image, kernels, robustness, joint
+/// demosaic-merge, RGBW combination (Eq. 8).
+pub fn merge_burst(input: &BurstInput, config: &MergeConfig) -> Result<MergedBurst> {
+    let blocks = input.grey_blocks.len();
+    if input.reference_block >= blocks {
+        return Err(Error::invalid(format!(
+            "merge: reference block {} is outside the {blocks} blocks",
+            input.reference_block
+        )));
+    }
+    let (h, w) = (input.cfa.height(), input.cfa.width());
+    if input.grey_blocks[input.reference_block].dim() != (h, w) {
+        return Err(Error::invalid(format!(
+            "merge: grey blocks have shape {:?}, the CFA is ({h}, {w})",
+            input.grey_blocks[input.reference_block].dim()
+        )));
+    }
+    let reference = reference_image(
+        input.grey_blocks,
+        input.block_flows,
+        input.reference_block,
+        input.grey_trials,
+        &config.wiener,
+    )?;
+    let kernels = kernel_field(&reference, &config.kernels)?;
+    let robustness_maps = input
+        .grey_blocks
+        .iter()
+        .zip(input.block_flows)
+        .enumerate()
+        .map(|(k, (grey, flow))| {
+            if k == input.reference_block {
+                Ok(Array2::ones((h, w)))
+            } else {
+                robustness(
+                    &reference,
+                    grey,
+                    flow,
+                    input.grey_trials,
+                    &config.robustness,
+                )
+            }
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let planes = demosaic_merge(
+        input.sub_blocks,
+        &robustness_maps,
+        input.cfa,
+        &kernels,
+        input.dark_per_frame,
+        input.w_weights,
+        &config.accumulate,
+    )?;
+    let linear = combine_rgbw(&planes.flux, input.w_weights);
+    Ok(MergedBurst {
+        linear,
+        planes,
+        reference,
+        robustness: robustness_maps,
+        kernels,
+    })
+}
+
+/// Grey image of one block for alignment and the reference: the mean bit rate counts/frames of
+/// the W sites, with the other sites filled by normalized convolution of their W neighbours
+/// (Gaussian σ = 0.7 px). On a CFA without W, G plays that role. The value then averages
+/// `frames` Bernoulli trials.
+pub fn grey_from_counts(counts: &Array2<u32>, frames: u32, cfa: &Cfa) -> Result<Array2<f32>> {
+    if counts.dim() != cfa.codes().dim() {
+        return Err(Error::invalid(format!(
+            "grey image: counts have shape {:?}, the CFA is {:?}",
+            counts.dim(),
+            cfa.codes().dim()
+        )));
+    }
+    if frames == 0 {
+        return Err(Error::invalid("grey image: zero frames"));
+    }
+    let fractions = cfa.fractions();
+    let channel = if fractions[Channel::W.index()] > 0.0 {
+        Channel::W
+    } else {
+        Channel::G
+    };
+    let sigma = (0.7 / fractions[channel.index()].max(1e-6).sqrt()).max(0.7);
+    let samples = Zip::from(counts).and(cfa.codes()).map_collect(|&n, &c| {
+        if c == channel.code() {
+            n as f32 / frames as f32
+        } else {
+            f32::NAN
+        }
+    });
+    let filled = normalized_convolution(samples.view(), sigma);
+    Ok(Zip::from(&samples)
+        .and(&filled)
+        .map_collect(|&s, &f| if s.is_nan() { f } else { s }))
+}

@@ -1,0 +1,386 @@
+//! Joint demosaic-merge (supplement Eq. 1–3) and the whole merge on synthetic bursts through a
+//! 75 % W CFA with known truth.
+mod merge_support;
+
+use merge_support::*;
+use ndarray::{Array2, Array3, Axis};
+use quantacolor::cfa::{generate, Pattern};
+use quantacolor::merge::*;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+const DARK: f64 = 0.002;
+
+/// Runs `merge_burst` with every sub-block also acting as its own alignment block.
+fn merge_all(
+    cfa: &quantacolor::Cfa,
+    subs: &[SubBlock],
+    flows: Option<&[Array3<f32>]>,
+    config: &MergeConfig,
+) -> MergedBurst {
+    let (h, w) = (cfa.height(), cfa.width());
+    let zero = vec![Array3::<f32>::zeros((h, w, 2)); subs.len()];
+    let flows: Vec<Array3<f32>> = flows.map_or(zero, |f| f.to_vec());
+    let subs: Vec<SubBlock> = subs
+        .iter()
+        .zip(&flows)
+        .map(|(s, f)| SubBlock {
+            flow: f.clone(),
+            ..s.clone()
+        })
+        .collect();
+    let grey: Vec<Array2<f32>> = subs
+        .iter()
+        .map(|s| grey_from_counts(&s.counts, s.frames, cfa).unwrap())
+        .collect();
+    let input = BurstInput {
+        grey_blocks: &grey,
+        block_flows: &flows,
+        reference_block: 0,
+        grey_trials: subs[0].frames as f32,
+        sub_blocks: &subs,
+        cfa,
+        w_weights: W_WEIGHTS,
+        dark_per_frame: DARK,
+    };
+    merge_burst(&input, config).unwrap()
+}
+
+#[test]
+fn static_scene_recovers_the_flux_of_every_channel() {
+    let (h, w) = (32, 40);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let truth_rgb = [0.10f64, 0.25, 0.15];
+    let scene = move |_: f64, _: f64| truth_rgb;
+    let mut rng = ChaCha8Rng::seed_from_u64(31);
+    let motions = vec![
+        Motion {
+            dy: 0.0,
+            dx: 0.0,
+            theta: 0.0
+        };
+        20
+    ];
+    let subs = sub_blocks(&scene, &cfa, &motions, 50, DARK, &mut rng);
+    let kernels = kernel_field(&Array2::from_elem((h, w), 0.4), &KernelConfig::default()).unwrap();
+    let planes = demosaic_merge(
+        &subs,
+        &[],
+        &cfa,
+        &kernels,
+        DARK,
+        W_WEIGHTS,
+        &AccumulateConfig::default(),
+    );
+    let subs_full: Vec<_> = subs
+        .into_iter()
+        .map(|s| SubBlock {
+            robustness: SubBlockRobustness::Full,
+            ..s
+        })
+        .collect();
+    let planes_full = demosaic_merge(
+        &subs_full,
+        &[],
+        &cfa,
+        &kernels,
+        DARK,
+        W_WEIGHTS,
+        &AccumulateConfig::default(),
+    );
+    // `Block(k)` without maps is an error; `Full` works.
+    assert!(planes.is_err());
+    let planes = planes_full.unwrap();
+    let lambda_w: f64 = truth_rgb.iter().sum();
+    for (c, &t) in truth_rgb.iter().chain([lambda_w].iter()).enumerate() {
+        let plane = planes.flux.index_axis(Axis(0), c);
+        let mean = plane.mean().unwrap() as f64;
+        println!("channel {c}: merged mean {mean:.4}, truth {t:.4}");
+        assert!((mean - t).abs() < 0.03 * t, "channel {c}: {mean} vs {t}");
+        assert!(plane.iter().all(|v| v.is_finite()));
+    }
+    assert!(!planes.w_fallback.iter().any(|&f| f));
+}
+
+fn jitter_burst(
+    seed: u64,
+    h: usize,
+    w: usize,
+    count: usize,
+    frames: u32,
+) -> (quantacolor::Cfa, Vec<SubBlock>, Vec<Array3<f32>>) {
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut motions = vec![Motion {
+        dy: 0.0,
+        dx: 0.0,
+        theta: 0.0,
+    }];
+    for _ in 1..count {
+        motions.push(Motion::random(&mut rng, 3.0, 0.02));
+    }
+    let subs = sub_blocks(&textured, &cfa, &motions, frames, DARK, &mut rng);
+    let flows = subs.iter().map(|s| s.flow.clone()).collect();
+    (cfa, subs, flows)
+}
+
+#[test]
+fn true_flows_beat_a_zero_flow_merge() {
+    let (h, w) = (48, 56);
+    let (cfa, subs, flows) = jitter_burst(32, h, w, 24, 200);
+    let config = MergeConfig::default();
+    let aligned = merge_all(&cfa, &subs, Some(&flows), &config);
+    let mut no_robust = config.clone();
+    no_robust.robustness.t = -1.0; // R ≡ 1: the plain sum of the naive baseline
+    let naive = merge_all(&cfa, &subs, None, &no_robust);
+    let truth = truth(&textured, h, w, 1);
+    let (p_aligned, p_naive) = (
+        psnr(&aligned.linear, &truth, 4),
+        psnr(&naive.linear, &truth, 4),
+    );
+    println!("PSNR vs truth: true flows {p_aligned:.2} dB, zero flow {p_naive:.2} dB");
+    assert!(p_aligned > p_naive + 6.0, "{p_aligned} vs {p_naive}");
+}
+
+#[test]
+fn super_resolution_beats_bilinear_upsampling() {
+    let (h, w) = (32, 40);
+    // Fine grating (period 2.6 px) in every channel.
+    let fine = |y: f64, x: f64| {
+        let t = (2.0 * std::f64::consts::PI * (x + 0.3 * y) / 2.6).sin();
+        [
+            0.15 * (1.0 + 0.5 * t),
+            0.2 * (1.0 + 0.5 * t),
+            0.15 * (1.0 + 0.5 * t),
+        ]
+    };
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(33);
+    let mut motions = vec![Motion {
+        dy: 0.0,
+        dx: 0.0,
+        theta: 0.0,
+    }];
+    for _ in 1..32 {
+        motions.push(Motion::random(&mut rng, 2.0, 0.0));
+    }
+    let subs = sub_blocks(&fine, &cfa, &motions, 60, DARK, &mut rng);
+    let flows: Vec<_> = subs.iter().map(|s| s.flow.clone()).collect();
+    let mut config = MergeConfig::default();
+    let one = merge_all(&cfa, &subs, Some(&flows), &config);
+    config.accumulate.scale = 2;
+    let two = merge_all(&cfa, &subs, Some(&flows), &config);
+    assert_eq!(two.linear.dim(), (2 * h, 2 * w, 3));
+    assert_eq!(two.planes.flux.dim(), (4, 2 * h, 2 * w));
+    let truth2 = truth(&fine, h, w, 2);
+    let p_sr = psnr(&two.linear, &truth2, 8);
+    let p_up = psnr(&upsample_bilinear(&one.linear, 2), &truth2, 8);
+    println!("2x output PSNR: super-resolution {p_sr:.2} dB, bilinear upsampling {p_up:.2} dB");
+    assert!(p_sr > p_up + 1.0, "{p_sr} vs {p_up}");
+}
+
+#[test]
+fn robustness_suppresses_a_sub_block_with_wrong_content() {
+    let (h, w) = (40, 48);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(34);
+    let mut motions = vec![Motion {
+        dy: 0.0,
+        dx: 0.0,
+        theta: 0.0,
+    }];
+    for _ in 1..16 {
+        motions.push(Motion::random(&mut rng, 2.0, 0.0));
+    }
+    let mut subs = sub_blocks(&textured, &cfa, &motions, 50, DARK, &mut rng);
+    // Sub-blocks 3, 7 and 11 see a bright object (absent from the reference) over a square.
+    let object = |y: f64, x: f64| {
+        if (10.0..24.0).contains(&y) && (14.0..28.0).contains(&x) {
+            [1.2, 1.0, 0.3]
+        } else {
+            textured(y, x)
+        }
+    };
+    for k in [3, 7, 11] {
+        let m = motions[k];
+        subs[k].counts = simulate_counts(
+            &object,
+            &cfa,
+            50,
+            DARK,
+            |y, x| m.inverse(h, w, y, x),
+            &mut rng,
+        );
+    }
+    let flows: Vec<_> = subs.iter().map(|s| s.flow.clone()).collect();
+    let config = MergeConfig::default();
+    let robust = merge_all(&cfa, &subs, Some(&flows), &config);
+    let mut plain = config.clone();
+    plain.robustness.t = -1.0;
+    let ghosted = merge_all(&cfa, &subs, Some(&flows), &plain);
+    let truth = truth(&textured, h, w, 1);
+    let region = |img: &Array3<f32>| img.slice(ndarray::s![8..26, 12..30, ..]).to_owned();
+    let (p_robust, p_plain) = (
+        psnr(&region(&robust.linear), &region(&truth), 0),
+        psnr(&region(&ghosted.linear), &region(&truth), 0),
+    );
+    let r_obj = robust.robustness[3]
+        .slice(ndarray::s![12..22, 16..26])
+        .mean()
+        .unwrap();
+    println!("object region PSNR: robust {p_robust:.2} dB, no robustness {p_plain:.2} dB; R in object {r_obj:.3}");
+    assert!(r_obj < 0.1);
+    assert!(p_robust > p_plain + 6.0, "{p_robust} vs {p_plain}");
+}
+
+#[test]
+fn saturated_w_falls_back_to_rgb() {
+    let (h, w) = (24, 24);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    // λ_W = 9 (bit rate 0.99988: every W frame fires), colours at 3 (bit rate 0.95); 50
+    // frames, so the W estimate is clamped near −ln(0.5/N_eff) ≈ 6.3.
+    let truth_rgb = [3.0f64, 3.0, 3.0];
+    let scene = move |_: f64, _: f64| truth_rgb;
+    let mut rng = ChaCha8Rng::seed_from_u64(35);
+    let motions = vec![
+        Motion {
+            dy: 0.0,
+            dx: 0.0,
+            theta: 0.0
+        };
+        5
+    ];
+    let subs: Vec<_> = sub_blocks(&scene, &cfa, &motions, 10, DARK, &mut rng)
+        .into_iter()
+        .map(|s| SubBlock {
+            robustness: SubBlockRobustness::Full,
+            ..s
+        })
+        .collect();
+    let kernels = kernel_field(&Array2::from_elem((h, w), 0.9), &KernelConfig::default()).unwrap();
+    let config = AccumulateConfig::default();
+    let with = demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, &config).unwrap();
+    let off = AccumulateConfig {
+        w_saturation: 1.5,
+        ..config
+    };
+    let without = demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, &off).unwrap();
+    let share = with.w_fallback.iter().filter(|&&f| f).count() as f64 / (h * w) as f64;
+    println!("W fallback on {:.1} % of pixels", 100.0 * share);
+    assert!(share > 0.9, "{share}");
+    assert!(!without.w_fallback.iter().any(|&f| f));
+    let rgb_with = quantacolor::naive::combine_rgbw(&with.flux, W_WEIGHTS);
+    let rgb_without = quantacolor::naive::combine_rgbw(&without.flux, W_WEIGHTS);
+    for c in 0..3 {
+        let m_with = rgb_with.index_axis(Axis(2), c).mean().unwrap() as f64;
+        let m_without = rgb_without.index_axis(Axis(2), c).mean().unwrap() as f64;
+        println!("channel {c}: fallback {m_with:.3}, saturated W {m_without:.3}, truth 3");
+        assert!((m_with - 3.0).abs() < 0.1 * 3.0, "{m_with}");
+        assert!(m_without < 0.85 * 3.0, "{m_without}");
+    }
+}
+
+#[test]
+fn bad_sub_blocks_are_errors() {
+    let (h, w) = (8, 8);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let kernels = kernel_field(&Array2::from_elem((h, w), 0.5), &KernelConfig::default()).unwrap();
+    let good = SubBlock {
+        counts: Array2::from_elem((h, w), 3),
+        frames: 10,
+        flow: Array3::zeros((h, w, 2)),
+        robustness: SubBlockRobustness::Full,
+    };
+    let c = AccumulateConfig::default();
+    assert!(demosaic_merge(
+        std::slice::from_ref(&good),
+        &[],
+        &cfa,
+        &kernels,
+        0.0,
+        W_WEIGHTS,
+        &c
+    )
+    .is_ok());
+    let cases = [
+        SubBlock {
+            frames: 2,
+            ..good.clone()
+        },
+        SubBlock {
+            frames: 0,
+            ..good.clone()
+        },
+        SubBlock {
+            counts: Array2::zeros((h, w + 1)),
+            ..good.clone()
+        },
+        SubBlock {
+            flow: Array3::from_elem((h, w, 2), f32::NAN),
+            ..good.clone()
+        },
+        SubBlock {
+            robustness: SubBlockRobustness::Map(Array2::zeros((2, 2))),
+            ..good.clone()
+        },
+    ];
+    for bad in cases {
+        assert!(demosaic_merge(&[bad], &[], &cfa, &kernels, 0.0, W_WEIGHTS, &c).is_err());
+    }
+    assert!(demosaic_merge(&[], &[], &cfa, &kernels, 0.0, W_WEIGHTS, &c).is_err());
+    let big = AccumulateConfig { scale: 0, ..c };
+    assert!(demosaic_merge(&[good], &[], &cfa, &kernels, 0.0, W_WEIGHTS, &big).is_err());
+}
+
+#[test]
+fn grey_from_counts_fills_colour_sites_with_the_w_bit_rate() {
+    let (h, w) = (16, 16);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    // W sites fire 30 of 100 frames, colour sites 5: the grey image is 0.3 everywhere.
+    let counts = Array2::from_shape_fn((h, w), |(y, x)| {
+        if cfa.channel(y, x) == quantacolor::Channel::W {
+            30
+        } else {
+            5
+        }
+    });
+    let grey = grey_from_counts(&counts, 100, &cfa).unwrap();
+    assert!(grey.iter().all(|&g| (g - 0.3).abs() < 1e-5));
+    assert!(grey_from_counts(&counts, 0, &cfa).is_err());
+    assert!(grey_from_counts(&Array2::zeros((h, w + 1)), 100, &cfa).is_err());
+}
+
+#[test]
+fn merge_burst_rejects_inconsistent_input() {
+    let (h, w) = (16, 16);
+    let (cfa, subs, flows) = jitter_burst(36, h, w, 2, 10);
+    let grey: Vec<_> = subs
+        .iter()
+        .map(|s| grey_from_counts(&s.counts, s.frames, &cfa).unwrap())
+        .collect();
+    let input = BurstInput {
+        grey_blocks: &grey,
+        block_flows: &flows,
+        reference_block: 2,
+        grey_trials: 10.0,
+        sub_blocks: &subs,
+        cfa: &cfa,
+        w_weights: W_WEIGHTS,
+        dark_per_frame: DARK,
+    };
+    assert!(merge_burst(&input, &MergeConfig::default()).is_err());
+    let input = BurstInput {
+        reference_block: 0,
+        block_flows: &flows[..1],
+        ..input
+    };
+    assert!(merge_burst(&input, &MergeConfig::default()).is_err());
+    let input = BurstInput {
+        block_flows: &flows,
+        ..input
+    };
+    let out = merge_burst(&input, &MergeConfig::default()).unwrap();
+    assert_eq!(out.linear.dim(), (h, w, 3));
+    assert_eq!(out.robustness.len(), 2);
+    assert!(out.robustness[0].iter().all(|&r| r == 1.0));
+}
