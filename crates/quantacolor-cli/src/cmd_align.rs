@@ -3,7 +3,9 @@
 use crate::output::StagedDir;
 use anyhow::{Context, Result};
 use clap::Args;
-use quantacolor::align::{align, dark_count_rate_map, hot_pixel_mask, write_alignment, AlignConfig};
+use quantacolor::align::{
+    align, dark_count_rate_map, hot_pixel_mask, write_alignment, AlignConfig,
+};
 use quantacolor::capture::{io, Capture};
 use quantacolor::progress::Progress;
 use std::path::PathBuf;

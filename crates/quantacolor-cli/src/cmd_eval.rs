@@ -25,7 +25,8 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     let truth = io::read_npy_3d::<f32>(&args.ground_truth)?;
     let opts = EvalOptions {
         border: args.border,
-        normalize_percentile: (args.normalize_percentile > 0.0).then_some(args.normalize_percentile),
+        normalize_percentile: (args.normalize_percentile > 0.0)
+            .then_some(args.normalize_percentile),
     };
     let s = evaluate(estimate.view(), truth.view(), &opts)?;
     println!("psnr_linear = {:.3}", s.psnr_linear);

@@ -18,9 +18,28 @@ pub struct ReconstructArgs {
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
-    /// Reconstruction method.
-    #[arg(long, default_value = "naive")]
-    pub method: Method,
+    /// Reconstruction method: burst (align + joint demosaic-merge) or naive (plain sum).
+    #[arg(long)]
+    pub method: Option<Method>,
+    /// TOML file with a full or partial reconstruction config (see report.toml for the keys);
+    /// command-line options override it.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Denoising: only `none` until the denoising stage lands.
+    #[arg(long, default_value = "none", value_parser = ["none"])]
+    pub denoise: String,
+    /// Burst method: frames per temporal block for alignment (default: from T and light level).
+    #[arg(long)]
+    pub block_size: Option<usize>,
+    /// Burst method: output grid scale (2 = super-resolution).
+    #[arg(long)]
+    pub scale: Option<usize>,
+    /// Burst method: largest motion inside one sub-block, px (smaller = more sub-blocks).
+    #[arg(long)]
+    pub max_sub_block_motion: Option<f64>,
+    /// Write intermediate stages (block grey images, flow, reference, merged planes) as .npy.
+    #[arg(long)]
+    pub dump_stages: Option<PathBuf>,
     /// Reference frame (default: the capture's, else T/2).
     #[arg(long)]
     pub reference_frame: Option<usize>,
@@ -44,15 +63,74 @@ struct Report<'a> {
 }
 
 pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
+    let config = config_from_args(args)?;
     let capture = Capture::open(&args.capture)?;
-    let mut config = ReconstructConfig {
-        method: args.method,
-        reference_frame: args.reference_frame,
-        ..Default::default()
-    };
-    config.naive.window = args.window;
     let rec = reconstruct(&capture, &config, progress)?;
+    if let Some(dir) = &args.dump_stages {
+        dump_stages(dir, &rec)?;
+    }
     write_reconstruction(&args.out, &args.capture, &config, &rec)?;
+    Ok(())
+}
+
+/// The reconstruction config: defaults, then `--config`, then the other options.
+pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
+    let mut config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("{}: cannot read", path.display()))?;
+            toml::from_str::<ReconstructConfig>(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?
+        }
+        None => ReconstructConfig::default(),
+    };
+    if let Some(m) = args.method {
+        config.method = m;
+    }
+    if args.reference_frame.is_some() {
+        config.reference_frame = args.reference_frame;
+    }
+    if args.window.is_some() {
+        config.naive.window = args.window;
+    }
+    if args.block_size.is_some() {
+        config.burst.align.blocks.block_size = args.block_size;
+    }
+    if let Some(scale) = args.scale {
+        if !(1..=4).contains(&scale) {
+            anyhow::bail!("--scale must be 1, 2, 3 or 4");
+        }
+        config.burst.merge.accumulate.scale = scale;
+    }
+    if let Some(m) = args.max_sub_block_motion {
+        if !(m.is_finite() && m > 0.0) {
+            anyhow::bail!("--max-sub-block-motion must be a positive number of pixels");
+        }
+        config.burst.max_sub_block_motion_px = m;
+    }
+    Ok(config)
+}
+
+/// Writes the intermediate stages of a burst reconstruction as .npy files into `dir`.
+fn dump_stages(dir: &Path, rec: &Reconstruction) -> Result<()> {
+    let Some(burst) = &rec.burst else {
+        anyhow::bail!("--dump-stages needs --method burst");
+    };
+    let staged = StagedDir::new(dir)?;
+    io::write_npy(staged.path("grey_blocks.npy"), &burst.alignment.grey)?;
+    io::write_npy(staged.path("flow.npy"), &burst.alignment.flow)?;
+    io::write_npy(staged.path("reference.npy"), &burst.merged.reference)?;
+    io::write_npy(
+        staged.path("merged_planes_rgbw.npy"),
+        &burst.merged.planes.flux,
+    )?;
+    let robustness: Vec<_> = burst.merged.robustness.iter().map(|r| r.view()).collect();
+    io::write_npy(
+        staged.path("robustness.npy"),
+        &ndarray::stack(ndarray::Axis(0), &robustness)?,
+    )?;
+    quantacolor::align::write_alignment(staged.path(""), &burst.alignment)?;
+    staged.commit()?;
     Ok(())
 }
 

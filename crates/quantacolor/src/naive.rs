@@ -124,9 +124,13 @@ pub fn demosaic_normalized(flux: &Array2<f32>, cfa: &Cfa) -> Array3<f32> {
         if fraction == 0.0 {
             continue;
         }
-        let samples = Zip::from(flux)
-            .and(cfa.codes())
-            .map_collect(|&f, &c| if c == channel.code() { f } else { f32::NAN });
+        let samples = Zip::from(flux).and(cfa.codes()).map_collect(|&f, &c| {
+            if c == channel.code() {
+                f
+            } else {
+                f32::NAN
+            }
+        });
         let mut sigma = interpolation_sigma(fraction);
         let mut plane = normalized_convolution(samples.view(), sigma);
         // Sparse channels near many excluded pixels may leave holes: widen until filled.
@@ -142,7 +146,9 @@ pub fn demosaic_normalized(flux: &Array2<f32>, cfa: &Cfa) -> Array3<f32> {
                 }
             });
         }
-        planes.index_axis_mut(Axis(0), channel.index()).assign(&plane);
+        planes
+            .index_axis_mut(Axis(0), channel.index())
+            .assign(&plane);
     }
     planes
 }
@@ -204,7 +210,9 @@ pub fn reconstruct_naive(
         )));
     }
     if config.window == Some(0) {
-        return Err(Error::invalid("the naive window must hold at least one frame"));
+        return Err(Error::invalid(
+            "the naive window must hold at least one frame",
+        ));
     }
     let frames = centred_window(t, reference_frame, config.window);
     let counts = capture.frames.sum_range(frames.clone());
@@ -237,7 +245,8 @@ mod tests {
 
     #[test]
     fn normalized_convolution_reproduces_a_linear_ramp_from_sparse_samples() {
-        let ramp = Array2::from_shape_fn((40, 40), |(y, x)| 1.0 + 0.01 * x as f32 + 0.02 * y as f32);
+        let ramp =
+            Array2::from_shape_fn((40, 40), |(y, x)| 1.0 + 0.01 * x as f32 + 0.02 * y as f32);
         let sparse = Array2::from_shape_fn((40, 40), |(y, x)| {
             if (y * 7 + x * 3) % 5 == 0 {
                 ramp[[y, x]]
@@ -321,6 +330,9 @@ mod tests {
         let total: f64 = (0..3)
             .map(|c| rec.linear.index_axis(Axis(2), c).mean().unwrap() as f64)
             .sum();
-        assert!(total > 1.08 * lambda_w, "hot pixels should bias the sum: {total}");
+        assert!(
+            total > 1.08 * lambda_w,
+            "hot pixels should bias the sum: {total}"
+        );
     }
 }

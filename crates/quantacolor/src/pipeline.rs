@@ -1,6 +1,7 @@
 //! Typed configuration and the stage sequence of a reconstruction. Every stage is also callable
 //! on its own (see the module of each stage).
 
+use crate::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use crate::capture::Capture;
 use crate::error::{Error, Result};
 use crate::naive::{reconstruct_naive, NaiveConfig};
@@ -13,6 +14,8 @@ use std::time::Instant;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
+    /// Align, jointly demosaic and merge, combine RGBW (paper §4).
+    Burst,
     /// Sum a window of frames without motion compensation (paper Table 2 baseline).
     Naive,
 }
@@ -21,9 +24,10 @@ impl std::str::FromStr for Method {
     type Err = Error;
     fn from_str(s: &str) -> Result<Self> {
         match s {
+            "burst" => Ok(Method::Burst),
             "naive" => Ok(Method::Naive),
             other => Err(Error::invalid(format!(
-                "unknown method '{other}' (available: naive)"
+                "unknown method '{other}' (available: burst, naive)"
             ))),
         }
     }
@@ -32,6 +36,7 @@ impl std::str::FromStr for Method {
 impl std::fmt::Display for Method {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {
+            Method::Burst => "burst",
             Method::Naive => "naive",
         })
     }
@@ -39,19 +44,23 @@ impl std::fmt::Display for Method {
 
 /// Configuration of a whole reconstruction.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ReconstructConfig {
     pub method: Method,
     /// Reference frame (default: the capture's).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub reference_frame: Option<usize>,
     pub naive: NaiveConfig,
+    pub burst: BurstConfig,
 }
 
 impl Default for ReconstructConfig {
     fn default() -> Self {
         ReconstructConfig {
-            method: Method::Naive,
+            method: Method::Burst,
             reference_frame: None,
             naive: NaiveConfig::default(),
+            burst: BurstConfig::default(),
         }
     }
 }
@@ -73,6 +82,8 @@ pub struct Reconstruction {
     /// Frames that contributed.
     pub frames_used: usize,
     pub timings: Vec<StageTiming>,
+    /// Intermediate stages of the burst method (for `--dump-stages`).
+    pub burst: Option<BurstReconstruction>,
 }
 
 /// Runs the configured reconstruction on `capture`.
@@ -90,20 +101,29 @@ pub fn reconstruct(
             "reference frame {reference_frame} is outside the capture's {t} frames"
         )));
     }
-    let mut timings = Vec::new();
     let start = Instant::now();
-    progress.start("naive merge", 1);
-    let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
-    progress.advance(1);
-    progress.finish();
-    timings.push(StageTiming {
-        stage: "naive".into(),
+    let (linear, frames_used, burst) = match config.method {
+        Method::Naive => {
+            progress.start("naive merge", 1);
+            let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
+            progress.advance(1);
+            progress.finish();
+            (naive.linear, naive.frames.len(), None)
+        }
+        Method::Burst => {
+            let burst = reconstruct_burst(capture, reference_frame, &config.burst, progress)?;
+            (burst.merged.linear.clone(), t, Some(burst))
+        }
+    };
+    let timings = vec![StageTiming {
+        stage: config.method.to_string(),
         seconds: start.elapsed().as_secs_f64(),
-    });
+    }];
     Ok(Reconstruction {
-        linear: naive.linear,
+        linear,
         reference_frame,
-        frames_used: naive.frames.len(),
+        frames_used,
         timings,
+        burst,
     })
 }

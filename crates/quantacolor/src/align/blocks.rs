@@ -22,6 +22,11 @@ pub struct BlockConfig {
     /// Mean detections per pixel a block should collect, counts: B ≈ target / (mean detections
     /// per pixel per frame). 30 counts give a per-pixel SNR of about 5 before aggregation.
     pub target_counts: f64,
+    /// Fewest blocks an automatic plan may have: short captures (a few hundred frames) get
+    /// blocks shorter than `min_block_size`, so the motion is still sampled along the burst.
+    pub min_blocks: usize,
+    /// Floor of the automatic block size when `min_blocks` shortens it, frames.
+    pub min_short_block_size: usize,
 }
 
 impl Default for BlockConfig {
@@ -31,6 +36,8 @@ impl Default for BlockConfig {
             min_block_size: 100,
             max_block_size: 1000,
             target_counts: 30.0,
+            min_blocks: 8,
+            min_short_block_size: 32,
         }
     }
 }
@@ -144,7 +151,11 @@ impl BlockPlan {
                 } else {
                     f64::INFINITY
                 };
-                wanted.clamp(config.min_block_size as f64, config.max_block_size as f64) as usize
+                let by_light = wanted
+                    .clamp(config.min_block_size as f64, config.max_block_size as f64)
+                    as usize;
+                let by_count = (t / config.min_blocks.max(1)).max(config.min_short_block_size);
+                by_light.min(by_count).max(1)
             }
         };
         BlockPlan::new(t, b, reference_frame)

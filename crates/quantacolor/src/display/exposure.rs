@@ -50,8 +50,8 @@ pub fn encode_srgb16(linear: ArrayView3<f32>, scale: f32) -> Array3<u16> {
 pub fn hstack<T: Copy>(images: &[ArrayView3<T>], gap: usize, fill: T) -> Array3<T> {
     let h = images.iter().map(|i| i.dim().0).max().unwrap_or(0);
     let c = images.first().map(|i| i.dim().2).unwrap_or(3);
-    let w: usize = images.iter().map(|i| i.dim().1).sum::<usize>()
-        + gap * images.len().saturating_sub(1);
+    let w: usize =
+        images.iter().map(|i| i.dim().1).sum::<usize>() + gap * images.len().saturating_sub(1);
     let mut out = Array3::from_elem((h, w, c), fill);
     let mut x0 = 0;
     for img in images {
@@ -68,14 +68,19 @@ mod tests {
 
     #[test]
     fn auto_exposure_maps_the_bright_percentile_to_white() {
-        let img = Array3::from_shape_fn((10, 100, 3), |(_, x, c)| (x as f32 + 1.0) * (c as f32 + 1.0) * 0.01);
+        let img = Array3::from_shape_fn((10, 100, 3), |(_, x, c)| {
+            (x as f32 + 1.0) * (c as f32 + 1.0) * 0.01
+        });
         let scale = auto_exposure_scale(img.view());
         // Max channel is c = 2: values 0.03..3.0; the 99.5th percentile is near 3.0.
         assert!((1.0 / scale - 2.985).abs() < 0.02, "{}", 1.0 / scale);
         let enc = encode_srgb8(img.view(), scale);
         assert_eq!(enc[[0, 99, 2]], 255);
         assert!(enc[[0, 0, 0]] < 40);
-        assert_eq!(auto_exposure_scale(Array3::<f32>::zeros((2, 2, 3)).view()), 1.0);
+        assert_eq!(
+            auto_exposure_scale(Array3::<f32>::zeros((2, 2, 3)).view()),
+            1.0
+        );
     }
 
     #[test]

@@ -4,4 +4,4 @@
 pub mod exposure;
 pub mod srgb;
 
-pub use exposure::{auto_exposure_scale, encode_srgb8, encode_srgb16, hstack};
+pub use exposure::{auto_exposure_scale, encode_srgb16, encode_srgb8, hstack};
