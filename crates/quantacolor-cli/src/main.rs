@@ -2,6 +2,7 @@
 
 mod cmd_align;
 mod cmd_cfa;
+mod cmd_demo;
 mod cmd_eval;
 mod cmd_reconstruct;
 mod cmd_simulate;
@@ -22,6 +23,9 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Simulate a capture of the built-in chart, reconstruct it (burst and naive baselines),
+    /// write demo/ and print PSNR/SSIM.
+    Demo(cmd_demo::DemoArgs),
     /// Simulate a colour single-photon capture (scenes, motion, sensors of paper Table 1).
     Simulate(cmd_simulate::SimulateArgs),
     /// Reconstruct a capture into linear.npy, linear.exr, preview.png and report.toml.
@@ -40,6 +44,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let progress = progress::TerminalProgress::new();
     let result = match &cli.command {
+        Command::Demo(args) => cmd_demo::run(args, &progress),
         Command::Simulate(args) => cmd_simulate::run(args, &progress),
         Command::Reconstruct(args) => cmd_reconstruct::run(args, &progress),
         Command::Eval(args) => cmd_eval::run(args),
