@@ -39,7 +39,7 @@ use std::path::Path;
 pub type Flow = Array4<f32>;
 
 /// Settings of the whole alignment stage.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct AlignConfig {
     /// Hot-pixel correction (used when a hot-pixel mask is given).
@@ -50,6 +50,53 @@ pub struct AlignConfig {
     pub grey: GreyChoice,
     /// Hierarchical patch alignment.
     pub patch: PatchConfig,
+    /// Radius (tiles) of the component-wise median filter applied to each block's tile flow:
+    /// removes isolated mismatches (periodic texture, photon noise) that a single 16 px tile of
+    /// a dark block cannot resolve. 0 disables it.
+    pub median_radius: usize, // 1 tile (3x3)
+}
+
+impl Default for AlignConfig {
+    fn default() -> Self {
+        AlignConfig {
+            hot_pixels: HotPixelConfig::default(),
+            blocks: BlockConfig::default(),
+            grey: GreyChoice::default(),
+            patch: PatchConfig::default(),
+            median_radius: 1,
+        }
+    }
+}
+
+/// Component-wise median of `tile_flow` (tiles_y, tiles_x, 2) over a (2r+1)² window of tiles
+/// (clipped at the grid edges).
+pub fn median_filter_flow(tile_flow: &Array3<f32>, radius: usize) -> Array3<f32> {
+    if radius == 0 {
+        return tile_flow.clone();
+    }
+    let (ty, tx, _) = tile_flow.dim();
+    let mut out = tile_flow.clone();
+    let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
+    for y in 0..ty {
+        for x in 0..tx {
+            for c in 0..2 {
+                window.clear();
+                for yy in y.saturating_sub(radius)..(y + radius + 1).min(ty) {
+                    for xx in x.saturating_sub(radius)..(x + radius + 1).min(tx) {
+                        window.push(tile_flow[[yy, xx, c]]);
+                    }
+                }
+                window.sort_by(f32::total_cmp);
+                let n = window.len();
+                out[[y, x, c]] = if n % 2 == 1 {
+                    window[n / 2]
+                } else {
+                    0.5 * (window[n / 2 - 1] + window[n / 2])
+                };
+            }
+        }
+    }
+    out
 }
 
 /// Result of [`align`].
@@ -126,6 +173,7 @@ pub fn align(
     for b in 0..plan.len() {
         if b != plan.reference_block {
             let f = aligner.align(&grey.slice(s![b, .., ..]).to_owned())?;
+            let f = median_filter_flow(&f, config.median_radius);
             flow.slice_mut(s![b, .., .., ..]).assign(&f);
         }
         progress.advance(1);
