@@ -1,0 +1,222 @@
+//! End-to-end tests of the `quantacolor` binary: the simulate -> reconstruct -> eval path,
+//! determinism, and bad input (exit status 2, the file named, no panic, no partial output,
+//! inputs untouched).
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn quantacolor(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_quantacolor"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> Output {
+    let out = quantacolor(args);
+    assert!(
+        out.status.success(),
+        "{args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn simulate(dir: &Path, seed: &str) {
+    ok(&[
+        "simulate",
+        "--scene",
+        "builtin:chart",
+        "--motion",
+        "handheld",
+        "--frames",
+        "96",
+        "--flux",
+        "0.2",
+        "--size",
+        "96x64",
+        "--cfa",
+        "rgbw-75-bluenoise",
+        "--seed",
+        seed,
+        "--out",
+        dir.to_str().unwrap(),
+    ]);
+}
+
+fn read(path: &Path) -> Vec<u8> {
+    std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+#[test]
+fn simulate_reconstruct_eval_round_trip_is_deterministic() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (cap, cap2) = (tmp.path().join("cap"), tmp.path().join("cap2"));
+    simulate(&cap, "3");
+    simulate(&cap2, "3");
+    assert_eq!(
+        read(&cap.join("frames.npy")),
+        read(&cap2.join("frames.npy"))
+    );
+    for f in [
+        "capture.toml",
+        "cfa.npy",
+        "ground_truth.npy",
+        "hot_pixels.npy",
+        "motion.toml",
+    ] {
+        assert!(cap.join(f).exists(), "{f} missing");
+    }
+    let frames_before = read(&cap.join("frames.npy"));
+    for (name, method) in [("burst", "burst"), ("naive", "naive")] {
+        let out = tmp.path().join(name);
+        ok(&[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--method",
+            method,
+        ]);
+        for f in ["linear.npy", "linear.exr", "preview.png", "report.toml"] {
+            assert!(out.join(f).exists(), "{name}: {f} missing");
+        }
+        let again = tmp.path().join(format!("{name}-again"));
+        ok(&[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            again.to_str().unwrap(),
+            "--method",
+            method,
+        ]);
+        assert_eq!(
+            read(&out.join("linear.npy")),
+            read(&again.join("linear.npy"))
+        );
+        let eval = ok(&[
+            "eval",
+            out.join("linear.npy").to_str().unwrap(),
+            cap.join("ground_truth.npy").to_str().unwrap(),
+            "--border",
+            "8",
+        ]);
+        let text = String::from_utf8_lossy(&eval.stdout);
+        let psnr: f64 = text
+            .lines()
+            .find_map(|l| l.strip_prefix("psnr_linear = "))
+            .expect("psnr line")
+            .parse()
+            .unwrap();
+        assert!(
+            psnr > 10.0 && psnr < 60.0,
+            "{name}: implausible PSNR {psnr}"
+        );
+    }
+    assert_eq!(
+        frames_before,
+        read(&cap.join("frames.npy")),
+        "input modified"
+    );
+    // No staging directories are left behind.
+    let leftovers: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().contains("partial"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+fn expect_failure(args: &[&str], names: &str) -> String {
+    let out = quantacolor(args);
+    assert_eq!(out.status.code(), Some(2), "{args:?} should exit with 2");
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+    assert!(
+        err.contains(names),
+        "{args:?}: error {err:?} does not name {names}"
+    );
+    err
+}
+
+#[test]
+fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    let out_s = out.to_str().unwrap();
+    expect_failure(
+        &["reconstruct", "/no/such/capture", "--out", out_s],
+        "/no/such/capture",
+    );
+    assert!(!out.exists());
+
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "1");
+    // Truncated frames.npy.
+    let frames = read(&cap.join("frames.npy"));
+    std::fs::write(cap.join("frames.npy"), &frames[..frames.len() / 2]).unwrap();
+    let err = expect_failure(
+        &["reconstruct", cap.to_str().unwrap(), "--out", out_s],
+        "frames.npy",
+    );
+    assert!(err.contains("truncated"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
+    assert_eq!(
+        read(&cap.join("frames.npy")).len(),
+        frames.len() / 2,
+        "input modified"
+    );
+    std::fs::write(cap.join("frames.npy"), &frames).unwrap();
+
+    // Bad TOML value.
+    let toml = std::fs::read_to_string(cap.join("capture.toml")).unwrap();
+    let broken = toml
+        .lines()
+        .map(|l| {
+            if l.starts_with("exposure_s") {
+                "exposure_s = -1.0"
+            } else {
+                l
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n");
+    std::fs::write(cap.join("capture.toml"), broken).unwrap();
+    expect_failure(
+        &["reconstruct", cap.to_str().unwrap(), "--out", out_s],
+        "capture.toml",
+    );
+    std::fs::write(cap.join("capture.toml"), toml).unwrap();
+
+    // Reference frame outside the capture.
+    expect_failure(
+        &[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            out_s,
+            "--reference-frame",
+            "5000",
+        ],
+        "reference frame",
+    );
+    // Unknown scene file and unknown CFA pattern.
+    expect_failure(
+        &["simulate", "--scene", "/no/scene.png", "--out", out_s],
+        "/no/scene.png",
+    );
+    expect_failure(
+        &["simulate", "--cfa", "nonsense", "--out", out_s],
+        "nonsense",
+    );
+    // eval with mismatched shapes.
+    expect_failure(
+        &[
+            "eval",
+            cap.join("ground_truth.npy").to_str().unwrap(),
+            cap.join("hot_pixels.npy").to_str().unwrap(),
+        ],
+        "hot_pixels.npy",
+    );
+    assert!(!out.exists(), "partial output left behind");
+}
