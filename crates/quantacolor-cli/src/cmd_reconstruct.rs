@@ -58,6 +58,10 @@ struct Report<'a> {
     width: usize,
     units: &'static str,
     preview_exposure_scale: f32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sub_blocks: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    alignment_blocks: Option<usize>,
     config: &'a ReconstructConfig,
     timings: &'a [quantacolor::pipeline::StageTiming],
 }
@@ -159,6 +163,8 @@ pub fn write_reconstruction(
         width,
         units: "mean photon detections per binary frame of an R, G or B pixel, dark counts removed",
         preview_exposure_scale: scale,
+        sub_blocks: rec.burst.as_ref().map(|b| b.sub_blocks.len()),
+        alignment_blocks: rec.burst.as_ref().map(|b| b.alignment.plan.len()),
         config,
         timings: &rec.timings,
     };

@@ -102,23 +102,24 @@ pub fn reconstruct(
         )));
     }
     let start = Instant::now();
-    let (linear, frames_used, burst) = match config.method {
+    let (linear, frames_used, burst, timings) = match config.method {
         Method::Naive => {
             progress.start("naive merge", 1);
             let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
             progress.advance(1);
             progress.finish();
-            (naive.linear, naive.frames.len(), None)
+            let timing = StageTiming {
+                stage: "naive".into(),
+                seconds: start.elapsed().as_secs_f64(),
+            };
+            (naive.linear, naive.frames.len(), None, vec![timing])
         }
         Method::Burst => {
             let burst = reconstruct_burst(capture, reference_frame, &config.burst, progress)?;
-            (burst.merged.linear.clone(), t, Some(burst))
+            let timings = burst.timings.clone();
+            (burst.merged.linear.clone(), t, Some(burst), timings)
         }
     };
-    let timings = vec![StageTiming {
-        stage: config.method.to_string(),
-        seconds: start.elapsed().as_secs_f64(),
-    }];
     Ok(Reconstruction {
         linear,
         reference_frame,

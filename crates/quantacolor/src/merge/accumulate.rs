@@ -84,6 +84,230 @@ pub struct MergedPlanes {
     pub w_fallback: Array2<bool>,
 }
 
+/// Streaming form of [`demosaic_merge`]: sub-blocks are added in chunks, so memory stays
+/// bounded by one chunk plus the (H·s, W·s) accumulators, whatever the number of frames.
+pub struct MergeAccumulator<'a> {
+    cfa: &'a Cfa,
+    kernels: &'a KernelField,
+    config: AccumulateConfig,
+    codes: Vec<u8>,
+    inv_cov: Vec<f32>,
+    channel_scale: [f32; 4],
+    inv_scale: [f32; 4],
+    radius: isize,
+    /// acc[(oy·ws + ox)·12 + c·3 + {0: Σ w·counts, 1: Σ w·F, 2: Σ w²·F}]
+    acc: Vec<f32>,
+}
+
+impl<'a> MergeAccumulator<'a> {
+    /// Empty accumulators for `cfa` with the kernels of the reference.
+    pub fn new(cfa: &'a Cfa, kernels: &'a KernelField, config: &AccumulateConfig) -> Result<Self> {
+        let (h, w) = (cfa.height(), cfa.width());
+        validate(&[], &[], kernels, h, w, config)?;
+        let scale = config.scale;
+        let channel_scale = KernelField::channel_scale(cfa).map(|s| {
+            if s > 0.0 {
+                s.powf(config.spacing_exponent)
+            } else {
+                0.0
+            }
+        });
+        let inv_scale: [f32; 4] = channel_scale.map(|s| if s > 0.0 { 1.0 / s } else { 0.0 });
+        let max_scale = channel_scale.iter().copied().fold(0.0f32, f32::max);
+        let radius = ((3.0 * kernels.max_std * max_scale.sqrt()).ceil() as usize)
+            .clamp(1, config.max_radius.max(1)) as isize;
+        Ok(MergeAccumulator {
+            cfa,
+            kernels,
+            config: config.clone(),
+            codes: cfa.codes().iter().copied().collect(),
+            inv_cov: kernels.inv_cov.iter().copied().collect(),
+            channel_scale,
+            inv_scale,
+            radius,
+            acc: vec![0.0; h * scale * w * scale * 12],
+        })
+    }
+
+    /// Adds `sub_blocks` (whose `SubBlockRobustness::Block(i)` index `block_robustness`).
+    pub fn add(&mut self, sub_blocks: &[SubBlock], block_robustness: &[Array2<f32>]) -> Result<()> {
+        let (h, w) = (self.cfa.height(), self.cfa.width());
+        validate(
+            sub_blocks,
+            block_robustness,
+            self.kernels,
+            h,
+            w,
+            &self.config,
+        )?;
+        let scale = self.config.scale;
+        let ws = w * scale;
+        let codes = &self.codes[..];
+        let inv_cov = &self.inv_cov[..];
+        let inv_scale = self.inv_scale;
+        let radius = self.radius;
+        // Standard-layout views of every sub-block (copies only if a caller passed another layout).
+        let counts: Vec<_> = sub_blocks
+            .iter()
+            .map(|b| b.counts.as_standard_layout())
+            .collect();
+        let flows: Vec<_> = sub_blocks
+            .iter()
+            .map(|b| b.flow.as_standard_layout())
+            .collect();
+        let block_maps: Vec<_> = block_robustness
+            .iter()
+            .map(|m| m.as_standard_layout())
+            .collect();
+        let own_maps: Vec<_> = sub_blocks
+            .iter()
+            .map(|b| match &b.robustness {
+                SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
+                _ => None,
+            })
+            .collect();
+        let robust: Vec<Option<&[f32]>> = sub_blocks
+            .iter()
+            .zip(&own_maps)
+            .map(|(b, own)| match &b.robustness {
+                SubBlockRobustness::Full => None,
+                SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
+                SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
+            })
+            .collect();
+
+        let inv_s = 1.0 / scale as f32;
+        let offset = 0.5 * inv_s - 0.5;
+        let cutoff = self.config.cutoff;
+        let (hi_y, hi_x) = (h as isize - 1, w as isize - 1);
+
+        self.acc
+            .par_chunks_mut(ws * 12)
+            .enumerate()
+            .for_each(|(oy, acc)| {
+                let py = oy as f32 * inv_s + offset;
+                let iy = (py.round() as usize).min(h - 1);
+                for k in 0..sub_blocks.len() {
+                    let cnt = counts[k].as_slice().expect("standard layout");
+                    let flow = flows[k].as_slice().expect("standard layout");
+                    let rob = robust[k];
+                    let frames = sub_blocks[k].frames as f32;
+                    for ox in 0..ws {
+                        let px = ox as f32 * inv_s + offset;
+                        let ix = (px.round() as usize).min(w - 1);
+                        let pidx = iy * w + ix;
+                        let r = rob.map_or(1.0, |m| m[pidx]);
+                        if r <= 0.0 {
+                            continue;
+                        }
+                        let sy = py + flow[2 * pidx];
+                        let sx = px + flow[2 * pidx + 1];
+                        let (cy, cx) = (sy.round() as isize, sx.round() as isize);
+                        let (y0, y1) = ((cy - radius).max(0), (cy + radius).min(hi_y));
+                        let (x0, x1) = ((cx - radius).max(0), (cx + radius).min(hi_x));
+                        if y0 > y1 || x0 > x1 {
+                            continue;
+                        }
+                        let (a, b2, c) = (
+                            inv_cov[3 * pidx],
+                            2.0 * inv_cov[3 * pidx + 1],
+                            inv_cov[3 * pidx + 2],
+                        );
+                        let cell = &mut acc[ox * 12..ox * 12 + 12];
+                        let rf = r * frames;
+                        let rrf = r * rf;
+                        for qy in y0..=y1 {
+                            let dy = qy as f32 - sy;
+                            let row = qy as usize * w;
+                            let row_codes = &codes[row + x0 as usize..=row + x1 as usize];
+                            let row_counts = &cnt[row + x0 as usize..=row + x1 as usize];
+                            let ady2 = a * dy * dy;
+                            let bdy = b2 * dy;
+                            let mut dx = x0 as f32 - sx;
+                            for (&code, &count) in row_codes.iter().zip(row_counts) {
+                                let ch = code as usize & 3;
+                                let quad = (ady2 + dx * (bdy + c * dx)) * inv_scale[ch];
+                                dx += 1.0;
+                                if quad < cutoff {
+                                    let g = (-0.5 * quad).exp();
+                                    let slot = &mut cell[ch * 3..ch * 3 + 3];
+                                    slot[0] += g * r * count as f32;
+                                    slot[1] += g * rf;
+                                    slot[2] += g * g * rrf;
+                                }
+                            }
+                        }
+                    }
+                }
+            });
+        Ok(())
+    }
+
+    /// Per-channel bit rates and MLE fluxes (paper Eq. 6) from the accumulated samples, holes
+    /// filled, W saturation fallback applied.
+    pub fn finish(self, dark_per_frame: f64, w_weights: [f64; 3]) -> MergedPlanes {
+        let scale = self.config.scale;
+        let (hs, ws) = (self.cfa.height() * scale, self.cfa.width() * scale);
+        let channel_scale = self.channel_scale;
+        let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
+        let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
+        for oy in 0..hs {
+            for ox in 0..ws {
+                let base = (oy * ws + ox) * 12;
+                for ch in 0..4 {
+                    let s = &self.acc[base + ch * 3..base + ch * 3 + 3];
+                    if s[1] > 1e-6 && s[2] > 0.0 {
+                        let p = s[0] / s[1];
+                        let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
+                        bit_rate[[ch, oy, ox]] = p;
+                        flux[[ch, oy, ox]] =
+                            mle_flux(p as f64 * n_eff, n_eff, dark_per_frame) as f32;
+                    }
+                }
+            }
+        }
+        // Fill pixels that no sample reached (sparse channels, image borders).
+        for channel in Channel::ALL {
+            let ch = channel.index();
+            if channel_scale[ch] == 0.0 {
+                continue;
+            }
+            let plane = flux.index_axis(Axis(0), ch);
+            if plane.iter().any(|v| v.is_nan()) {
+                let sigma = (channel_scale[ch] as f64).sqrt() * scale as f64;
+                let filled = normalized_convolution(plane, sigma);
+                let mut plane = flux.index_axis_mut(Axis(0), ch);
+                plane.zip_mut_with(&filled, |v, &f| {
+                    if v.is_nan() {
+                        *v = f;
+                    }
+                });
+            }
+        }
+        // W saturation fallback (supplement §7).
+        let mut w_fallback = Array2::<bool>::from_elem((hs, ws), false);
+        if channel_scale[..3].iter().all(|&s| s > 0.0) && channel_scale[3] > 0.0 {
+            for oy in 0..hs {
+                for ox in 0..ws {
+                    let sat = |ch: usize| bit_rate[[ch, oy, ox]] > self.config.w_saturation;
+                    if sat(3) && !(sat(0) || sat(1) || sat(2)) {
+                        let lum: f64 = (0..3)
+                            .map(|ch| flux[[ch, oy, ox]] as f64 * w_weights[ch])
+                            .sum();
+                        flux[[3, oy, ox]] = lum as f32;
+                        w_fallback[[oy, ox]] = true;
+                    }
+                }
+            }
+        }
+        MergedPlanes {
+            flux,
+            bit_rate,
+            w_fallback,
+        }
+    }
+}
+
 /// Joint demosaic and merge of `sub_blocks` (supplement Eq. 1–3).
 ///
 /// For output pixel p (reference coordinates; on a `scale` grid, pixel (Y, X) sits at
@@ -107,188 +331,12 @@ pub fn demosaic_merge(
     w_weights: [f64; 3],
     config: &AccumulateConfig,
 ) -> Result<MergedPlanes> {
-    let (h, w) = (cfa.height(), cfa.width());
-    validate(sub_blocks, block_robustness, kernels, h, w, config)?;
-    let scale = config.scale;
-    let (hs, ws) = (h * scale, w * scale);
-    let channel_scale = KernelField::channel_scale(cfa).map(|s| {
-        if s > 0.0 {
-            s.powf(config.spacing_exponent)
-        } else {
-            0.0
-        }
-    });
-    let inv_scale: [f32; 4] = channel_scale.map(|s| if s > 0.0 { 1.0 / s } else { 0.0 });
-    let max_scale = channel_scale.iter().copied().fold(0.0f32, f32::max);
-    let radius = ((3.0 * kernels.max_std * max_scale.sqrt()).ceil() as usize)
-        .clamp(1, config.max_radius.max(1)) as isize;
-
-    let codes = cfa.codes().as_standard_layout().into_owned();
-    let codes = codes.as_slice().expect("standard layout");
-    let inv_cov = kernels.inv_cov.as_standard_layout().into_owned();
-    let inv_cov = inv_cov.as_slice().expect("standard layout");
-    // Standard-layout views of every sub-block (copies only if a caller passed another layout).
-    let counts: Vec<_> = sub_blocks
-        .iter()
-        .map(|b| b.counts.as_standard_layout())
-        .collect();
-    let flows: Vec<_> = sub_blocks
-        .iter()
-        .map(|b| b.flow.as_standard_layout())
-        .collect();
-    let block_maps: Vec<_> = block_robustness
-        .iter()
-        .map(|m| m.as_standard_layout())
-        .collect();
-    let own_maps: Vec<_> = sub_blocks
-        .iter()
-        .map(|b| match &b.robustness {
-            SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
-            _ => None,
-        })
-        .collect();
-    let robust: Vec<Option<&[f32]>> = sub_blocks
-        .iter()
-        .zip(&own_maps)
-        .map(|(b, own)| match &b.robustness {
-            SubBlockRobustness::Full => None,
-            SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
-            SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
-        })
-        .collect();
-
-    let inv_s = 1.0 / scale as f32;
-    let offset = 0.5 * inv_s - 0.5;
-    let cutoff = config.cutoff;
-    let (hi_y, hi_x) = (h as isize - 1, w as isize - 1);
-
-    // Per output row: (ws x 4) bit rates and fluxes.
-    let rows: Vec<(Vec<f32>, Vec<f32>)> = (0..hs)
-        .into_par_iter()
-        .map(|oy| {
-            // acc[x·12 + c·3 + {0: Σ w·counts, 1: Σ w·F, 2: Σ w²·F}]
-            let mut acc = vec![0.0f32; ws * 12];
-            let py = oy as f32 * inv_s + offset;
-            let iy = (py.round() as usize).min(h - 1);
-            for k in 0..sub_blocks.len() {
-                let cnt = counts[k].as_slice().expect("standard layout");
-                let flow = flows[k].as_slice().expect("standard layout");
-                let rob = robust[k];
-                let frames = sub_blocks[k].frames as f32;
-                for ox in 0..ws {
-                    let px = ox as f32 * inv_s + offset;
-                    let ix = (px.round() as usize).min(w - 1);
-                    let pidx = iy * w + ix;
-                    let r = rob.map_or(1.0, |m| m[pidx]);
-                    if r <= 0.0 {
-                        continue;
-                    }
-                    let sy = py + flow[2 * pidx];
-                    let sx = px + flow[2 * pidx + 1];
-                    let (cy, cx) = (sy.round() as isize, sx.round() as isize);
-                    let (y0, y1) = ((cy - radius).max(0), (cy + radius).min(hi_y));
-                    let (x0, x1) = ((cx - radius).max(0), (cx + radius).min(hi_x));
-                    if y0 > y1 || x0 > x1 {
-                        continue;
-                    }
-                    let (a, b2, c) = (
-                        inv_cov[3 * pidx],
-                        2.0 * inv_cov[3 * pidx + 1],
-                        inv_cov[3 * pidx + 2],
-                    );
-                    let cell = &mut acc[ox * 12..ox * 12 + 12];
-                    let rf = r * frames;
-                    let rrf = r * rf;
-                    for qy in y0..=y1 {
-                        let dy = qy as f32 - sy;
-                        let row = qy as usize * w;
-                        let row_codes = &codes[row + x0 as usize..=row + x1 as usize];
-                        let row_counts = &cnt[row + x0 as usize..=row + x1 as usize];
-                        let ady2 = a * dy * dy;
-                        let bdy = b2 * dy;
-                        let mut dx = x0 as f32 - sx;
-                        for (&code, &count) in row_codes.iter().zip(row_counts) {
-                            let ch = code as usize & 3;
-                            let quad = (ady2 + dx * (bdy + c * dx)) * inv_scale[ch];
-                            dx += 1.0;
-                            if quad < cutoff {
-                                let g = (-0.5 * quad).exp();
-                                let slot = &mut cell[ch * 3..ch * 3 + 3];
-                                slot[0] += g * r * count as f32;
-                                slot[1] += g * rf;
-                                slot[2] += g * g * rrf;
-                            }
-                        }
-                    }
-                }
-            }
-            let mut rate = vec![f32::NAN; ws * 4];
-            let mut flux = vec![f32::NAN; ws * 4];
-            for ox in 0..ws {
-                for ch in 0..4 {
-                    let s = &acc[ox * 12 + ch * 3..ox * 12 + ch * 3 + 3];
-                    if s[1] > 1e-6 && s[2] > 0.0 {
-                        let p = s[0] / s[1];
-                        let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
-                        rate[ox * 4 + ch] = p;
-                        flux[ox * 4 + ch] =
-                            mle_flux(p as f64 * n_eff, n_eff, dark_per_frame) as f32;
-                    }
-                }
-            }
-            (rate, flux)
-        })
-        .collect();
-
-    let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
-    let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
-    for (oy, (rate_row, flux_row)) in rows.iter().enumerate() {
-        for ox in 0..ws {
-            for ch in 0..4 {
-                bit_rate[[ch, oy, ox]] = rate_row[ox * 4 + ch];
-                flux[[ch, oy, ox]] = flux_row[ox * 4 + ch];
-            }
-        }
+    if sub_blocks.is_empty() {
+        return Err(Error::invalid("merge: no sub-blocks given"));
     }
-    // Fill pixels that no sample reached (sparse channels, image borders).
-    for channel in Channel::ALL {
-        let ch = channel.index();
-        if channel_scale[ch] == 0.0 {
-            continue;
-        }
-        let plane = flux.index_axis(Axis(0), ch);
-        if plane.iter().any(|v| v.is_nan()) {
-            let sigma = (channel_scale[ch] as f64).sqrt() * scale as f64;
-            let filled = normalized_convolution(plane, sigma);
-            let mut plane = flux.index_axis_mut(Axis(0), ch);
-            plane.zip_mut_with(&filled, |v, &f| {
-                if v.is_nan() {
-                    *v = f;
-                }
-            });
-        }
-    }
-    // W saturation fallback (supplement §7).
-    let mut w_fallback = Array2::<bool>::from_elem((hs, ws), false);
-    if channel_scale[..3].iter().all(|&s| s > 0.0) && channel_scale[3] > 0.0 {
-        for oy in 0..hs {
-            for ox in 0..ws {
-                let sat = |ch: usize| bit_rate[[ch, oy, ox]] > config.w_saturation;
-                if sat(3) && !(sat(0) || sat(1) || sat(2)) {
-                    let lum: f64 = (0..3)
-                        .map(|ch| flux[[ch, oy, ox]] as f64 * w_weights[ch])
-                        .sum();
-                    flux[[3, oy, ox]] = lum as f32;
-                    w_fallback[[oy, ox]] = true;
-                }
-            }
-        }
-    }
-    Ok(MergedPlanes {
-        flux,
-        bit_rate,
-        w_fallback,
-    })
+    let mut acc = MergeAccumulator::new(cfa, kernels, config)?;
+    acc.add(sub_blocks, block_robustness)?;
+    Ok(acc.finish(dark_per_frame, w_weights))
 }
 
 fn validate(
@@ -299,9 +347,6 @@ fn validate(
     w: usize,
     config: &AccumulateConfig,
 ) -> Result<()> {
-    if sub_blocks.is_empty() {
-        return Err(Error::invalid("merge: no sub-blocks given"));
-    }
     if !(1..=8).contains(&config.scale) {
         return Err(Error::invalid(format!(
             "merge: output scale {} must be between 1 and 8",

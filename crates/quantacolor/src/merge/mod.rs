@@ -23,7 +23,7 @@ pub mod robustness;
 pub mod warp;
 
 pub use accumulate::{
-    demosaic_merge, AccumulateConfig, MergedPlanes, SubBlock, SubBlockRobustness,
+    demosaic_merge, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock, SubBlockRobustness,
 };
 pub use kernels::{kernel_field, KernelConfig, KernelField};
 pub use reference::{reference_image, WienerConfig};
