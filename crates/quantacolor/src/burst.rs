@@ -129,6 +129,23 @@ pub fn reconstruct_burst(
     config: &BurstConfig,
     progress: &dyn Progress,
 ) -> Result<BurstReconstruction> {
+    reconstruct_burst_with_motion(capture, reference_frame, config, None, progress)
+}
+
+/// Dense (H, W, 2) flow of (fractional) frame `t`: the scene point at p in the reference frame
+/// is at p + flow(p) in frame t.
+pub type MotionOracle<'a> = &'a (dyn Fn(f64) -> Array3<f32> + Sync);
+
+/// [`reconstruct_burst`] with the merge driven by `motion` instead of the estimated flow when
+/// given (e.g. a simulator's true motion: the quality benchmark's upper bound). Alignment still
+/// runs for the block plan and the grey images.
+pub fn reconstruct_burst_with_motion(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &BurstConfig,
+    motion: Option<MotionOracle<'_>>,
+    progress: &dyn Progress,
+) -> Result<BurstReconstruction> {
     let frames = &capture.frames;
     let (h, w) = (frames.height(), frames.width());
     let hot = capture.hot_pixels.as_ref();
@@ -156,9 +173,12 @@ pub fn reconstruct_burst(
     // Reference image, kernels and per-block robustness (supplement §1.2–1.3).
     let grey_blocks: Vec<Array2<f32>> = alignment.grey.outer_iter().map(|g| g.to_owned()).collect();
     let block_flows: Vec<Array3<f32>> = (0..alignment.plan.len())
-        .map(|b| {
-            let tile_flow = alignment.flow.slice(s![b, .., .., ..]).to_owned();
-            dense_flow(&tile_flow, &alignment.grid, h, w)
+        .map(|b| match motion {
+            Some(oracle) => oracle(alignment.plan.center_frames()[b]),
+            None => {
+                let tile_flow = alignment.flow.slice(s![b, .., .., ..]).to_owned();
+                dense_flow(&tile_flow, &alignment.grid, h, w)
+            }
         })
         .collect();
     let reference_block = alignment.plan.reference_block;
@@ -233,11 +253,17 @@ pub fn reconstruct_burst(
                     None => frames.sum_range(range.clone()),
                 };
                 let centre = (range.start + range.end - 1) as f64 / 2.0;
-                let tile_flow = frame_flow(&alignment.flow, &alignment.plan, centre);
+                let flow = match motion {
+                    Some(oracle) => oracle(centre),
+                    None => {
+                        let tile_flow = frame_flow(&alignment.flow, &alignment.plan, centre);
+                        dense_flow(&tile_flow, &alignment.grid, h, w)
+                    }
+                };
                 SubBlock {
                     counts,
                     frames: range.len() as u32,
-                    flow: dense_flow(&tile_flow, &alignment.grid, h, w),
+                    flow,
                     robustness: SubBlockRobustness::Block(robustness_index(*block, centre)),
                 }
             })

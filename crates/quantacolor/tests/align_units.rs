@@ -202,20 +202,20 @@ fn block_plans_centre_the_reference_and_cover_every_frame() {
 #[test]
 fn automatic_block_size_follows_the_light_level() {
     let (h, w) = (4, 8);
-    // Long captures: B follows 30 counts / rate, clamped to 100..=1000 (and to T).
+    // Long captures: B follows 30 counts / rate, clamped to 100..=1000 (and to T / 8).
     for (p, expect) in [(0.3f64, 100usize), (0.1, 300), (0.01, 1000)] {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let bits = Array3::from_shape_fn((1200, h, w), |_| rng.gen_bool(p) as u8);
+        let bits = Array3::from_shape_fn((8000, h, w), |_| rng.gen_bool(p) as u8);
         let frames = frames_from(&bits);
-        let plan = BlockPlan::choose(&frames, 600, &BlockConfig::default()).unwrap();
+        let plan = BlockPlan::choose(&frames, 4000, &BlockConfig::default()).unwrap();
         let b = plan.block_size as f64;
         assert!(
             (b - expect as f64).abs() / expect as f64 <= 0.15,
             "p = {p}: B = {b}, expected ~{expect}"
         );
     }
-    // Short captures (T < 100 x 8) are cut into at least 8 blocks, never shorter than 32.
-    for (t, expect) in [(512usize, 64usize), (200, 32)] {
+    // Shorter captures are cut into at least 8 blocks, never shorter than 32 frames.
+    for (t, expect) in [(1200usize, 150usize), (512, 64), (200, 32)] {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let bits = Array3::from_shape_fn((t, h, w), |_| rng.gen_bool(0.1) as u8);
         let frames = frames_from(&bits);

@@ -22,9 +22,8 @@ pub struct BlockConfig {
     /// Mean detections per pixel a block should collect, counts: B ≈ target / (mean detections
     /// per pixel per frame). 30 counts give a per-pixel SNR of about 5 before aggregation.
     pub target_counts: f64,
-    /// Fewest blocks an automatic plan of a short capture (T < `min_block_size` × `min_blocks`)
-    /// may have: such captures get blocks shorter than `min_block_size`, so the motion is still
-    /// sampled along the burst.
+    /// Fewest blocks an automatic plan may have (B <= T / `min_blocks`): the motion must be
+    /// sampled along the burst, so short captures get blocks below `min_block_size`.
     pub min_blocks: usize,
     /// Floor of the automatic block size when `min_blocks` shortens it, frames.
     pub min_short_block_size: usize,
@@ -155,12 +154,8 @@ impl BlockPlan {
                 let by_light = wanted
                     .clamp(config.min_block_size as f64, config.max_block_size as f64)
                     as usize;
-                if t < config.min_block_size * config.min_blocks {
-                    let by_count = (t / config.min_blocks.max(1)).max(config.min_short_block_size);
-                    by_light.min(by_count).max(1)
-                } else {
-                    by_light
-                }
+                let by_count = (t / config.min_blocks.max(1)).max(config.min_short_block_size);
+                by_light.min(by_count).max(1)
             }
         };
         BlockPlan::new(t, b, reference_frame)

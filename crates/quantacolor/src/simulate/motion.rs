@@ -366,6 +366,26 @@ impl Motion {
         (q[0] - y, q[1] - x)
     }
 
+    /// Dense true flow `(H, W, 2)` at fractional frame `t` (linear between the two nearest
+    /// frames), in the convention of the alignment: the scene point at p in the reference
+    /// frame is at p + flow(p) in frame t.
+    pub fn dense_flow(&self, t: f64, height: usize, width: usize) -> ndarray::Array3<f32> {
+        let last = self.frames.saturating_sub(1);
+        let t = t.clamp(0.0, last as f64);
+        let (f0, f1) = (t.floor() as usize, (t.ceil() as usize).min(last));
+        let a = t - f0 as f64;
+        let mut flow = ndarray::Array3::<f32>::zeros((height, width, 2));
+        for y in 0..height {
+            for x in 0..width {
+                let d0 = self.true_displacement(f0, y as f64, x as f64);
+                let d1 = self.true_displacement(f1, y as f64, x as f64);
+                flow[[y, x, 0]] = ((1.0 - a) * d0.0 + a * d1.0) as f32;
+                flow[[y, x, 1]] = ((1.0 - a) * d0.1 + a * d1.1) as f32;
+            }
+        }
+        flow
+    }
+
     /// Largest distance, over frames and sensor corners, between a pixel and the reference
     /// position it sees: the scene margin needed around the sensor.
     pub fn max_excursion(&self, height: usize, width: usize) -> f64 {
