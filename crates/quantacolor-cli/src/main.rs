@@ -1,6 +1,7 @@
 //! `quantacolor`: command-line interface to the quantacolor library.
 
 mod cmd_align;
+mod cmd_bench;
 mod cmd_cfa;
 mod cmd_demo;
 mod cmd_eval;
@@ -36,6 +37,8 @@ enum Command {
     Align(cmd_align::AlignArgs),
     /// Per-pixel dark count rates and a hot-pixel mask from a dark capture.
     CalibrateDcr(cmd_align::CalibrateDcrArgs),
+    /// Quality and speed benchmarks (ratios against baselines measured in the same run).
+    Bench(cmd_bench::BenchArgs),
     /// Colour filter arrays: generate, analyse spectra, compare patterns (paper §5).
     Cfa(cmd_cfa::CfaArgs),
 }
@@ -51,6 +54,7 @@ fn main() -> ExitCode {
         Command::Align(args) => cmd_align::run_align(args, &progress),
         Command::CalibrateDcr(args) => cmd_align::run_calibrate_dcr(args),
         Command::Cfa(args) => cmd_cfa::run(args),
+        Command::Bench(args) => cmd_bench::run(args, &progress),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
