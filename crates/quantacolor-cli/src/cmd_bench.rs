@@ -68,31 +68,31 @@ fn suite() -> Vec<Case> {
             scene: "kodim02.png",
             motion: "handheld",
             frames: 512,
-            flux: mean.clone(),
+            flux: mean,
         },
         Case {
             scene: "kodim04.png",
             motion: "pan",
             frames: 512,
-            flux: mean.clone(),
+            flux: mean,
         },
         Case {
             scene: "kodim07.png",
             motion: "static",
             frames: 512,
-            flux: mean.clone(),
+            flux: mean,
         },
         Case {
             scene: "kodim12.png",
             motion: "object",
             frames: 512,
-            flux: mean.clone(),
+            flux: mean,
         },
         Case {
             scene: "ScanLines_StillLife.exr",
             motion: "handheld",
             frames: 2000,
-            flux: hdr.clone(),
+            flux: hdr,
         },
         Case {
             scene: "ScanLines_Cannon.exr",
@@ -108,7 +108,7 @@ fn simulate_case(scenes: &Path, case: &Case, seed: u64) -> Result<SimulatedCaptu
     let scene = Scene::load(&path)?;
     let config = SimulationConfig {
         frames: case.frames,
-        flux: case.flux.clone(),
+        flux: case.flux,
         motion: case.motion.parse::<MotionConfig>()?,
         hot_fraction: 0.02,
         seed,
