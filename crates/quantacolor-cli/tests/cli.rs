@@ -220,3 +220,32 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     );
     assert!(!out.exists(), "partial output left behind");
 }
+
+#[test]
+fn video_mode_writes_one_frame_per_reference() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "4");
+    let out = tmp.path().join("video");
+    ok(&[
+        "reconstruct",
+        cap.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--video",
+        "--stride",
+        "32",
+    ]);
+    // 96 frames, stride 32: reference frames 16, 48, 80.
+    for i in 0..3 {
+        assert!(out.join(format!("frame_{i:05}.png")).exists(), "frame {i}");
+    }
+    assert!(!out.join("frame_00003.png").exists());
+    let toml = std::fs::read_to_string(out.join("video.toml")).unwrap();
+    assert!(
+        toml.contains("16") && toml.contains("48") && toml.contains("80"),
+        "{toml}"
+    );
+    let linear = read(&out.join("linear.npy"));
+    assert!(String::from_utf8_lossy(&linear[..128]).contains("(3, 64, 96, 3)"));
+}
