@@ -128,7 +128,7 @@ fn jitter_burst(
 fn true_flows_beat_a_zero_flow_merge() {
     let (h, w) = (48, 56);
     let (cfa, subs, flows) = jitter_burst(32, h, w, 24, 200);
-    let config = MergeConfig::default();
+    let config = high_snr_config();
     let aligned = merge_all(&cfa, &subs, Some(&flows), &config);
     let mut no_robust = config.clone();
     no_robust.robustness.t = -1.0; // R ≡ 1: the plain sum of the naive baseline
@@ -213,7 +213,7 @@ fn robustness_suppresses_a_sub_block_with_wrong_content() {
         );
     }
     let flows: Vec<_> = subs.iter().map(|s| s.flow.clone()).collect();
-    let config = MergeConfig::default();
+    let config = high_snr_config();
     let robust = merge_all(&cfa, &subs, Some(&flows), &config);
     let mut plain = config.clone();
     plain.robustness.t = -1.0;
@@ -383,4 +383,14 @@ fn merge_burst_rejects_inconsistent_input() {
     assert_eq!(out.linear.dim(), (h, w, 3));
     assert_eq!(out.robustness.len(), 2);
     assert!(out.robustness[0].iter().all(|&r| r == 1.0));
+}
+
+/// These synthetic bursts are bright and finely textured: narrow colour kernels (the
+/// pre-default spacing exponent 0.5, radius 3) show the effect of flows and robustness best;
+/// the photon-limited defaults widen colour kernels (see `AccumulateConfig::spacing_exponent`).
+fn high_snr_config() -> MergeConfig {
+    let mut config = MergeConfig::default();
+    config.accumulate.spacing_exponent = 0.5;
+    config.accumulate.max_radius = 3;
+    config
 }
