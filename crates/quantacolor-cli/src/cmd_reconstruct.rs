@@ -81,7 +81,7 @@ pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
     }
     let rec = reconstruct(&capture, &config, progress)?;
     if let Some(dir) = &args.dump_stages {
-        dump_stages(dir, &rec)?;
+        dump_stages(dir, &capture, &rec)?;
     }
     write_reconstruction(&args.out, &args.capture, &config, &rec)?;
     Ok(())
@@ -126,11 +126,24 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
 }
 
 /// Writes the intermediate stages of a burst reconstruction as .npy files into `dir`.
-fn dump_stages(dir: &Path, rec: &Reconstruction) -> Result<()> {
+fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()> {
     let Some(burst) = &rec.burst else {
         anyhow::bail!("--dump-stages needs --method burst");
     };
     let staged = StagedDir::new(dir)?;
+    // Raw block sums (before hot-pixel correction), uint32 (n_blocks, H, W).
+    let sums: Vec<_> = burst
+        .alignment
+        .plan
+        .blocks
+        .iter()
+        .map(|r| capture.frames.sum_range(r.clone()))
+        .collect();
+    let views: Vec<_> = sums.iter().map(|s| s.view()).collect();
+    io::write_npy(
+        staged.path("block_sums.npy"),
+        &ndarray::stack(ndarray::Axis(0), &views)?,
+    )?;
     io::write_npy(staged.path("grey_blocks.npy"), &burst.alignment.grey)?;
     io::write_npy(staged.path("flow.npy"), &burst.alignment.flow)?;
     io::write_npy(staged.path("reference.npy"), &burst.merged.reference)?;

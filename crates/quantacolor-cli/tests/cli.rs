@@ -249,3 +249,32 @@ fn video_mode_writes_one_frame_per_reference() {
     let linear = read(&out.join("linear.npy"));
     assert!(String::from_utf8_lossy(&linear[..128]).contains("(3, 64, 96, 3)"));
 }
+
+#[test]
+fn dump_stages_writes_every_intermediate() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "6");
+    let dump = tmp.path().join("stages");
+    ok(&[
+        "reconstruct",
+        cap.to_str().unwrap(),
+        "--out",
+        tmp.path().join("out").to_str().unwrap(),
+        "--dump-stages",
+        dump.to_str().unwrap(),
+    ]);
+    for f in [
+        "block_sums.npy",
+        "grey_blocks.npy",
+        "flow.npy",
+        "flow.toml",
+        "reference.npy",
+        "robustness.npy",
+        "merged_planes_rgbw.npy",
+    ] {
+        assert!(dump.join(f).exists(), "{f} missing");
+    }
+    let planes = read(&dump.join("merged_planes_rgbw.npy"));
+    assert!(String::from_utf8_lossy(&planes[..128]).contains("(4, 64, 96)"));
+}
