@@ -4,7 +4,6 @@
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, BurstConfig};
-use quantacolor::capture::{BinaryFrames, Capture};
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::metrics::{evaluate, EvalOptions, Scores};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
@@ -122,16 +121,6 @@ fn simulate_case(scenes: &Path, case: &Case, seed: u64) -> Result<SimulatedCaptu
     )?)
 }
 
-fn in_memory(sim: &SimulatedCapture) -> Result<Capture> {
-    Ok(Capture {
-        dir: "simulated".into(),
-        frames: BinaryFrames::from_packed(sim.packed_frames.clone(), sim.width)?,
-        cfa: sim.cfa.clone(),
-        meta: sim.meta.clone(),
-        hot_pixels: Some(sim.hot_pixels.clone()),
-    })
-}
-
 const METHODS: [&str; 4] = ["burst", "burst (true motion)", "naive long", "naive short"];
 
 fn quality(scenes: &Path, out: &Path, progress: &dyn Progress) -> Result<()> {
@@ -151,7 +140,7 @@ fn quality(scenes: &Path, out: &Path, progress: &dyn Progress) -> Result<()> {
     for (i, case) in cases.iter().enumerate() {
         let sim = simulate_case(scenes, case, 100 + i as u64)
             .with_context(|| format!("simulating {}", case.scene))?;
-        let capture = in_memory(&sim)?;
+        let capture = sim.to_capture()?;
         let reference = capture.reference_frame();
         let (h, w) = (capture.cfa.height(), capture.cfa.width());
         let config = BurstConfig::default();
@@ -264,7 +253,7 @@ fn speed(frames: usize, progress: &dyn Progress) -> Result<()> {
         &colorspad_cfa(),
         progress,
     )?;
-    let capture = in_memory(&sim)?;
+    let capture = sim.to_capture()?;
     let reference = capture.reference_frame();
     let start = Instant::now();
     let naive = reconstruct_naive(&capture, reference, &NaiveConfig::default())?;

@@ -3,7 +3,6 @@
 //! merge driven by the simulator's true motion.
 
 use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, BurstConfig};
-use quantacolor::capture::{BinaryFrames, Capture};
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
@@ -27,13 +26,7 @@ fn burst_beats_naive_and_approaches_true_motion() {
         &Silent,
     )
     .unwrap();
-    let capture = Capture {
-        dir: "mem".into(),
-        frames: BinaryFrames::from_packed(sim.packed_frames.clone(), sim.width).unwrap(),
-        cfa: sim.cfa.clone(),
-        meta: sim.meta.clone(),
-        hot_pixels: Some(sim.hot_pixels.clone()),
-    };
+    let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let opts = EvalOptions {
         border: 16,

@@ -123,6 +123,20 @@ pub struct SimulatedCmosCapture {
 pub const MOTION_FILE: &str = "motion.toml";
 
 impl SimulatedCapture {
+    /// The simulated capture as an opened [`Capture`] held in memory (no files written).
+    pub fn to_capture(&self) -> Result<crate::capture::Capture> {
+        Ok(crate::capture::Capture {
+            dir: "simulated".into(),
+            frames: crate::capture::BinaryFrames::from_packed(
+                self.packed_frames.clone(),
+                self.width,
+            )?,
+            cfa: self.cfa.clone(),
+            meta: self.meta.clone(),
+            hot_pixels: Some(self.hot_pixels.clone()),
+        })
+    }
+
     /// The parts `capture::write_capture` writes, including `motion.toml`.
     pub fn capture_parts(&self) -> Result<CaptureParts<'_>> {
         Ok(CaptureParts {
