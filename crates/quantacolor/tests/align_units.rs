@@ -487,3 +487,61 @@ fn write_alignment_round_trips() {
     let small = generate(&Pattern::Bayer, 8, 8, 0).unwrap();
     assert!(align(&frames, &small, None, 150, &cfg, &Silent).is_err());
 }
+
+#[test]
+fn affine_snap_recovers_camera_motion_and_keeps_a_moving_object() {
+    use quantacolor::align::{snap_to_affine_fit, TileGrid};
+    let (ty, tx) = (12usize, 16usize);
+    let grid = TileGrid {
+        tile_size: 16,
+        tile_stride: 8,
+        tiles_y: ty,
+        tiles_x: tx,
+        tile_centers_y: (0..ty).map(|i| 8.0 + 8.0 * i as f32).collect(),
+        tile_centers_x: (0..tx).map(|j| 8.0 + 8.0 * j as f32).collect(),
+    };
+    // Camera: translation (1.5, -2.0) plus a 0.01 rad rotation about (50, 70).
+    let camera = |y: f32, x: f32| {
+        let (a, c) = (0.01f32, (50.0f32, 70.0f32));
+        (1.5 - a * (x - c.1), -2.0 + a * (y - c.0))
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut flow = ndarray::Array3::<f32>::zeros((ty, tx, 2));
+    for i in 0..ty {
+        for j in 0..tx {
+            let (y, x) = (grid.tile_centers_y[i], grid.tile_centers_x[j]);
+            let object = (3..6).contains(&i) && (3..7).contains(&j);
+            let (dy, dx) = if object { (6.0, 6.0) } else { camera(y, x) };
+            flow[[i, j, 0]] = dy + rng.gen_range(-0.4..0.4);
+            flow[[i, j, 1]] = dx + rng.gen_range(-0.4..0.4);
+        }
+    }
+    let snapped = snap_to_affine_fit(&flow, &grid, 2.0);
+    let (mut noisy, mut fitted) = (0.0f32, 0.0f32);
+    for i in 0..ty {
+        for j in 0..tx {
+            let object = (3..6).contains(&i) && (3..7).contains(&j);
+            if object {
+                assert_eq!(snapped[[i, j, 0]], flow[[i, j, 0]], "object tile replaced");
+                continue;
+            }
+            let (dy, dx) = camera(grid.tile_centers_y[i], grid.tile_centers_x[j]);
+            noisy = noisy.max(
+                (flow[[i, j, 0]] - dy)
+                    .abs()
+                    .max((flow[[i, j, 1]] - dx).abs()),
+            );
+            fitted = fitted.max(
+                (snapped[[i, j, 0]] - dy)
+                    .abs()
+                    .max((snapped[[i, j, 1]] - dx).abs()),
+            );
+        }
+    }
+    assert!(
+        fitted < 0.1 && noisy > 0.3,
+        "fit error {fitted}, noise {noisy}"
+    );
+    // Tolerance 0 disables the fit.
+    assert_eq!(snap_to_affine_fit(&flow, &grid, 0.0), flow);
+}

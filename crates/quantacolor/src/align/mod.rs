@@ -61,6 +61,11 @@ pub struct AlignConfig {
     /// at block centres 0.61 -> 0.81 px, handheld, 512 frames); it helps when blocks are cut
     /// into sub-blocks (see `BurstConfig::max_sub_block_motion_px`).
     pub temporal_median: bool, // false
+    /// Tiles whose (median-filtered) flow lies within this distance of the block's robust
+    /// affine fit take the fit: camera motion (translation, small rotation) is affine to first
+    /// order, and the fit averages the photon noise of every tile; tiles farther away keep
+    /// their own flow (moving objects). 0 disables the fit.
+    pub affine_tolerance_px: f32, // 2 px
 }
 
 impl Default for AlignConfig {
@@ -72,8 +77,117 @@ impl Default for AlignConfig {
             patch: PatchConfig::default(),
             median_radius: 1,
             temporal_median: false,
+            affine_tolerance_px: 2.0,
         }
     }
+}
+
+/// Robust affine fit of the tile flows (dy, dx) = A·(y, x) + b by iteratively reweighted least
+/// squares (Huber weights with 1 px scale, zero weight beyond 2 × `tolerance`); tiles within
+/// `tolerance` px of the fit are replaced by it.
+pub fn snap_to_affine_fit(tile_flow: &Array3<f32>, grid: &TileGrid, tolerance: f32) -> Array3<f32> {
+    let (ty, tx, _) = tile_flow.dim();
+    if tolerance <= 0.0 || ty * tx < 6 {
+        return tile_flow.clone();
+    }
+    let (cy, cx) = (
+        grid.tile_centers_y.iter().sum::<f32>() / ty as f32,
+        grid.tile_centers_x.iter().sum::<f32>() / tx as f32,
+    );
+    let mut weights = vec![1.0f64; ty * tx];
+    let mut params = [[0.0f64; 3]; 2];
+    for _ in 0..5 {
+        let mut normal = [[0.0f64; 3]; 3];
+        let mut rhs = [[0.0f64; 3]; 2];
+        for i in 0..ty {
+            for j in 0..tx {
+                let wgt = weights[i * tx + j];
+                let basis = [
+                    1.0,
+                    (grid.tile_centers_y[i] - cy) as f64,
+                    (grid.tile_centers_x[j] - cx) as f64,
+                ];
+                for r in 0..3 {
+                    for c in 0..3 {
+                        normal[r][c] += wgt * basis[r] * basis[c];
+                    }
+                    for (k, rhs_k) in rhs.iter_mut().enumerate() {
+                        rhs_k[r] += wgt * basis[r] * tile_flow[[i, j, k]] as f64;
+                    }
+                }
+            }
+        }
+        for k in 0..2 {
+            match solve3(normal, rhs[k]) {
+                Some(p) => params[k] = p,
+                None => return tile_flow.clone(),
+            }
+        }
+        for i in 0..ty {
+            for j in 0..tx {
+                let r = residual(tile_flow, grid, &params, (cy, cx), i, j);
+                // Huber near the fit, zero beyond 2x the tolerance (other motions, mismatches).
+                weights[i * tx + j] = if r <= 1.0 {
+                    1.0
+                } else if r <= 2.0 * tolerance as f64 {
+                    1.0 / r
+                } else {
+                    0.0
+                };
+            }
+        }
+    }
+    let mut out = tile_flow.clone();
+    for i in 0..ty {
+        for j in 0..tx {
+            if residual(tile_flow, grid, &params, (cy, cx), i, j) <= tolerance as f64 {
+                for k in 0..2 {
+                    out[[i, j, k]] = affine_at(&params[k], grid, (cy, cx), i, j) as f32;
+                }
+            }
+        }
+    }
+    out
+}
+
+fn affine_at(p: &[f64; 3], grid: &TileGrid, centre: (f32, f32), i: usize, j: usize) -> f64 {
+    p[0] + p[1] * (grid.tile_centers_y[i] - centre.0) as f64
+        + p[2] * (grid.tile_centers_x[j] - centre.1) as f64
+}
+
+fn residual(
+    flow: &Array3<f32>,
+    grid: &TileGrid,
+    params: &[[f64; 3]; 2],
+    centre: (f32, f32),
+    i: usize,
+    j: usize,
+) -> f64 {
+    let dy = flow[[i, j, 0]] as f64 - affine_at(&params[0], grid, centre, i, j);
+    let dx = flow[[i, j, 1]] as f64 - affine_at(&params[1], grid, centre, i, j);
+    (dy * dy + dx * dx).sqrt()
+}
+
+/// Solves the 3x3 system `m·x = b` by Cramer's rule; `None` if singular.
+fn solve3(m: [[f64; 3]; 3], b: [f64; 3]) -> Option<[f64; 3]> {
+    let det = |m: &[[f64; 3]; 3]| {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    };
+    let d = det(&m);
+    if d.abs() < 1e-12 {
+        return None;
+    }
+    let mut x = [0.0; 3];
+    for (c, xc) in x.iter_mut().enumerate() {
+        let mut mc = m;
+        for r in 0..3 {
+            mc[r][c] = b[r];
+        }
+        *xc = det(&mc) / d;
+    }
+    Some(x)
 }
 
 /// Component-wise median over (previous, this, next) block of every tile flow; the first, last
@@ -200,6 +314,7 @@ pub fn align(
         if b != plan.reference_block {
             let f = aligner.align(&grey.slice(s![b, .., ..]).to_owned())?;
             let f = median_filter_flow(&f, config.median_radius);
+            let f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
             flow.slice_mut(s![b, .., .., ..]).assign(&f);
         }
         progress.advance(1);
