@@ -5,6 +5,7 @@ use crate::output::StagedDir;
 use anyhow::{Context, Result};
 use clap::Args;
 use quantacolor::capture::{io, Capture};
+use quantacolor::denoise::chroma::{DenoiseMethod, DenoiseReport};
 use quantacolor::display::{auto_exposure_scale, encode_srgb8};
 use quantacolor::pipeline::{reconstruct, Method, ReconstructConfig, Reconstruction};
 use quantacolor::progress::Progress;
@@ -25,9 +26,17 @@ pub struct ReconstructArgs {
     /// command-line options override it.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Denoising: only `none` until the denoising stage lands.
-    #[arg(long, default_value = "none", value_parser = ["none"])]
-    pub denoise: String,
+    /// Denoising (paper §4.3): chroma-bm3d (BM3D in the W-weighted YCbCr, chroma filtered
+    /// harder), bm3d (plain colour BM3D, one σ) or none [default: chroma-bm3d].
+    #[arg(long)]
+    pub denoise: Option<DenoiseMethod>,
+    /// σ of Y (of all channels for bm3d) in the variance-stabilised domain, where one merged
+    /// binomial count has σ 1 (default: the merge's noise model; see report.toml).
+    #[arg(long)]
+    pub sigma_y: Option<f32>,
+    /// σ of Cb and Cr in the variance-stabilised domain (chroma-bm3d; default: noise model).
+    #[arg(long)]
+    pub sigma_c: Option<f32>,
     /// Burst method: frames per temporal block for alignment (default: from T and light level).
     #[arg(long)]
     pub block_size: Option<usize>,
@@ -69,6 +78,8 @@ struct Report<'a> {
     sub_blocks: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     alignment_blocks: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    denoise: Option<&'a DenoiseReport>,
     config: &'a ReconstructConfig,
     timings: &'a [quantacolor::pipeline::StageTiming],
 }
@@ -116,6 +127,22 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
         }
         config.burst.merge.accumulate.scale = scale;
     }
+    if let Some(d) = args.denoise {
+        config.denoise.method = d;
+    }
+    for (name, sigma) in [("--sigma-y", args.sigma_y), ("--sigma-c", args.sigma_c)] {
+        if let Some(s) = sigma {
+            if !(s.is_finite() && s >= 0.0) {
+                anyhow::bail!("{name} must be a non-negative number");
+            }
+        }
+    }
+    if args.sigma_y.is_some() {
+        config.denoise.sigma_y = args.sigma_y;
+    }
+    if args.sigma_c.is_some() {
+        config.denoise.sigma_c = args.sigma_c;
+    }
     if let Some(m) = args.max_sub_block_motion {
         if !(m.is_finite() && m > 0.0) {
             anyhow::bail!("--max-sub-block-motion must be a positive number of pixels");
@@ -151,6 +178,13 @@ fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()
         staged.path("merged_planes_rgbw.npy"),
         &burst.merged.planes.flux,
     )?;
+    io::write_npy(
+        staged.path("effective_frames_rgbw.npy"),
+        &burst.merged.planes.effective_frames,
+    )?;
+    if let Some(merged) = &rec.merged_linear {
+        io::write_npy(staged.path("merged_linear.npy"), merged)?;
+    }
     let robustness: Vec<_> = burst.merged.robustness.iter().map(|r| r.view()).collect();
     io::write_npy(
         staged.path("robustness.npy"),
@@ -188,6 +222,7 @@ pub fn write_reconstruction(
         preview_exposure_scale: scale,
         sub_blocks: rec.burst.as_ref().map(|b| b.sub_blocks.len()),
         alignment_blocks: rec.burst.as_ref().map(|b| b.alignment.plan.len()),
+        denoise: rec.denoise.as_ref(),
         config,
         timings: &rec.timings,
     };

@@ -3,6 +3,9 @@
 
 use crate::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use crate::capture::Capture;
+use crate::denoise::chroma::{
+    denoise_linear, DenoiseConfig, DenoiseInput, DenoiseReport, MergeNoise,
+};
 use crate::error::{Error, Result};
 use crate::naive::{reconstruct_naive, NaiveConfig};
 use crate::progress::Progress;
@@ -52,6 +55,7 @@ pub struct ReconstructConfig {
     pub reference_frame: Option<usize>,
     pub naive: NaiveConfig,
     pub burst: BurstConfig,
+    pub denoise: DenoiseConfig,
 }
 
 impl Default for ReconstructConfig {
@@ -61,6 +65,7 @@ impl Default for ReconstructConfig {
             reference_frame: None,
             naive: NaiveConfig::default(),
             burst: BurstConfig::default(),
+            denoise: DenoiseConfig::default(),
         }
     }
 }
@@ -78,12 +83,34 @@ pub struct Reconstruction {
     /// Linear RGB (H, W, 3) in detections per frame of an R, G or B pixel, dark counts removed,
     /// registered to the scene at the reference frame.
     pub linear: Array3<f32>,
+    /// The merged image before denoising (`None` when denoising is off).
+    pub merged_linear: Option<Array3<f32>>,
+    /// What the denoising stage did (`None` when it is off).
+    pub denoise: Option<DenoiseReport>,
     pub reference_frame: usize,
     /// Frames that contributed.
     pub frames_used: usize,
     pub timings: Vec<StageTiming>,
     /// Intermediate stages of the burst method (for `--dump-stages`).
     pub burst: Option<BurstReconstruction>,
+}
+
+/// The denoiser's inputs for a reconstruction of `capture`: the merge's binomial noise model
+/// when there is a burst merge, else the number of frames summed.
+pub fn denoise_input<'a>(
+    capture: &Capture,
+    burst: Option<&'a BurstReconstruction>,
+    frames_used: usize,
+) -> DenoiseInput<'a> {
+    DenoiseInput {
+        noise: burst.map(|b| MergeNoise {
+            flux: b.merged.planes.flux.view(),
+            effective_frames: b.merged.planes.effective_frames.view(),
+        }),
+        frames: frames_used as f64,
+        dark_per_frame: capture.meta.dark_counts_per_frame(),
+        w_weights: capture.meta.w_weights,
+    }
 }
 
 /// Runs the configured reconstruction on `capture`.
@@ -102,7 +129,7 @@ pub fn reconstruct(
         )));
     }
     let start = Instant::now();
-    let (linear, frames_used, burst, timings) = match config.method {
+    let (linear, frames_used, burst, mut timings) = match config.method {
         Method::Naive => {
             progress.start("naive merge", 1);
             let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
@@ -120,8 +147,22 @@ pub fn reconstruct(
             (burst.merged.linear.clone(), t, Some(burst), timings)
         }
     };
+
+    // Chrominance-focused denoising (paper §4.3).
+    let start = Instant::now();
+    let input = denoise_input(capture, burst.as_ref(), frames_used);
+    let (denoised, denoise) = denoise_linear(linear.view(), &input, &config.denoise)?;
+    let merged_linear = denoise.as_ref().map(|_| linear);
+    if denoise.is_some() {
+        timings.push(StageTiming {
+            stage: "denoise".into(),
+            seconds: start.elapsed().as_secs_f64(),
+        });
+    }
     Ok(Reconstruction {
-        linear,
+        linear: denoised,
+        merged_linear,
+        denoise,
         reference_frame,
         frames_used,
         timings,

@@ -83,6 +83,10 @@ pub struct MergedPlanes {
     pub flux: Array3<f32>,
     /// (4, H·s, W·s) merged mean bit rate p̂ = Σ w·counts / Σ w·frames per channel.
     pub bit_rate: Array3<f32>,
+    /// (4, H·s, W·s) effective number of binary frames behind each bit rate, (Σ w·F)² / Σ w²·F
+    /// (Kish): the binomial noise model of the merge, Var(p̂) = p(1 − p)/N. NaN where no sample
+    /// reached the pixel (filled pixels).
+    pub effective_frames: Array3<f32>,
     /// (H·s, W·s) pixels where the saturated W was replaced by the RGB estimate.
     pub w_fallback: Array2<bool>,
 }
@@ -254,6 +258,7 @@ impl<'a> MergeAccumulator<'a> {
         let channel_scale = self.channel_scale;
         let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
+        let mut effective_frames = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         for oy in 0..hs {
             for ox in 0..ws {
                 let base = (oy * ws + ox) * 12;
@@ -263,6 +268,7 @@ impl<'a> MergeAccumulator<'a> {
                         let p = s[0] / s[1];
                         let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
                         bit_rate[[ch, oy, ox]] = p;
+                        effective_frames[[ch, oy, ox]] = n_eff as f32;
                         flux[[ch, oy, ox]] =
                             mle_flux(p as f64 * n_eff, n_eff, dark_per_frame) as f32;
                     }
@@ -306,6 +312,7 @@ impl<'a> MergeAccumulator<'a> {
         MergedPlanes {
             flux,
             bit_rate,
+            effective_frames,
             w_fallback,
         }
     }

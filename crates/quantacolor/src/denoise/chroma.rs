@@ -1,0 +1,607 @@
+//! Chrominance-focused colour denoising (paper §4.3, Fig. 6; supplement §1.5, Eq. 7–8).
+//!
+//! With an RGBW array the luminance of the merged image comes from the dense W pixels and the
+//! chrominance from the sparse R, G, B pixels, so chrominance is far noisier. The image is
+//! variance-stabilised per channel ([`BinomialAnscombe`]), converted to a YCbCr whose luma
+//! weights (kR, kG, kB) are the normalised W weights (supplement Eq. 7–8), so that Y carries
+//! exactly the W information, and denoised with BM3D grouping on Y only, filtering Y with a
+//! small σ and Cb, Cr with a larger one. The σs come from the binomial noise model of the merge
+//! (each channel's bit rate and effective number of frames, carried through Eq. 8, the
+//! transform and the colour matrix by the delta method) unless the user gives them.
+//!
+//! [`DenoiseMethod::Bm3d`] is the plain colour BM3D it is compared against (CBM3D, Dabov et al.
+//! ICIP 2007): the orthonormal opponent colour space, grouping on its luminance, one σ for all
+//! three channels (the RMS noise of the stabilised R, G, B).
+
+use super::anscombe::BinomialAnscombe;
+use super::bm3d::{bm3d_multichannel, Bm3dConfig};
+use crate::error::{Error, Result};
+use ndarray::{Array3, ArrayView3, Axis, Zip};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Denoising method of `reconstruct --denoise`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DenoiseMethod {
+    None,
+    /// Plain colour BM3D: opponent colour space, equal σ in all channels.
+    Bm3d,
+    /// Chrominance-focused colour BM3D in the W-weighted YCbCr (paper Fig. 6).
+    ChromaBm3d,
+}
+
+impl std::str::FromStr for DenoiseMethod {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "none" => Ok(DenoiseMethod::None),
+            "bm3d" => Ok(DenoiseMethod::Bm3d),
+            "chroma-bm3d" => Ok(DenoiseMethod::ChromaBm3d),
+            other => Err(Error::invalid(format!(
+                "unknown denoising method '{other}' (available: none, bm3d, chroma-bm3d)"
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for DenoiseMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            DenoiseMethod::None => "none",
+            DenoiseMethod::Bm3d => "bm3d",
+            DenoiseMethod::ChromaBm3d => "chroma-bm3d",
+        })
+    }
+}
+
+/// Configuration of the denoising stage.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct DenoiseConfig {
+    pub method: DenoiseMethod,
+    /// σ of Y (of all channels for plain BM3D) in the stabilised domain, where one binomial
+    /// count of the Anscombe trial number has unit σ. Default: from the noise model.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_y: Option<f32>,
+    /// σ of Cb and Cr in the stabilised domain. Default: from the noise model.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sigma_c: Option<f32>,
+    /// Multiplies the modelled per-pixel σ of Y (of every channel for plain BM3D). The merge's
+    /// kernels correlate the noise over a few pixels, so at the scale of BM3D's blocks it is
+    /// stronger than the per-pixel σ; tuned on the built-in chart (see `bench denoise`).
+    pub luma_gain: f32,
+    /// Multiplies the modelled per-pixel σ of Cb and Cr: the chroma kernels span several of the
+    /// sparse colour sites, so the chroma noise is coarse-grained (tuned as `luma_gain`).
+    pub chroma_gain: f32,
+    pub bm3d: Bm3dConfig,
+}
+
+impl Default for DenoiseConfig {
+    fn default() -> Self {
+        DenoiseConfig {
+            method: DenoiseMethod::ChromaBm3d,
+            sigma_y: None,
+            sigma_c: None,
+            luma_gain: 1.0,
+            chroma_gain: 1.0,
+            bm3d: Bm3dConfig::default(),
+        }
+    }
+}
+
+/// A 3×3 luma–chroma transform of linear-stabilised R, G, B.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ColorTransform {
+    /// Rows map (R, G, B) to the three output channels; channel 0 is the luma used for grouping.
+    pub forward: [[f64; 3]; 3],
+    pub inverse: [[f64; 3]; 3],
+}
+
+impl ColorTransform {
+    /// YCbCr with luma weights k = w / Σw from the W weights (supplement Eq. 7–8):
+    /// Y = kR·R + kG·G + kB·B, Cb = (B − Y)/(2(1 − kB)), Cr = (R − Y)/(2(1 − kR)).
+    pub fn w_weighted_ycbcr(w_weights: [f64; 3]) -> Result<Self> {
+        let sum: f64 = w_weights.iter().sum();
+        if !w_weights.iter().all(|w| w.is_finite() && *w > 0.0) || sum <= 0.0 {
+            return Err(Error::invalid(format!(
+                "W weights must be positive and finite, got {w_weights:?}"
+            )));
+        }
+        let [kr, kg, kb] = w_weights.map(|w| w / sum);
+        let forward = [
+            [kr, kg, kb],
+            [-kr / (2.0 * (1.0 - kb)), -kg / (2.0 * (1.0 - kb)), 0.5],
+            [0.5, -kg / (2.0 * (1.0 - kr)), -kb / (2.0 * (1.0 - kr))],
+        ];
+        // R = Y + 2(1 − kR)·Cr, B = Y + 2(1 − kB)·Cb, G = (Y − kR·R − kB·B)/kG.
+        let (cr_r, cb_b) = (2.0 * (1.0 - kr), 2.0 * (1.0 - kb));
+        let inverse = [
+            [1.0, 0.0, cr_r],
+            [1.0, -kb * cb_b / kg, -kr * cr_r / kg],
+            [1.0, cb_b, 0.0],
+        ];
+        Ok(ColorTransform { forward, inverse })
+    }
+
+    /// The orthonormal opponent colour transform of CBM3D: (R+G+B)/√3, (R−B)/√2, (R−2G+B)/√6.
+    pub fn opponent() -> Self {
+        let (a, b, c) = (1.0 / 3f64.sqrt(), 1.0 / 2f64.sqrt(), 1.0 / 6f64.sqrt());
+        let forward = [[a, a, a], [b, 0.0, -b], [c, -2.0 * c, c]];
+        // Orthonormal: the inverse is the transpose.
+        let mut inverse = [[0.0; 3]; 3];
+        for (i, row) in forward.iter().enumerate() {
+            for (j, &v) in row.iter().enumerate() {
+                inverse[j][i] = v;
+            }
+        }
+        ColorTransform { forward, inverse }
+    }
+
+    fn apply(m: &[[f64; 3]; 3], v: [f64; 3]) -> [f64; 3] {
+        m.map(|row| row[0] * v[0] + row[1] * v[1] + row[2] * v[2])
+    }
+}
+
+/// The merge's binomial noise model (see `merge::MergedPlanes`): per-channel flux and effective
+/// number of frames, (4, H, W) in code order R, G, B, W, on the grid of the linear image.
+#[derive(Debug, Clone, Copy)]
+pub struct MergeNoise<'a> {
+    pub flux: ArrayView3<'a, f32>,
+    pub effective_frames: ArrayView3<'a, f32>,
+}
+
+/// Where the σs came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SigmaSource {
+    /// The binomial noise model of the merge.
+    BinomialModel,
+    /// Median absolute deviation of the finest diagonal Haar coefficients (Donoho 1995), used
+    /// when no merge noise model exists (e.g. the naive method).
+    Estimated,
+    /// Given by the user.
+    Given,
+}
+
+/// What the denoiser did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DenoiseReport {
+    pub method: DenoiseMethod,
+    /// Trials n of the binomial Anscombe transform.
+    pub anscombe_trials: f64,
+    /// σ of the three channels of the colour transform, stabilised domain.
+    pub sigmas: [f32; 3],
+    pub sigma_source: SigmaSource,
+}
+
+/// Inputs of [`denoise_linear`] besides the image.
+#[derive(Debug, Clone, Copy)]
+pub struct DenoiseInput<'a> {
+    /// The merge's noise model; `None` estimates σ from the image.
+    pub noise: Option<MergeNoise<'a>>,
+    /// Binary frames behind each pixel when `noise` is `None` (sets the Anscombe trials).
+    pub frames: f64,
+    pub dark_per_frame: f64,
+    pub w_weights: [f64; 3],
+}
+
+/// Bit rate p = 1 − exp(−(λ + d)) of a flux λ (paper Eq. 2–3), clamped to [0, 1].
+fn bit_rate(flux: f64, dark: f64) -> f64 {
+    (1.0 - (-(flux + dark).max(0.0)).exp()).clamp(0.0, 1.0)
+}
+
+/// Denoises a linear RGB image (H, W, 3) in detections per frame (paper §4.3): binomial
+/// Anscombe per channel, colour transform, BM3D with grouping on the luma, inverse colour
+/// transform, exact unbiased inverse Anscombe, back to flux.
+pub fn denoise_linear(
+    linear: ArrayView3<f32>,
+    input: &DenoiseInput,
+    config: &DenoiseConfig,
+) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
+    let (h, w, c) = linear.dim();
+    if c != 3 {
+        return Err(Error::invalid(format!(
+            "denoising expects an (H, W, 3) image, got {c} channels"
+        )));
+    }
+    let transform = match config.method {
+        DenoiseMethod::None => return Ok((linear.to_owned(), None)),
+        DenoiseMethod::Bm3d => ColorTransform::opponent(),
+        DenoiseMethod::ChromaBm3d => ColorTransform::w_weighted_ycbcr(input.w_weights)?,
+    };
+    for (name, gain) in [
+        ("luma_gain", config.luma_gain),
+        ("chroma_gain", config.chroma_gain),
+    ] {
+        if !(gain.is_finite() && gain > 0.0) {
+            return Err(Error::invalid(format!(
+                "{name} must be positive, got {gain}"
+            )));
+        }
+    }
+    for (name, s) in [("sigma_y", config.sigma_y), ("sigma_c", config.sigma_c)] {
+        if let Some(s) = s {
+            if !(s.is_finite() && s >= 0.0) {
+                return Err(Error::invalid(format!(
+                    "{name} must be a non-negative number, got {s}"
+                )));
+            }
+        }
+    }
+    let Stabilised {
+        anscombe,
+        mut planes,
+        sigmas: modelled,
+        source,
+        ..
+    } = stabilise(linear, input, transform)?;
+    let dark = input.dark_per_frame;
+    let mut sigmas = match config.method {
+        // Plain colour BM3D: one σ, the RMS over the channels (orthonormal transform).
+        DenoiseMethod::Bm3d => {
+            let rms = (modelled.iter().map(|s| s * s).sum::<f32>() / 3.0).sqrt();
+            [rms * config.luma_gain; 3]
+        }
+        _ => [
+            modelled[0] * config.luma_gain,
+            modelled[1] * config.chroma_gain,
+            modelled[2] * config.chroma_gain,
+        ],
+    };
+    let mut source = source;
+    if let Some(sy) = config.sigma_y {
+        sigmas[0] = sy;
+        if config.method == DenoiseMethod::Bm3d {
+            sigmas = [sy; 3];
+        }
+        source = SigmaSource::Given;
+    }
+    if let Some(sc) = config.sigma_c {
+        if config.method == DenoiseMethod::ChromaBm3d {
+            sigmas[1] = sc;
+            sigmas[2] = sc;
+            source = SigmaSource::Given;
+        }
+    }
+
+    // BM3D's published thresholds are for images on a 0–255 scale: map the luma range there.
+    let (lo, hi) = planes
+        .index_axis(Axis(0), 0)
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| {
+            (lo.min(v), hi.max(v))
+        });
+    let scale = if hi > lo { 255.0 / (hi - lo) } else { 1.0 };
+    planes.mapv_inplace(|v| v * scale);
+    let scaled_sigmas: Vec<f32> = sigmas.iter().map(|s| s * scale).collect();
+    let mut denoised = bm3d_multichannel(planes.view(), &scaled_sigmas, &config.bm3d)?;
+    denoised.mapv_inplace(|v| v / scale);
+
+    // Back: inverse colour transform, exact unbiased inverse Anscombe, flux.
+    let max_rate = 1.0 - 0.5 / anscombe.trials();
+    let mut out = Array3::<f32>::zeros((h, w, 3));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(y, mut row)| {
+            for x in 0..w {
+                let t = [0, 1, 2].map(|ch| denoised[[ch, y, x]] as f64);
+                let a = ColorTransform::apply(&transform.inverse, t);
+                for ch in 0..3 {
+                    let p = anscombe.inverse_exact(a[ch]).min(max_rate);
+                    row[[x, ch]] = (-(1.0 - p).ln() - dark) as f32;
+                }
+            }
+        });
+    Ok((
+        out,
+        Some(DenoiseReport {
+            method: config.method,
+            anscombe_trials: anscombe.trials(),
+            sigmas,
+            sigma_source: source,
+        }),
+    ))
+}
+
+/// A linear image in the stabilised, colour-transformed domain, with its noise σs.
+#[derive(Debug, Clone)]
+pub struct Stabilised {
+    pub anscombe: BinomialAnscombe,
+    pub transform: ColorTransform,
+    /// (3, H, W): the transform's channels of A(n·p) per colour channel.
+    pub planes: Array3<f32>,
+    /// Noise σ of each plane (binomial model, or estimated from the planes without one).
+    pub sigmas: [f32; 3],
+    pub source: SigmaSource,
+}
+
+/// Stabilises a linear image (H, W, 3): each colour channel's flux to its bit rate
+/// p = 1 − exp(−(λ + d)), then the binomial Anscombe transform A(n·p) with n from the merge's
+/// effective frames, then `transform`. The σs come from the merge's binomial model when
+/// `input.noise` is given, otherwise from the planes ([`mad_sigma`]).
+pub fn stabilise(
+    linear: ArrayView3<f32>,
+    input: &DenoiseInput,
+    transform: ColorTransform,
+) -> Result<Stabilised> {
+    let (h, w, c) = linear.dim();
+    if c != 3 {
+        return Err(Error::invalid(format!(
+            "denoising expects an (H, W, 3) image, got {c} channels"
+        )));
+    }
+    let dark = input.dark_per_frame;
+    let trials = match input.noise {
+        Some(noise) => {
+            check_noise_shape(&noise, h, w)?;
+            anscombe_trials(&noise)
+        }
+        None => input.frames,
+    };
+    let anscombe = BinomialAnscombe::new(trials.max(1.0))?;
+    let mut planes = Array3::<f32>::zeros((3, h, w));
+    for y in 0..h {
+        for x in 0..w {
+            let a = [0, 1, 2].map(|ch| {
+                let v = linear[[y, x, ch]];
+                let v = if v.is_finite() { v as f64 } else { 0.0 };
+                anscombe.forward_rate(bit_rate(v, dark))
+            });
+            let t = ColorTransform::apply(&transform.forward, a);
+            for ch in 0..3 {
+                planes[[ch, y, x]] = t[ch] as f32;
+            }
+        }
+    }
+    let (sigmas, source) = match input.noise {
+        Some(noise) => (
+            model_sigmas(&linear, &noise, &anscombe, &transform, dark, input.w_weights),
+            SigmaSource::BinomialModel,
+        ),
+        None => {
+            let est = [0, 1, 2].map(|ch| mad_sigma(planes.index_axis(Axis(0), ch)));
+            (est, SigmaSource::Estimated)
+        }
+    };
+    Ok(Stabilised {
+        anscombe,
+        transform,
+        planes,
+        sigmas,
+        source,
+    })
+}
+
+fn check_noise_shape(noise: &MergeNoise, h: usize, w: usize) -> Result<()> {
+    for (name, a) in [
+        ("flux", noise.flux),
+        ("effective_frames", noise.effective_frames),
+    ] {
+        if a.dim() != (4, h, w) {
+            return Err(Error::invalid(format!(
+                "noise model {name} has shape {:?}, expected (4, {h}, {w})",
+                a.dim()
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// Trials of the Anscombe transform: the median effective frame count of W (of G without W),
+/// so one stabilised unit is the binomial σ of a typical merged luminance sample.
+fn anscombe_trials(noise: &MergeNoise) -> f64 {
+    let of_channel = |ch: usize| {
+        let mut v: Vec<f32> = noise
+            .effective_frames
+            .index_axis(Axis(0), ch)
+            .iter()
+            .copied()
+            .filter(|n| n.is_finite() && *n > 0.0)
+            .collect();
+        if v.is_empty() {
+            return None;
+        }
+        let mid = v.len() / 2;
+        let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+        Some(*m as f64)
+    };
+    of_channel(3).or_else(|| of_channel(1)).unwrap_or(1.0)
+}
+
+/// σ of the three transformed channels from the binomial model, by the delta method per pixel
+/// (Var λ_c = p_c / ((1 − p_c)·N_c) for the MLE of Eq. 6, through Eq. 8, the Anscombe transform
+/// and the colour matrix); the square root of the median variance over pixels.
+fn model_sigmas(
+    linear: &ArrayView3<f32>,
+    noise: &MergeNoise,
+    anscombe: &BinomialAnscombe,
+    transform: &ColorTransform,
+    dark: f64,
+    w_weights: [f64; 3],
+) -> [f32; 3] {
+    let (h, w, _) = linear.dim();
+    let has_w = noise.flux.index_axis(Axis(0), 3).iter().any(|v| v.is_finite());
+    let variances: Vec<[f64; 3]> = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            (0..w).filter_map(move |x| {
+                let lam = [0, 1, 2, 3].map(|c| noise.flux[[c, y, x]] as f64);
+                let n = [0, 1, 2, 3].map(|c| noise.effective_frames[[c, y, x]] as f64);
+                let channels = if has_w { 4 } else { 3 };
+                if (0..channels).any(|c| !lam[c].is_finite() || !(n[c] > 0.0)) {
+                    return None;
+                }
+                let var_lam = [0, 1, 2, 3].map(|c| {
+                    if c >= channels {
+                        return 0.0;
+                    }
+                    let p = bit_rate(lam[c], dark).min(1.0 - 0.5 / n[c]);
+                    p / ((1.0 - p) * n[c])
+                });
+                // ∂out_c/∂λ_k of Eq. 8, out_c = λ_c·λ_W / L with L = Σ w_k·λ_k.
+                let mut jac = [[0.0f64; 4]; 3];
+                let lum: f64 = (0..3).map(|k| w_weights[k] * lam[k]).sum();
+                if has_w && lum > 1e-9 {
+                    for c in 0..3 {
+                        for k in 0..3 {
+                            let delta = if c == k { lam[3] / lum } else { 0.0 };
+                            jac[c][k] = delta - lam[c] * lam[3] * w_weights[k] / (lum * lum);
+                        }
+                        jac[c][3] = lam[c] / lum;
+                    }
+                } else {
+                    for (c, row) in jac.iter_mut().enumerate() {
+                        row[c] = 1.0;
+                    }
+                }
+                // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
+                let da = [0, 1, 2].map(|c| {
+                    let out = linear[[y, x, c]] as f64;
+                    let p = bit_rate(out, dark);
+                    anscombe.derivative_rate(p) * (-(out + dark).max(0.0)).exp()
+                });
+                // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.
+                let mut var = [0.0; 3];
+                for (i, row) in transform.forward.iter().enumerate() {
+                    for k in 0..4 {
+                        let d: f64 = (0..3).map(|c| row[c] * da[c] * jac[c][k]).sum();
+                        var[i] += d * d * var_lam[k];
+                    }
+                }
+                Some(var)
+            })
+        })
+        .collect();
+    [0, 1, 2].map(|i| {
+        let mut v: Vec<f64> = variances.iter().map(|var| var[i]).collect();
+        if v.is_empty() {
+            return 0.0;
+        }
+        let mid = v.len() / 2;
+        let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+        m.sqrt() as f32
+    })
+}
+
+/// Noise σ of a plane from the median absolute finest diagonal Haar coefficient / 0.6745
+/// (Donoho & Johnstone 1994).
+pub fn mad_sigma(plane: ndarray::ArrayView2<f32>) -> f32 {
+    let (h, w) = plane.dim();
+    let mut coeffs = Vec::with_capacity((h / 2) * (w / 2));
+    for y in (0..h.saturating_sub(1)).step_by(2) {
+        for x in (0..w.saturating_sub(1)).step_by(2) {
+            let d = (plane[[y, x]] - plane[[y, x + 1]] - plane[[y + 1, x]] + plane[[y + 1, x + 1]])
+                / 2.0;
+            if d.is_finite() {
+                coeffs.push(d.abs());
+            }
+        }
+    }
+    if coeffs.is_empty() {
+        return 0.0;
+    }
+    let mid = coeffs.len() / 2;
+    let (_, m, _) = coeffs.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    *m / 0.6745
+}
+
+/// Applies the forward transform to an (H, W, 3) image, giving (3, H, W) planes (for tests and
+/// inspection).
+pub fn to_planes(image: ArrayView3<f32>, transform: &ColorTransform) -> Array3<f32> {
+    let (h, w, _) = image.dim();
+    let mut planes = Array3::<f32>::zeros((3, h, w));
+    Zip::indexed(image.lanes(Axis(2))).for_each(|(y, x), px| {
+        let t = ColorTransform::apply(
+            &transform.forward,
+            [px[0] as f64, px[1] as f64, px[2] as f64],
+        );
+        for ch in 0..3 {
+            planes[[ch, y, x]] = t[ch] as f32;
+        }
+    });
+    planes
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ndarray::Array2;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, Normal};
+
+    fn matmul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+        let mut out = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                out[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn transforms_invert_and_luma_is_the_w_combination() {
+        let w = [0.9, 1.1, 0.7];
+        for t in [
+            ColorTransform::w_weighted_ycbcr(w).unwrap(),
+            ColorTransform::opponent(),
+        ] {
+            let id = matmul(&t.inverse, &t.forward);
+            for (i, row) in id.iter().enumerate() {
+                for (j, &v) in row.iter().enumerate() {
+                    assert!((v - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
+                }
+            }
+        }
+        let t = ColorTransform::w_weighted_ycbcr(w).unwrap();
+        let rgb = [0.2, 0.5, 0.9];
+        let ycc = ColorTransform::apply(&t.forward, rgb);
+        let white: f64 = rgb.iter().zip(w).map(|(c, k)| c * k).sum();
+        assert!((ycc[0] - white / w.iter().sum::<f64>()).abs() < 1e-12);
+        // Grey has zero chroma.
+        let grey = ColorTransform::apply(&t.forward, [0.4; 3]);
+        assert!(grey[1].abs() < 1e-12 && grey[2].abs() < 1e-12);
+        assert!(ColorTransform::w_weighted_ycbcr([1.0, 0.0, 1.0]).is_err());
+    }
+
+    #[test]
+    fn mad_sigma_recovers_gaussian_noise() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let normal = Normal::new(0.0f32, 2.5).unwrap();
+        let plane = Array2::from_shape_fn((200, 200), |(y, x)| {
+            (y as f32 * 0.1).sin() * 20.0 + x as f32 * 0.05 + normal.sample(&mut rng)
+        });
+        let s = mad_sigma(plane.view());
+        assert!((s - 2.5).abs() < 0.15, "{s}");
+    }
+
+    #[test]
+    fn none_is_the_identity_and_bad_input_is_an_error() {
+        let img = Array3::<f32>::from_shape_fn((16, 16, 3), |(y, x, c)| {
+            (y + x + c) as f32 * 0.01
+        });
+        let input = DenoiseInput {
+            noise: None,
+            frames: 100.0,
+            dark_per_frame: 0.0,
+            w_weights: [1.0; 3],
+        };
+        let config = DenoiseConfig {
+            method: DenoiseMethod::None,
+            ..Default::default()
+        };
+        let (out, report) = denoise_linear(img.view(), &input, &config).unwrap();
+        assert_eq!(out, img);
+        assert!(report.is_none());
+        let bad = DenoiseConfig {
+            sigma_y: Some(-1.0),
+            ..Default::default()
+        };
+        assert!(denoise_linear(img.view(), &input, &bad).is_err());
+        let two = Array3::<f32>::zeros((16, 16, 2));
+        assert!(denoise_linear(two.view(), &input, &DenoiseConfig::default()).is_err());
+    }
+}
