@@ -37,8 +37,8 @@
 //! image for 512×512 and 250 MB for 1000×1000: fine for images up to about 1000×1000.
 //!
 //! Parallelism and determinism: reference-block rows are processed in parallel with rayon; each
-//! row aggregates into its own strip buffer (rows `y..y+N1`), and strips are summed into the
-//! image in row order afterwards, so the result is bit-identical for any thread count.
+//! row aggregates into its own strip buffer (the rows its search window reaches), and strips are
+//! summed into the image in row order afterwards (batches of 16 rows bound the memory), so the result is bit-identical for any thread count.
 
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};
@@ -529,9 +529,10 @@ impl Scratch {
     }
 }
 
-/// Numerator and denominator of the aggregation for image rows `y0..y0+n`, every channel.
+/// Numerator and denominator of the aggregation for image rows `y0..y0+rows`, every channel.
 struct Strip {
     y0: usize,
+    rows: usize,
     num: Vec<f32>,
     den: Vec<f32>,
 }
@@ -547,37 +548,44 @@ fn run_step(
     let (h, w, n) = (geo.h, geo.w, geo.n);
     let n2 = n * n;
     let channels = planes.len();
-    let strips: Vec<Strip> = geo
-        .ref_ys
-        .par_iter()
-        .map_init(
-            || Scratch::new(n2, p.max_group),
-            |scratch, &yr| {
-                let mut strip = Strip {
-                    y0: yr,
-                    num: vec![0.0; channels * n * w],
-                    den: vec![0.0; channels * n * w],
-                };
-                for &xr in &geo.ref_xs {
-                    process_reference(p, geo, tr, yr, xr, scratch, &mut strip);
-                }
-                strip
-            },
-        )
-        .collect();
-
-    // Sum the strips in reference-row order: the same float additions for any thread count.
     let mut num = vec![0.0f32; channels * h * w];
     let mut den = vec![0.0f32; channels * h * w];
-    for strip in &strips {
-        for c in 0..channels {
-            let src = c * n * w..(c + 1) * n * w;
-            let dst = c * h * w + strip.y0 * w..c * h * w + (strip.y0 + n) * w;
-            for (d, s) in num[dst.clone()].iter_mut().zip(&strip.num[src.clone()]) {
-                *d += s;
-            }
-            for (d, s) in den[dst].iter_mut().zip(&strip.den[src]) {
-                *d += s;
+    // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once.
+    const ROWS_PER_BATCH: usize = 16;
+    for batch in geo.ref_ys.chunks(ROWS_PER_BATCH) {
+        let strips: Vec<Strip> = batch
+            .par_iter()
+            .map_init(
+                || Scratch::new(n2, p.max_group),
+                |scratch, &yr| {
+                    // Group members lie within the search window's rows.
+                    let y0 = yr.saturating_sub(geo.half_window);
+                    let rows = (yr + geo.half_window + n).min(h) - y0;
+                    let mut strip = Strip {
+                        y0,
+                        rows,
+                        num: vec![0.0; channels * rows * w],
+                        den: vec![0.0; channels * rows * w],
+                    };
+                    for &xr in &geo.ref_xs {
+                        process_reference(p, geo, tr, yr, xr, scratch, &mut strip);
+                    }
+                    strip
+                },
+            )
+            .collect();
+        // Sum the strips in reference-row order: the same float additions for any thread count.
+        for strip in &strips {
+            let len = strip.rows * w;
+            for c in 0..channels {
+                let src = c * len..(c + 1) * len;
+                let dst = c * h * w + strip.y0 * w..c * h * w + strip.y0 * w + len;
+                for (d, s) in num[dst.clone()].iter_mut().zip(&strip.num[src.clone()]) {
+                    *d += s;
+                }
+                for (d, s) in den[dst].iter_mut().zip(&strip.den[src]) {
+                    *d += s;
+                }
             }
         }
     }
@@ -669,8 +677,9 @@ fn process_reference(
         haar_inverse(group, m, n2, &mut s.haar_tmp);
 
         // Aggregation with the Kaiser window (§III-A.3 / §III-B.3; Table I, β = 2).
-        let num = &mut strip.num[c * n * w..(c + 1) * n * w];
-        let den = &mut strip.den[c * n * w..(c + 1) * n * w];
+        let len = strip.rows * w;
+        let num = &mut strip.num[c * len..(c + 1) * len];
+        let den = &mut strip.den[c * len..(c + 1) * len];
         for (g, &pos) in s.group.iter().enumerate() {
             let (by, bx) = (pos / geo.pw, pos % geo.pw);
             tr.inverse(&group[g * n2..(g + 1) * n2], &mut s.tmp, &mut s.pixels);
