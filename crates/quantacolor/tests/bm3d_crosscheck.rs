@@ -136,18 +136,38 @@ fn psnr_matches_reference_package() {
             return;
         }
     };
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tools/bm3d_crosscheck/denoise.py");
+    let script =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tools/bm3d_crosscheck/denoise.py");
     let tmp = tempfile::tempdir().unwrap();
     let mut images = vec![("synthetic".to_string(), synthetic(256, 256))];
     images.extend(scene_crops());
-    let config = Bm3dConfig::default();
+    // Optional narrowing for quick runs: BM3D_CROSSCHECK_IMAGES=<count>, BM3D_CROSSCHECK_SIGMA=<σ>.
+    if let Some(k) = std::env::var("BM3D_CROSSCHECK_IMAGES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+    {
+        images.truncate(k);
+    }
+    let sigmas: Vec<f32> = match std::env::var("BM3D_CROSSCHECK_SIGMA") {
+        Ok(v) => vec![v.parse().expect("BM3D_CROSSCHECK_SIGMA is a number")],
+        Err(_) => vec![15.0, 25.0, 50.0],
+    };
+    // BM3D_CROSSCHECK_CONFIG="<toml>" overrides parameters, for tuning experiments.
+    let config: Bm3dConfig = match std::env::var("BM3D_CROSSCHECK_CONFIG") {
+        Ok(text) => toml::from_str(&text).expect("BM3D_CROSSCHECK_CONFIG is a Bm3dConfig in TOML"),
+        Err(_) => Bm3dConfig::default(),
+    };
     let mut failures = Vec::new();
     println!(
         "{:<28} {:>5} {:>8} {:>8} {:>8} {:>8} {:>8} {:>7}",
         "image", "sigma", "noisy", "ours", "package", "ours s", "pkg s", "speedup"
     );
     for (i, (name, clean)) in images.iter().enumerate() {
-        for (j, sigma) in [15.0f32, 25.0, 50.0].into_iter().enumerate() {
+        for &sigma in &sigmas {
+            let j = [15.0f32, 25.0, 50.0]
+                .iter()
+                .position(|&v| v == sigma)
+                .unwrap_or(3);
             let mut rng = ChaCha8Rng::seed_from_u64(1000 + 10 * i as u64 + j as u64);
             let normal = Normal::new(0.0f32, sigma).unwrap();
             let noisy = clean.mapv(|v| v + normal.sample(&mut rng));

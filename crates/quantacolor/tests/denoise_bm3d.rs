@@ -82,6 +82,23 @@ fn psnr_gains_on_synthetic_image() {
     }
 }
 
+/// The paper's hard-thresholded Step 1 matching distance (λ_2D = 2 for σ > 40), off by default,
+/// still denoises when switched on.
+#[test]
+fn thresholded_matching_distance_option() {
+    let clean = synthetic(96, 96);
+    let noisy = add_noise(&clean, 50.0, 15);
+    let config = Bm3dConfig {
+        lambda_2d: 2.0,
+        ..Bm3dConfig::default()
+    };
+    let out = bm3d_grey(noisy.view(), 50.0, &config).unwrap();
+    let gain = psnr(out.view(), clean.view(), 255.0).unwrap()
+        - psnr(noisy.view(), clean.view(), 255.0).unwrap();
+    println!("sigma 50 with lambda_2d = 2: gain {gain:.2} dB");
+    assert!(gain > 11.0, "gain {gain}");
+}
+
 fn scenes_dir() -> Option<PathBuf> {
     let rel = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes");
     [rel, PathBuf::from("/work/shared/data/scenes")]
@@ -203,7 +220,10 @@ fn data_range_makes_result_scale_invariant() {
     };
     let out1 = bm3d_grey((&noisy / 255.0).view(), 25.0 / 255.0, &unit).unwrap();
     let p = psnr((out1 * 255.0).view(), out255.view(), 255.0).unwrap();
-    assert!(p > 60.0, "PSNR between unit-scale and 255-scale results {p}");
+    assert!(
+        p > 60.0,
+        "PSNR between unit-scale and 255-scale results {p}"
+    );
 }
 
 #[test]
@@ -214,7 +234,12 @@ fn non_contiguous_input_is_accepted() {
     let out_c = bm3d_grey(t.as_standard_layout().view(), 15.0, &Bm3dConfig::default()).unwrap();
     assert_eq!(out_t, out_c);
     let sliced = noisy.slice(s![..;2, ..]);
-    assert_eq!(bm3d_grey(sliced, 15.0, &Bm3dConfig::default()).unwrap().dim(), (32, 80));
+    assert_eq!(
+        bm3d_grey(sliced, 15.0, &Bm3dConfig::default())
+            .unwrap()
+            .dim(),
+        (32, 80)
+    );
 }
 
 #[test]
@@ -252,7 +277,10 @@ fn bad_input_is_an_error() {
 
     let planes = Array3::<f32>::zeros((3, 16, 16));
     let err = bm3d_multichannel(planes.view(), &[1.0, 1.0], &config).unwrap_err();
-    assert!(err.to_string().contains("2 sigmas given for 3 channels"), "{err}");
+    assert!(
+        err.to_string().contains("2 sigmas given for 3 channels"),
+        "{err}"
+    );
     let empty = Array3::<f32>::zeros((0, 16, 16));
     assert!(bm3d_multichannel(empty.view(), &[], &config).is_err());
 }
