@@ -4,7 +4,7 @@
 use crate::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use crate::capture::Capture;
 use crate::denoise::chroma::{
-    denoise_linear, DenoiseConfig, DenoiseInput, DenoiseReport, MergeNoise,
+    denoise_linear, DenoiseConfig, DenoiseInput, DenoiseMethod, DenoiseReport, MergeNoise,
 };
 use crate::error::{Error, Result};
 use crate::naive::{reconstruct_naive, NaiveConfig};
@@ -95,6 +95,18 @@ pub struct Reconstruction {
     pub burst: Option<BurstReconstruction>,
 }
 
+/// The burst configuration actually run: the merge's colour-kernel spacing exponent is
+/// replaced by the denoiser's `merge_spacing_exponent` when denoising is on.
+pub fn burst_config_for(config: &ReconstructConfig) -> BurstConfig {
+    let mut burst = config.burst.clone();
+    if config.denoise.method != DenoiseMethod::None {
+        if let Some(e) = config.denoise.merge_spacing_exponent {
+            burst.merge.accumulate.spacing_exponent = e;
+        }
+    }
+    burst
+}
+
 /// The denoiser's inputs for a reconstruction of `capture`: the merge's binomial noise model
 /// when there is a burst merge, else the number of frames summed.
 pub fn denoise_input<'a>(
@@ -142,7 +154,8 @@ pub fn reconstruct(
             (naive.linear, naive.frames.len(), None, vec![timing])
         }
         Method::Burst => {
-            let burst = reconstruct_burst(capture, reference_frame, &config.burst, progress)?;
+            let burst_config = burst_config_for(config);
+            let burst = reconstruct_burst(capture, reference_frame, &burst_config, progress)?;
             let timings = burst.timings.clone();
             (burst.merged.linear.clone(), t, Some(burst), timings)
         }

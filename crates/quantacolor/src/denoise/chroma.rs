@@ -74,6 +74,12 @@ pub struct DenoiseConfig {
     /// Multiplies the modelled per-pixel σ of Cb and Cr: the chroma kernels span several of the
     /// sparse colour sites, so the chroma noise is coarse-grained (tuned as `luma_gain`).
     pub chroma_gain: f32,
+    /// Spacing exponent of the merge's colour kernels (`merge::AccumulateConfig::
+    /// spacing_exponent`) used when this denoiser runs: narrower kernels than the merge's
+    /// default leave the smoothing to BM3D, which keeps edges (measured with `bench denoise`).
+    /// `None` keeps the merge's own value.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub merge_spacing_exponent: Option<f32>,
     pub bm3d: Bm3dConfig,
 }
 
@@ -84,7 +90,8 @@ impl Default for DenoiseConfig {
             sigma_y: None,
             sigma_c: None,
             luma_gain: 1.0,
-            chroma_gain: 1.0,
+            chroma_gain: 4.0,
+            merge_spacing_exponent: Some(0.5),
             bm3d: Bm3dConfig::default(),
         }
     }
