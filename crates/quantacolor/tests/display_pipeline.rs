@@ -4,8 +4,8 @@
 use ndarray::{Array3, ArrayView3};
 use quantacolor::display::{
     ccm::{chart_patch_means, colorchecker_linear, ColorMatrix},
-    mesopic_blend, mesopic_weight, render, tone_map, GlobalConfig, Mantiuk06Config,
-    RenderOptions, ToneMap,
+    mesopic_blend, mesopic_weight, render, tone_map, GlobalConfig, Mantiuk06Config, RenderOptions,
+    ToneMap,
 };
 use quantacolor::simulate::chart::chart_value;
 use rand::Rng;
@@ -76,7 +76,10 @@ fn colour_fit_recovers_the_inverse_of_a_known_mixing() {
         }
         let r = fit.residual;
         assert!(r.delta_e_before > 5.0, "{r:?}");
-        assert!(r.delta_e_after < 0.25 * r.delta_e_before && r.delta_e_after < 2.0, "{r:?}");
+        assert!(
+            r.delta_e_after < 0.25 * r.delta_e_before && r.delta_e_after < 2.0,
+            "{r:?}"
+        );
         assert!(r.rms_after < 0.5 * r.rms_before, "{r:?}");
         // Applied to the image, the matrix brings the patches to the chart (up to the gain).
         let corrected = m.apply(img.view()).unwrap();
@@ -115,10 +118,15 @@ fn identity_matrix_is_bitwise_a_no_op_and_toml_round_trips() {
         .all(|(a, b)| a.to_bits() == b.to_bits()));
     let fit = ColorMatrix::fit(&chart_patch_means(img.view()).unwrap(), true).unwrap();
     let text = fit.matrix.to_toml();
-    assert!(text.contains("[color_matrix]") && text.contains("rows"), "{text}");
+    assert!(
+        text.contains("[color_matrix]") && text.contains("rows"),
+        "{text}"
+    );
     assert_eq!(ColorMatrix::from_toml(&text, "x.toml").unwrap(), fit.matrix);
     let bad = "[color_matrix]\nrows = [[1.0, 0.0], [0.0, 1.0], [0.0, 0.0, 1.0]]\n";
-    let err = ColorMatrix::from_toml(bad, "bad.toml").unwrap_err().to_string();
+    let err = ColorMatrix::from_toml(bad, "bad.toml")
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("bad.toml"), "{err}");
 }
 
@@ -154,12 +162,21 @@ fn tone_maps_are_monotonic_bounded_grey_preserving_and_deterministic() {
         // Grey in, grey out (bitwise equal channels).
         assert!(out
             .outer_iter()
-            .flat_map(|r| r.outer_iter().map(|p| (p[0], p[1], p[2])).collect::<Vec<_>>())
+            .flat_map(|r| r
+                .outer_iter()
+                .map(|p| (p[0], p[1], p[2]))
+                .collect::<Vec<_>>())
             .all(|(r, g, b)| r == g && g == b));
         // The ramp spans the display: dark at the left, white at the right.
-        assert!(luma(&out, 8, 0) < 0.05 && luma(&out, 8, 199) > 0.95, "{op:?}");
+        assert!(
+            luma(&out, 8, 0) < 0.05 && luma(&out, 8, 199) > 0.95,
+            "{op:?}"
+        );
         let again = tone_map(ramp.view(), None, &op).unwrap();
-        assert!(out.iter().zip(again.iter()).all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!(out
+            .iter()
+            .zip(again.iter())
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
 }
 
@@ -243,12 +260,18 @@ fn mesopic_blend_keeps_bright_colour_and_greys_dark_pixels() {
         2.0 + (y + x) as f32 * 0.1 + [0.5, 0.0, -0.7][c]
     });
     let out = mesopic_blend(bright.view(), 0.0, w).unwrap();
-    assert!(out.iter().zip(bright.iter()).all(|(a, b)| a.to_bits() == b.to_bits()));
+    assert!(out
+        .iter()
+        .zip(bright.iter())
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
     let dark = bright.mapv(|v| v * 1e-3);
     let out = mesopic_blend(dark.view(), 0.0, w).unwrap();
     for y in 0..4 {
         for x in 0..5 {
-            let (p, q) = (out.slice(ndarray::s![y, x, ..]), dark.slice(ndarray::s![y, x, ..]));
+            let (p, q) = (
+                out.slice(ndarray::s![y, x, ..]),
+                dark.slice(ndarray::s![y, x, ..]),
+            );
             assert!((p[0] - p[1]).abs() < 1e-9 && (p[1] - p[2]).abs() < 1e-9);
             let wl = |v: ArrayView1| (0..3).map(|c| w[c] * v[c] as f64).sum::<f64>();
             assert!((wl(p) - wl(q)).abs() < 1e-6 * wl(q));
@@ -289,10 +312,18 @@ fn render_chains_the_stages_in_order() {
     let px = |a: &Array3<f32>, x: usize| [a[[0, x, 0]], a[[0, x, 1]], a[[0, x, 2]]];
     let d = px(&meso, 0);
     assert!(d[0] == d[1] && d[1] == d[2], "dark side grey: {d:?}");
-    assert_eq!(px(&meso, 11), px(&plain, 11), "bright side keeps its colour");
+    assert_eq!(
+        px(&meso, 11),
+        px(&plain, 11),
+        "bright side keeps its colour"
+    );
     // The colour matrix runs before the blend: swapping R and B changes the bright pixel only.
     let swap = ColorMatrix {
-        rows: vec![vec![0.0, 0.0, 1.0], vec![0.0, 1.0, 0.0], vec![1.0, 0.0, 0.0]],
+        rows: vec![
+            vec![0.0, 0.0, 1.0],
+            vec![0.0, 1.0, 0.0],
+            vec![1.0, 0.0, 0.0],
+        ],
         affine: false,
         gain: None,
     };
@@ -305,7 +336,10 @@ fn render_chains_the_stages_in_order() {
         },
     )
     .unwrap();
-    assert_eq!(px(&sw, 11), [px(&plain, 11)[2], px(&plain, 11)[1], px(&plain, 11)[0]]);
+    assert_eq!(
+        px(&sw, 11),
+        [px(&plain, 11)[2], px(&plain, 11)[1], px(&plain, 11)[0]]
+    );
     assert!(render(Array3::<f32>::zeros((2, 2, 4)).view(), &base).is_err());
     let _: ArrayView3<f32> = img.view();
 }

@@ -95,10 +95,11 @@ impl ColorMatrix {
 
     /// Whether this is exactly the identity without offset.
     pub fn is_identity(&self) -> bool {
-        self.rows
-            .iter()
-            .enumerate()
-            .all(|(i, r)| r.iter().enumerate().all(|(j, &v)| v == (i == j) as u8 as f64))
+        self.rows.iter().enumerate().all(|(i, r)| {
+            r.iter()
+                .enumerate()
+                .all(|(j, &v)| v == (i == j) as u8 as f64)
+        })
     }
 
     /// The matrix applied to one pixel.
@@ -270,7 +271,10 @@ pub fn chart_patch_means(linear: ArrayView3<f32>) -> Result<[[f64; 3]; 24]> {
         let shrink = |a: f64, b: f64| {
             let m = 0.5 * (b - a) * (1.0 - PATCH_INNER_FRACTION);
             // Integer pixel centres inside [a + m, b - m).
-            ((a + m).ceil().max(0.0) as usize, (b - m).ceil().max(0.0) as usize)
+            (
+                (a + m).ceil().max(0.0) as usize,
+                (b - m).ceil().max(0.0) as usize,
+            )
         };
         let (y0, y1) = shrink(r[0], r[1]);
         let (x0, x1) = shrink(r[2], r[3]);
@@ -304,10 +308,7 @@ pub fn chart_patch_means(linear: ArrayView3<f32>) -> Result<[[f64; 3]; 24]> {
 /// CIE76 colour difference of two linear sRGB colours (CIELAB, D65 white of Y = 1).
 pub fn delta_e76(a: [f64; 3], b: [f64; 3]) -> f64 {
     let (la, lb) = (srgb_linear_to_lab(a), srgb_linear_to_lab(b));
-    (0..3)
-        .map(|c| (la[c] - lb[c]).powi(2))
-        .sum::<f64>()
-        .sqrt()
+    (0..3).map(|c| (la[c] - lb[c]).powi(2)).sum::<f64>().sqrt()
 }
 
 /// Linear sRGB (D65) to CIELAB with the white point of linear (1, 1, 1).
@@ -381,7 +382,11 @@ mod tests {
 
     #[test]
     fn solve_recovers_a_known_system() {
-        let a = vec![vec![2.0, 1.0, 0.0], vec![1.0, 3.0, 1.0], vec![0.0, 1.0, 4.0]];
+        let a = vec![
+            vec![2.0, 1.0, 0.0],
+            vec![1.0, 3.0, 1.0],
+            vec![0.0, 1.0, 4.0],
+        ];
         let x = solve(&a, &[3.0, 5.0, 5.0]).unwrap();
         for v in x {
             assert!((v - 1.0).abs() < 1e-12);

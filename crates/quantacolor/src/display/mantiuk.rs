@@ -105,7 +105,11 @@ impl Transducer {
             let slope = (last - self.response[TABLE_STEPS - 1]) / h;
             return G_MAX + (r - last) / slope;
         }
-        let i = self.response.partition_point(|&v| v <= r).clamp(1, TABLE_STEPS) - 1;
+        let i = self
+            .response
+            .partition_point(|&v| v <= r)
+            .clamp(1, TABLE_STEPS)
+            - 1;
         let (a, b) = (self.response[i], self.response[i + 1]);
         h * (i as f64 + if b > a { (r - a) / (b - a) } else { 0.0 })
     }
@@ -262,7 +266,12 @@ fn normal_operator(levels: &[Level], x: Option<&[f32]>) -> Vec<f32> {
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     a.par_chunks(4096)
         .zip(b.par_chunks(4096))
-        .map(|(a, b)| a.iter().zip(b).map(|(&u, &v)| u as f64 * v as f64).sum::<f64>())
+        .map(|(a, b)| {
+            a.iter()
+                .zip(b)
+                .map(|(&u, &v)| u as f64 * v as f64)
+                .sum::<f64>()
+        })
         .sum()
 }
 
@@ -424,6 +433,10 @@ mod tests {
         let s = process_log_luminance(x.view(), &cfg);
         let diff = &s.log_luminance - &x;
         let mean = diff.mean().unwrap();
-        assert!(diff.iter().all(|d| (d - mean).abs() < 2e-3), "{}", s.iterations);
+        assert!(
+            diff.iter().all(|d| (d - mean).abs() < 2e-3),
+            "{}",
+            s.iterations
+        );
     }
 }

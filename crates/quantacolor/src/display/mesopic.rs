@@ -30,11 +30,7 @@ pub fn mesopic_weight(w: f64, l0: f64) -> f64 {
 
 /// Applies Eq. 9–10 to a linear (H, W, 3) image in detections per frame, with luminance
 /// weights `w_weights` (the W pixel's response to R, G, B; `[1, 1, 1]` for simulated captures).
-pub fn mesopic_blend(
-    linear: ArrayView3<f32>,
-    l0: f64,
-    w_weights: [f64; 3],
-) -> Result<Array3<f32>> {
+pub fn mesopic_blend(linear: ArrayView3<f32>, l0: f64, w_weights: [f64; 3]) -> Result<Array3<f32>> {
     if linear.dim().2 != 3 {
         return Err(Error::invalid(format!(
             "expected an (H, W, 3) RGB image, got shape {:?}",
@@ -42,8 +38,7 @@ pub fn mesopic_blend(
         )));
     }
     let sum: f64 = w_weights.iter().sum();
-    if !l0.is_finite() || w_weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) || !(sum > 0.0)
-    {
+    if !l0.is_finite() || w_weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) || !(sum > 0.0) {
         return Err(Error::invalid(format!(
             "mesopic blend needs a finite L0 and non-negative luminance weights with a positive sum, got L0 = {l0}, w = {w_weights:?}"
         )));

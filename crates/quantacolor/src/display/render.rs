@@ -75,8 +75,7 @@ pub fn quantise8(display: ArrayView3<f32>) -> Array3<u8> {
 
 /// sRGB-encodes display-referred linear values (clamped to [0, 1]) to 16 bits.
 pub fn quantise16(display: ArrayView3<f32>) -> Array3<u16> {
-    display
-        .mapv(|v| (linear_to_srgb(if v.is_finite() { v } else { 0.0 }) * 65535.0).round() as u16)
+    display.mapv(|v| (linear_to_srgb(if v.is_finite() { v } else { 0.0 }) * 65535.0).round() as u16)
 }
 
 /// [`render`] then 8-bit sRGB.
@@ -110,19 +109,26 @@ pub fn write_rendered(
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
         .unwrap_or_default();
-    match (ext.as_str(), bits) {
-        ("png", BitDepth::Eight) => io::write_png_rgb8(path, &render_srgb8(linear, options)?),
-        ("png", BitDepth::Sixteen) => io::write_png_rgb16(path, &render_srgb16(linear, options)?),
-        ("tif" | "tiff", BitDepth::Sixteen) => {
-            io::write_tiff_rgb16(path, &render_srgb16(linear, options)?)
+    // Check the name before the (costly) rendering.
+    let tiff = match (ext.as_str(), bits) {
+        ("png", _) => false,
+        ("tif" | "tiff", BitDepth::Sixteen) => true,
+        ("tif" | "tiff", BitDepth::Eight) => {
+            return Err(Error::format(
+                path,
+                "TIFF output is 16-bit only (use --bits 16 or a .png name)",
+            ))
         }
-        ("tif" | "tiff", BitDepth::Eight) => Err(Error::format(
-            path,
-            "TIFF output is 16-bit only (use --bits 16 or a .png name)",
-        )),
-        _ => Err(Error::format(
-            path,
-            format!("unknown image extension '{ext}' (expected .png, .tif or .tiff)"),
-        )),
+        _ => {
+            return Err(Error::format(
+                path,
+                format!("unknown image extension '{ext}' (expected .png, .tif or .tiff)"),
+            ))
+        }
+    };
+    match bits {
+        BitDepth::Eight => io::write_png_rgb8(path, &render_srgb8(linear, options)?),
+        BitDepth::Sixteen if tiff => io::write_tiff_rgb16(path, &render_srgb16(linear, options)?),
+        BitDepth::Sixteen => io::write_png_rgb16(path, &render_srgb16(linear, options)?),
     }
 }

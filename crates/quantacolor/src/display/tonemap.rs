@@ -65,7 +65,11 @@ fn sanitise(linear: ArrayView3<f32>) -> Array3<f32> {
 /// the brightest channel to white for [`ToneMap::None`] ([`auto_exposure_scale`]), the key on the
 /// log-average luminance for [`ToneMap::Global`]; Mantiuk06 is (up to its luminance floor)
 /// invariant to the exposure.
-pub fn tone_map(linear: ArrayView3<f32>, exposure: Option<f32>, op: &ToneMap) -> Result<Array3<f32>> {
+pub fn tone_map(
+    linear: ArrayView3<f32>,
+    exposure: Option<f32>,
+    op: &ToneMap,
+) -> Result<Array3<f32>> {
     if linear.dim().2 != 3 {
         return Err(Error::invalid(format!(
             "expected an (H, W, 3) RGB image, got shape {:?}",
@@ -91,8 +95,7 @@ pub fn tone_map(linear: ArrayView3<f32>, exposure: Option<f32>, op: &ToneMap) ->
 }
 
 fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Result<Array3<f32>> {
-    if !(cfg.key.is_finite() && cfg.key > 0.0) || !(0.0..=100.0).contains(&cfg.white_percentile)
-    {
+    if !(cfg.key.is_finite() && cfg.key > 0.0) || !(0.0..=100.0).contains(&cfg.white_percentile) {
         return Err(Error::invalid(
             "global tone map: key must be positive, white percentile in 0..=100",
         ));
@@ -108,8 +111,8 @@ fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Re
             // Log-average luminance (Reinhard Eq. 1) over lit pixels; δ avoids log 0.
             let max = lum.iter().copied().fold(0.0f32, f32::max) as f64;
             let delta = 1e-6 * max.max(f64::MIN_POSITIVE);
-            let mean_log = lum.iter().map(|&l| (l as f64 + delta).ln()).sum::<f64>()
-                / lum.len().max(1) as f64;
+            let mean_log =
+                lum.iter().map(|&l| (l as f64 + delta).ln()).sum::<f64>() / lum.len().max(1) as f64;
             let avg = mean_log.exp();
             if avg > 0.0 {
                 cfg.key as f64 / avg
