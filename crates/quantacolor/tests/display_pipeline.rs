@@ -52,6 +52,7 @@ fn random_mixing(seed: u64) -> [[f64; 3]; 3] {
 }
 
 #[test]
+#[allow(clippy::needless_range_loop)] // matrix products read clearer with indices
 fn colour_fit_recovers_the_inverse_of_a_known_mixing() {
     let k = random_mixing(7);
     let gain = 0.05; // detections per frame for reflectance 1

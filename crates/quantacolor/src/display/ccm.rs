@@ -357,8 +357,9 @@ fn solve(a: &[Vec<f64>], b: &[f64]) -> Option<Vec<f64>> {
         for r in 0..n {
             if r != col {
                 let f = m[r][col] / m[col][col];
-                for k in col..=n {
-                    m[r][k] -= f * m[col][k];
+                let pivot_row = m[col].clone();
+                for (v, p) in m[r][col..].iter_mut().zip(&pivot_row[col..]) {
+                    *v -= f * p;
                 }
             }
         }

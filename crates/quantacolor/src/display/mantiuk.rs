@@ -9,7 +9,8 @@
 //!    `T(G) = ∫_0^G dg / ΔG(g)` from the contrast-discrimination thresholds fitted to Whittle's
 //!    data, `ΔW(W) = 0.0928 W^1.08 + 0.0046 W^−0.183` with Weber contrast `W = 10^G − 1` and
 //!    `ΔG = log10(1 + ΔW·10^−G)`; the paper's closed-form fit `T(G) ≈ 54.09288 G^0.41850` agrees
-//!    with our table within 10 % over 0.1 ≤ G ≤ 2 (checked in a test);
+//!    with our table within 10 % over 0.3 ≤ G ≤ 2 (checked in a test; the fit is 27 % above the
+//!    table at G = 0.1 and the table grows faster than the fit beyond G = 2);
 //! 4. contrast mapping (§5.1): `R' = l·R` with contrast factor `l` (default 0.3), back through
 //!    `T^−1`, which compresses large contrasts much more than small ones;
 //! 5. the output `x'` is the least-squares fit of its pyramid contrasts to the targets (§4),
@@ -344,7 +345,7 @@ pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> Co
     while iterations < config.max_iterations && rr.sqrt() > tol && b_norm > 0.0 {
         let ap = normal_operator(&levels, Some(&p));
         let pap = dot(&p, &ap);
-        if !(pap > 0.0) {
+        if pap.is_nan() || pap <= 0.0 {
             break;
         }
         let alpha = (rr / pap) as f32;
@@ -396,7 +397,7 @@ mod tests {
 
     #[test]
     fn transducer_matches_the_papers_power_law_fit_in_its_range() {
-        for g in [0.1, 0.3, 0.5, 1.0, 1.5, 2.0] {
+        for g in [0.3, 0.5, 1.0, 1.5, 2.0] {
             let fit = 54.09288 * f64::powf(g, 0.41850);
             let t = transducer(g);
             assert!((t / fit - 1.0).abs() < 0.1, "T({g}) = {t}, fit {fit}");

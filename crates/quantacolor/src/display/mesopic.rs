@@ -22,8 +22,11 @@ pub const MESOPIC_C2: f64 = -2.0;
 
 /// Colour weight `p` of Eq. 9 for luminance `w` and offset `l0`; 0 for `w <= 0` or non-finite.
 pub fn mesopic_weight(w: f64, l0: f64) -> f64 {
-    if !(w > 0.0) || !w.is_finite() {
-        return if w == f64::INFINITY { 1.0 } else { 0.0 };
+    if w == f64::INFINITY {
+        return 1.0;
+    }
+    if w.is_nan() || w <= 0.0 {
+        return 0.0;
     }
     ((w.log10() + l0 - MESOPIC_C2) / (MESOPIC_C1 - MESOPIC_C2)).clamp(0.0, 1.0)
 }
@@ -38,7 +41,11 @@ pub fn mesopic_blend(linear: ArrayView3<f32>, l0: f64, w_weights: [f64; 3]) -> R
         )));
     }
     let sum: f64 = w_weights.iter().sum();
-    if !l0.is_finite() || w_weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) || !(sum > 0.0) {
+    if !l0.is_finite()
+        || w_weights.iter().any(|w| !(w.is_finite() && *w >= 0.0))
+        || sum.is_nan()
+        || sum <= 0.0
+    {
         return Err(Error::invalid(format!(
             "mesopic blend needs a finite L0 and non-negative luminance weights with a positive sum, got L0 = {l0}, w = {w_weights:?}"
         )));

@@ -95,7 +95,7 @@ pub fn tone_map(
 }
 
 fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Result<Array3<f32>> {
-    if !(cfg.key.is_finite() && cfg.key > 0.0) || !(0.0..=100.0).contains(&cfg.white_percentile) {
+    if !(cfg.key.is_finite() && cfg.key > 0.0 && (0.0..=100.0).contains(&cfg.white_percentile)) {
         return Err(Error::invalid(
             "global tone map: key must be positive, white percentile in 0..=100",
         ));
@@ -143,11 +143,14 @@ fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Re
 const MANTIUK_FLOOR: f32 = 1e-6;
 
 fn mantiuk06(img: Array3<f32>, exposure: f32, cfg: &Mantiuk06Config) -> Result<Array3<f32>> {
-    if !(cfg.contrast_factor > 0.0 && cfg.contrast_factor <= 1.0)
-        || !(cfg.saturation_factor.is_finite() && cfg.saturation_factor >= 0.0)
-        || !(cfg.detail_factor.is_finite() && cfg.detail_factor > 0.0)
-        || !(cfg.tolerance > 0.0)
-    {
+    let valid = cfg.contrast_factor > 0.0
+        && cfg.contrast_factor <= 1.0
+        && cfg.saturation_factor.is_finite()
+        && cfg.saturation_factor >= 0.0
+        && cfg.detail_factor.is_finite()
+        && cfg.detail_factor > 0.0
+        && cfg.tolerance > 0.0;
+    if !valid {
         return Err(Error::invalid(
             "mantiuk06: contrast factor in (0, 1], saturation factor >= 0, detail factor > 0, tolerance > 0",
         ));
@@ -157,7 +160,7 @@ fn mantiuk06(img: Array3<f32>, exposure: f32, cfg: &Mantiuk06Config) -> Result<A
         exposure * luminance(&[img[[y, x, 0]], img[[y, x, 1]], img[[y, x, 2]]])
     });
     let top = percentile(lum.iter().copied(), 99.5).unwrap_or(0.0);
-    if !(top > 0.0) {
+    if top.is_nan() || top <= 0.0 {
         return Ok(Array3::zeros(img.dim()));
     }
     let floor = top * MANTIUK_FLOOR;

@@ -234,13 +234,16 @@ mod tests {
             let want = srgb8_to_linear(COLORCHECKER_SRGB[i]);
             // Just inside every corner: the patch colour; just outside the left edge: the frame.
             for (y, x) in [
-                (r[0], r[2]),
+                (r[0] + 1e-6, r[2] + 1e-6),
                 (r[1] - 1e-6, r[3] - 1e-6),
-                (r[0], r[3] - 1e-6),
+                (r[0] + 1e-6, r[3] - 1e-6),
             ] {
                 assert_eq!(chart_value(y, x, h, w, false), want, "patch {i}");
             }
-            assert_eq!(chart_value(r[0], r[2] - 1e-6, h, w, false), grey(DARK));
+            assert_eq!(
+                chart_value(r[0] + 1e-6, r[2] - 1e-6, h, w, false),
+                grey(DARK)
+            );
         }
     }
 }
