@@ -28,7 +28,7 @@ pub struct DisplayArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Tone-mapping operator.
-    #[arg(long, value_enum, default_value_t = ToneMapArg::Mantiuk06)]
+    #[arg(long, value_enum, default_value_t = ToneMapArg::Global)]
     pub tonemap: ToneMapArg,
     /// Noise-aware low-light view with offset L0 (supplement Eq. 9): colour fades to grey below
     /// 10^-L0 detections per frame and is gone at 10^(-2-L0).

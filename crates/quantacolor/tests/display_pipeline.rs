@@ -2,6 +2,7 @@
 //! against a known mixing, tone-mapping properties, the noise-aware low-light blend and render.
 
 use ndarray::{Array3, ArrayView3};
+use quantacolor::display::mantiuk::process_log_luminance;
 use quantacolor::display::{
     ccm::{chart_patch_means, colorchecker_linear, ColorMatrix},
     mesopic_blend, mesopic_weight, render, tone_map, GlobalConfig, Mantiuk06Config, RenderOptions,
@@ -238,7 +239,18 @@ fn mantiuk06_speed_on_a_chart_sized_image() {
     )
     .unwrap();
     let secs = t.elapsed().as_secs_f64();
-    println!("mantiuk06 on 496x254: {secs:.3} s (this build profile)");
+    let log_lum = ndarray::Array2::from_shape_fn((254, 496), |(y, x)| {
+        (0..3)
+            .map(|c| LUMA[c] * img[[y, x, c]])
+            .sum::<f32>()
+            .max(1e-6)
+            .log10()
+    });
+    let sol = process_log_luminance(log_lum.view(), &Mantiuk06Config::default());
+    println!(
+        "mantiuk06 on 496x254: {secs:.3} s (this build profile); CG {} iterations, relative residual {:.2e}",
+        sol.iterations, sol.relative_residual
+    );
     assert!(out.iter().all(|v| v.is_finite()));
 }
 
@@ -343,4 +355,21 @@ fn render_chains_the_stages_in_order() {
     );
     assert!(render(Array3::<f32>::zeros((2, 2, 4)).view(), &base).is_err());
     let _: ArrayView3<f32> = img.view();
+}
+
+#[test]
+fn render_options_default_and_toml_round_trip() {
+    let d = RenderOptions::default();
+    assert_eq!(d.tonemap, ToneMap::Global(GlobalConfig::default()));
+    assert_eq!((d.exposure, d.mesopic, d.w_weights), (None, None, [1.0; 3]));
+    for tonemap in operators() {
+        let o = RenderOptions {
+            tonemap,
+            mesopic: Some(0.5),
+            color_matrix: Some(ColorMatrix::identity()),
+            ..Default::default()
+        };
+        let text = toml::to_string(&o).unwrap();
+        assert_eq!(toml::from_str::<RenderOptions>(&text).unwrap(), o, "{text}");
+    }
 }

@@ -264,6 +264,49 @@ fn normal_operator(levels: &[Level], x: Option<&[f32]>) -> Vec<f32> {
     acc
 }
 
+/// Diagonal of the normal-equation operator (for the Jacobi preconditioner): at every level the
+/// sum of the weights of the contrasts touching a pixel, brought to full resolution with the
+/// squared coefficients of the box pyramid.
+fn normal_diagonal(levels: &[Level]) -> Vec<f32> {
+    let mut acc: Vec<f32> = Vec::new();
+    for l in levels.iter().rev() {
+        let (h, w) = (l.h, l.w);
+        let mut here = vec![0.0f32; h * w];
+        here.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (j, o) in row.iter_mut().enumerate() {
+                let mut s = 0.0;
+                if j + 1 < w {
+                    s += l.weight_x[y * (w - 1) + j];
+                }
+                if j > 0 {
+                    s += l.weight_x[y * (w - 1) + j - 1];
+                }
+                if y + 1 < h {
+                    s += l.weight_y[y * w + j];
+                }
+                if y > 0 {
+                    s += l.weight_y[(y - 1) * w + j];
+                }
+                *o = s;
+            }
+        });
+        if !acc.is_empty() {
+            let wc = w.div_ceil(2);
+            here.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                let i = y / 2;
+                let ny = (2 * i + 2).min(h) - 2 * i;
+                for (x, d) in row.iter_mut().enumerate() {
+                    let j = x / 2;
+                    let nx = (2 * j + 2).min(w) - 2 * j;
+                    *d += acc[i * wc + j] / ((ny * nx) as f32).powi(2);
+                }
+            });
+        }
+        acc = here;
+    }
+    acc
+}
+
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     a.par_chunks(4096)
         .zip(b.par_chunks(4096))
@@ -276,26 +319,9 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
         .sum()
 }
 
-/// Result of the contrast-domain processing of a log10 luminance image.
-pub struct ContrastSolution {
-    /// Processed log10 luminance (defined up to a constant).
-    pub log_luminance: Array2<f32>,
-    pub iterations: usize,
-    /// Final CG residual relative to the right-hand side.
-    pub relative_residual: f64,
-}
-
-/// Steps 2–5 of the module doc on a log10 luminance image (at least 2x2).
-pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> ContrastSolution {
-    let (h, w) = x.dim();
-    let x0: Vec<f32> = x.iter().copied().collect();
-    if h < 2 || w < 2 {
-        return ContrastSolution {
-            log_luminance: x.to_owned(),
-            iterations: 0,
-            relative_residual: 0.0,
-        };
-    }
+/// Steps 2–4 of the module doc: the pyramid levels (down to 2 pixels on the short side) with
+/// their target contrasts `T^−1(l·T(G))` and weights `1/ΔG(G)`.
+fn build_levels(x: ArrayView2<f32>, config: &Mantiuk06Config) -> Vec<Level> {
     let l = config.contrast_factor as f64;
     let map_contrast = |g: f32| -> (f32, f32) {
         let g = g as f64;
@@ -305,7 +331,8 @@ pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> Co
     };
     // Build the pyramid levels down to 2 pixels on the short side.
     let mut levels = Vec::new();
-    let (mut cur, mut ch, mut cw) = (x0, h, w);
+    let (h, w) = x.dim();
+    let (mut cur, mut ch, mut cw): (Vec<f32>, usize, usize) = (x.iter().copied().collect(), h, w);
     loop {
         let (gx, gy) = gradients(&cur, ch, cw);
         let split = |g: Vec<f32>| -> (Vec<f32>, Vec<f32>) {
@@ -332,13 +359,44 @@ pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> Co
         let (d, nh, nw) = downsample(&cur, ch, cw);
         (cur, ch, cw) = (d, nh, nw);
     }
-    // Conjugate gradients on A x = b from x = 0 (A is positive semi-definite with the
-    // constants as null space; b is orthogonal to it, so CG converges).
+    levels
+}
+
+/// Result of the contrast-domain processing of a log10 luminance image.
+pub struct ContrastSolution {
+    /// Processed log10 luminance (defined up to a constant).
+    pub log_luminance: Array2<f32>,
+    pub iterations: usize,
+    /// Final CG residual relative to the right-hand side.
+    pub relative_residual: f64,
+}
+
+/// Steps 2–5 of the module doc on a log10 luminance image (at least 2x2).
+pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> ContrastSolution {
+    let (h, w) = x.dim();
+    if h < 2 || w < 2 {
+        return ContrastSolution {
+            log_luminance: x.to_owned(),
+            iterations: 0,
+            relative_residual: 0.0,
+        };
+    }
+    let levels = build_levels(x, config);
+    // Jacobi-preconditioned conjugate gradients on A x = b from x = 0 (A is positive
+    // semi-definite with the constants as null space; b is orthogonal to it, so CG converges).
     let b = normal_operator(&levels, None);
+    let inv_diag: Vec<f32> = normal_diagonal(&levels)
+        .into_iter()
+        .map(|d| if d > 0.0 { 1.0 / d } else { 1.0 })
+        .collect();
+    let precondition =
+        |r: &[f32]| -> Vec<f32> { r.par_iter().zip(&inv_diag).map(|(a, b)| a * b).collect() };
     let b_norm = dot(&b, &b).sqrt();
     let mut sol = vec![0.0f32; h * w];
     let mut r = b.clone();
-    let mut p = r.clone();
+    let mut z = precondition(&r);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
     let mut rr = dot(&r, &r);
     let mut iterations = 0;
     let tol = config.tolerance as f64 * b_norm;
@@ -348,19 +406,21 @@ pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> Co
         if pap.is_nan() || pap <= 0.0 {
             break;
         }
-        let alpha = (rr / pap) as f32;
+        let alpha = (rz / pap) as f32;
         sol.par_iter_mut()
             .zip(&p)
             .for_each(|(s, &pv)| *s += alpha * pv);
         r.par_iter_mut()
             .zip(&ap)
             .for_each(|(rv, &a)| *rv -= alpha * a);
-        let rr_new = dot(&r, &r);
-        let beta = (rr_new / rr) as f32;
+        rr = dot(&r, &r);
+        z = precondition(&r);
+        let rz_new = dot(&r, &z);
+        let beta = (rz_new / rz) as f32;
         p.par_iter_mut()
-            .zip(&r)
-            .for_each(|(pv, &rv)| *pv = rv + beta * *pv);
-        rr = rr_new;
+            .zip(&z)
+            .for_each(|(pv, &zv)| *pv = zv + beta * *pv);
+        rz = rz_new;
         iterations += 1;
     }
     ContrastSolution {
@@ -407,6 +467,24 @@ mod tests {
         // Contrast mapping compresses large contrasts more than small ones.
         let ratio = |g: f64| inverse_transducer(0.3 * transducer(g)) / g;
         assert!(ratio(0.05) > ratio(1.0) && ratio(1.0) > ratio(3.0));
+    }
+
+    #[test]
+    fn jacobi_diagonal_matches_the_operator() {
+        let x = Array2::from_shape_fn((7, 9), |(y, x)| ((y * 5 + x * 3) % 7) as f32 * 0.4);
+        let levels = build_levels(x.view(), &Mantiuk06Config::default());
+        let diag = normal_diagonal(&levels);
+        for i in [0, 10, 31, 62] {
+            let mut e = vec![0.0f32; 63];
+            e[i] = 1.0;
+            let col = normal_operator(&levels, Some(&e));
+            assert!(
+                (col[i] - diag[i]).abs() < 1e-3 * diag[i],
+                "{i}: {} {}",
+                col[i],
+                diag[i]
+            );
+        }
     }
 
     #[test]

@@ -13,10 +13,12 @@ use std::path::Path;
 
 /// Options of [`render`].
 ///
-/// The default tone map is Mantiuk06 (contrast factor 0.3, saturation 0.8), as the paper's
-/// figures of HDR scenes use; it is invariant to the exposure of the reconstruction, so a
-/// preview needs no exposure guess. Pass [`ToneMap::None`] for a plain exposure-and-clip view
-/// (radiometrically faithful up to the clip).
+/// The default tone map is the global Reinhard operator ([`ToneMap::Global`]): it needs no
+/// exposure guess (key 0.18 on the log-average luminance), keeps HDR highlights below white and
+/// looks natural on low-light captures. Mantiuk06, which the paper's HDR figures use, is one
+/// option away ([`ToneMap::Mantiuk06`]); with pfstmo's contrast factor 0.3 it renders the
+/// simulated chart visibly flatter, so it is not the default. [`ToneMap::None`] gives a plain
+/// exposure-and-clip view.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct RenderOptions {

@@ -44,9 +44,10 @@ pub enum ToneMap {
     None,
 }
 
+/// The global operator (see [`super::render::RenderOptions`] for why).
 impl Default for ToneMap {
     fn default() -> Self {
-        ToneMap::Mantiuk06(Mantiuk06Config::default())
+        ToneMap::Global(GlobalConfig::default())
     }
 }
 
