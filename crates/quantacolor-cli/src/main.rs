@@ -2,8 +2,10 @@
 
 mod cmd_align;
 mod cmd_bench;
+mod cmd_calibrate_color;
 mod cmd_cfa;
 mod cmd_demo;
+mod cmd_display;
 mod cmd_eval;
 mod cmd_reconstruct;
 mod cmd_simulate;
@@ -41,6 +43,10 @@ enum Command {
     Bench(cmd_bench::BenchArgs),
     /// Colour filter arrays: generate, analyse spectra, compare patterns (paper §5).
     Cfa(cmd_cfa::CfaArgs),
+    /// Render a linear reconstruction to PNG/TIFF: colour matrix, low-light view, tone mapping.
+    Display(cmd_display::DisplayArgs),
+    /// Fit a colour-correction matrix from a reconstruction of the built-in chart.
+    CalibrateColor(cmd_calibrate_color::CalibrateColorArgs),
 }
 
 fn main() -> ExitCode {
@@ -55,6 +61,8 @@ fn main() -> ExitCode {
         Command::CalibrateDcr(args) => cmd_align::run_calibrate_dcr(args),
         Command::Cfa(args) => cmd_cfa::run(args),
         Command::Bench(args) => cmd_bench::run(args, &progress),
+        Command::Display(args) => cmd_display::run(args),
+        Command::CalibrateColor(args) => cmd_calibrate_color::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

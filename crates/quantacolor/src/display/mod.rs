@@ -1,7 +1,22 @@
-//! Display: exposure, sRGB encoding and side-by-side sheets for linear reconstructions
-//! (paper §7; tone mapping and colour correction build on this).
+//! Display of linear reconstructions (paper §7, Fig. 14 and Fig. 20; supplement §4):
+//! colour correction ([`ccm`]), noise-aware low-light visualisation ([`mesopic`]), exposure and
+//! tone mapping ([`tonemap`], [`mantiuk`]), sRGB encoding ([`srgb`], [`exposure`]), all chained by
+//! [`render`].
 
+pub mod ccm;
 pub mod exposure;
+pub mod mantiuk;
+pub mod mesopic;
+pub mod render;
 pub mod srgb;
+pub mod tonemap;
 
+pub use ccm::{chart_patch_means, ColorFit, ColorMatrix, FitResidual};
 pub use exposure::{auto_exposure_scale, encode_srgb16, encode_srgb8, hstack};
+pub use mantiuk::Mantiuk06Config;
+pub use mesopic::{mesopic_blend, mesopic_weight};
+pub use render::{
+    quantise16, quantise8, render, render_srgb16, render_srgb8, write_rendered, BitDepth,
+    RenderOptions,
+};
+pub use tonemap::{tone_map, GlobalConfig, ToneMap};

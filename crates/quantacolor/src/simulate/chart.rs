@@ -173,6 +173,25 @@ pub fn chart_value(y: f64, x: f64, height: usize, width: usize, hdr: bool) -> [f
     out
 }
 
+/// The coloured area of each of the 24 ColorChecker patches (reading order, as
+/// [`COLORCHECKER_SRGB`]) of a `height` x `width` chart, as `[y0, y1, x0, x1]` in sensor pixel
+/// coordinates (half-open, pixel centres at integers): the inner 10-90 % of each cell of the
+/// 6 x 4 grid laid out by [`chart_value`]; the rest of the cell is the dark frame.
+pub fn colorchecker_patch_rects(height: usize, width: usize) -> [[f64; 4]; 24] {
+    let (h, w) = (height as f64, width as f64);
+    let (cx0, cx1, cy0, cy1) = (0.02 * w, 0.46 * w, 0.04 * h, 0.56 * h);
+    let (cw, ch) = ((cx1 - cx0) / 6.0, (cy1 - cy0) / 4.0);
+    std::array::from_fn(|i| {
+        let (row, col) = ((i / 6) as f64, (i % 6) as f64);
+        [
+            cy0 + (row + 0.1) * ch,
+            cy0 + (row + 0.9) * ch,
+            cx0 + (col + 0.1) * cw,
+            cx0 + (col + 0.9) * cw,
+        ]
+    })
+}
+
 /// Texture of the moving object: a chequerboard of saturated colours with 3 px squares, at
 /// offset `(y, x)` from the object's centre.
 pub fn object_texture(y: f64, x: f64) -> [f32; 3] {
@@ -206,5 +225,25 @@ mod tests {
         let (ly, lx) = (0.75 * h as f64, 0.93 * w as f64);
         assert!((chart_value(ly, lx, h, w, true)[0] / white_patch() - 1000.0).abs() < 1e-3);
         assert!(chart_value(ly, lx, h, w, false)[0] < 1.0);
+    }
+
+    #[test]
+    fn patch_rects_cover_exactly_their_patch_colour() {
+        let (h, w) = (254, 496);
+        for (i, r) in colorchecker_patch_rects(h, w).iter().enumerate() {
+            let want = srgb8_to_linear(COLORCHECKER_SRGB[i]);
+            // Just inside every corner: the patch colour; just outside the left edge: the frame.
+            for (y, x) in [
+                (r[0] + 1e-6, r[2] + 1e-6),
+                (r[1] - 1e-6, r[3] - 1e-6),
+                (r[0] + 1e-6, r[3] - 1e-6),
+            ] {
+                assert_eq!(chart_value(y, x, h, w, false), want, "patch {i}");
+            }
+            assert_eq!(
+                chart_value(r[0] + 1e-6, r[2] - 1e-6, h, w, false),
+                grey(DARK)
+            );
+        }
     }
 }

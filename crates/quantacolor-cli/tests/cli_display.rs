@@ -1,0 +1,237 @@
+//! End-to-end tests of `quantacolor display` and `quantacolor calibrate-color`: one image per
+//! option from a small synthetic linear.npy, the fitted matrix, and bad input (exit status 2, the
+//! file named, nothing written).
+
+use ndarray::Array3;
+use quantacolor::capture::io::{read_rgb_image, write_npy};
+use quantacolor::simulate::chart::chart_value;
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn quantacolor(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_quantacolor"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+fn ok(args: &[&str]) -> Output {
+    let out = quantacolor(args);
+    assert!(
+        out.status.success(),
+        "{args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// Left half very dark (0.001 detections/frame), right half bright; reddish everywhere.
+fn scene() -> Array3<f32> {
+    Array3::from_shape_fn((24, 40, 3), |(y, x, c)| {
+        let v = if x < 20 { 0.001 } else { 0.5 + 0.01 * y as f32 };
+        v * [1.0, 0.4, 0.2][c]
+    })
+}
+
+/// PNG bit depth from the IHDR chunk.
+fn png_bit_depth(path: &Path) -> u8 {
+    std::fs::read(path).unwrap()[24]
+}
+
+fn files_in(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn display_writes_one_image_per_option() {
+    let tmp = tempfile::tempdir().unwrap();
+    let lin = tmp.path().join("linear.npy");
+    write_npy(&lin, &scene()).unwrap();
+    for op in ["mantiuk06", "global", "none"] {
+        let out = tmp.path().join(format!("{op}.png"));
+        ok(&["display", s(&lin), "--out", s(&out), "--tonemap", op]);
+        assert_eq!(png_bit_depth(&out), 8);
+        let (img, _) = read_rgb_image(&out).unwrap();
+        assert_eq!(img.dim(), (24, 40, 3));
+        // Bright side: reddish and brighter than the dark side.
+        let (r, g) = (img[[12, 30, 0]], img[[12, 30, 1]]);
+        assert!(r > g && r > img[[12, 5, 0]], "{op}: {r} {g}");
+    }
+    // Mesopic: the dark half becomes grey, the bright half keeps its colour.
+    let out = tmp.path().join("meso.png");
+    ok(&[
+        "display",
+        s(&lin),
+        "--out",
+        s(&out),
+        "--tonemap",
+        "none",
+        "--mesopic",
+        "0",
+    ]);
+    let (img, _) = read_rgb_image(&out).unwrap();
+    let dark = [img[[5, 5, 0]], img[[5, 5, 1]], img[[5, 5, 2]]];
+    assert!(dark[0] == dark[1] && dark[1] == dark[2], "{dark:?}");
+    assert!(img[[5, 30, 0]] > img[[5, 30, 1]] + 0.1);
+    // 16-bit PNG and 16-bit TIFF (uncompressed: 6 bytes a pixel).
+    let out = tmp.path().join("deep.png");
+    ok(&[
+        "display",
+        s(&lin),
+        "--out",
+        s(&out),
+        "--bits",
+        "16",
+        "--exposure",
+        "1.5",
+    ]);
+    assert_eq!(png_bit_depth(&out), 16);
+    let tif = tmp.path().join("deep.tif");
+    ok(&["display", s(&lin), "--out", s(&tif), "--tonemap", "global"]);
+    assert!(std::fs::metadata(&tif).unwrap().len() >= 24 * 40 * 6);
+    assert_eq!(read_rgb_image(&tif).unwrap().0.dim(), (24, 40, 3));
+}
+
+#[test]
+fn calibrate_color_then_display_with_the_matrix() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (h, w) = (127, 248);
+    // The chart through a camera whose red leaks into green: a known mixing at 0.05 det/frame.
+    let k = [[0.8, 0.15, 0.05], [0.25, 0.7, 0.05], [0.05, 0.1, 0.85]];
+    let img = Array3::from_shape_fn((h, w, 3), |(y, x, c)| {
+        let t = chart_value(y as f64, x as f64, h, w, false);
+        0.05 * (k[c][0] * t[0] + k[c][1] * t[1] + k[c][2] * t[2])
+    });
+    let lin = tmp.path().join("chart.npy");
+    write_npy(&lin, &img).unwrap();
+    let ccm = tmp.path().join("ccm.toml");
+    let out = ok(&["calibrate-color", s(&lin), "--out", s(&ccm)]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().find(|l| l.contains("delta E76")).unwrap();
+    let nums: Vec<f64> = line
+        .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .filter_map(|t| t.parse().ok())
+        .filter(|v: &f64| *v != 76.0)
+        .collect();
+    assert!(nums[1] < 0.05 && nums[0] > 3.0, "{line}");
+    let toml_text = std::fs::read_to_string(&ccm).unwrap();
+    assert!(toml_text.contains("[color_matrix]"), "{toml_text}");
+    // Displayed with the matrix, the red patch (15) is redder than without.
+    let (with, without) = (tmp.path().join("with.png"), tmp.path().join("without.png"));
+    ok(&[
+        "display",
+        s(&lin),
+        "--out",
+        s(&with),
+        "--tonemap",
+        "none",
+        "--ccm",
+        s(&ccm),
+    ]);
+    ok(&[
+        "display",
+        s(&lin),
+        "--out",
+        s(&without),
+        "--tonemap",
+        "none",
+    ]);
+    let red = |p: &Path| {
+        let (im, _) = read_rgb_image(p).unwrap();
+        let (y, x) = (
+            (0.04 + 2.5 * 0.13) * h as f64,
+            0.02 * w as f64 + 2.5 * 0.44 * w as f64 / 6.0,
+        );
+        let px = [0, 1, 2].map(|c| im[[y as usize, x as usize, c]]);
+        px[0] - px[1]
+    };
+    assert!(red(&with) > red(&without) + 0.05);
+    ok(&["calibrate-color", s(&lin), "--out", s(&ccm), "--affine"]);
+    assert!(std::fs::read_to_string(&ccm)
+        .unwrap()
+        .contains("affine = true"));
+}
+
+#[test]
+fn bad_input_exits_2_names_the_file_and_writes_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let lin = tmp.path().join("linear.npy");
+    write_npy(&lin, &scene()).unwrap();
+    let wrong_shape = tmp.path().join("four.npy");
+    write_npy(&wrong_shape, &Array3::<f32>::zeros((4, 4, 4))).unwrap();
+    let wrong_dtype = tmp.path().join("f64.npy");
+    write_npy(&wrong_dtype, &Array3::<f64>::zeros((4, 4, 3))).unwrap();
+    let garbage = tmp.path().join("ccm.toml");
+    std::fs::write(&garbage, "[color_matrix]\nrows = [[1, 2]]\n").unwrap();
+    let out_dir = tmp.path().join("out");
+    std::fs::create_dir(&out_dir).unwrap();
+    let png = out_dir.join("x.png");
+    let cases: Vec<(Vec<String>, String)> = vec![
+        (
+            vec![s(&wrong_shape).into(), "--out".into(), s(&png).into()],
+            s(&wrong_shape).into(),
+        ),
+        (
+            vec![s(&wrong_dtype).into(), "--out".into(), s(&png).into()],
+            s(&wrong_dtype).into(),
+        ),
+        (
+            vec![
+                s(&lin).into(),
+                "--out".into(),
+                s(&out_dir.join("x.bmp")).into(),
+            ],
+            "x.bmp".into(),
+        ),
+        (
+            vec![
+                s(&lin).into(),
+                "--out".into(),
+                s(&png).into(),
+                "--ccm".into(),
+                s(&garbage).into(),
+            ],
+            s(&garbage).into(),
+        ),
+        (
+            vec![
+                s(&lin).into(),
+                "--out".into(),
+                s(&tmp.path().join("no/such/dir/x.png")).into(),
+            ],
+            "x.png".into(),
+        ),
+    ];
+    for (args, named) in cases {
+        let mut full = vec!["display".to_string()];
+        full.extend(args);
+        let refs: Vec<&str> = full.iter().map(|a| a.as_str()).collect();
+        let out = quantacolor(&refs);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{full:?}: {err}");
+        assert!(err.contains(&named), "{full:?}: {err}");
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(files_in(&out_dir).is_empty(), "{:?}", files_in(&out_dir));
+    }
+    // calibrate-color on an image too small to hold the chart.
+    let tiny = tmp.path().join("tiny.npy");
+    write_npy(&tiny, &Array3::<f32>::zeros((3, 3, 3))).unwrap();
+    let out = quantacolor(&[
+        "calibrate-color",
+        s(&tiny),
+        "--out",
+        s(&out_dir.join("c.toml")),
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("tiny.npy"));
+    assert!(files_in(&out_dir).is_empty());
+}
