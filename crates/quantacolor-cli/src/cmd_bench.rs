@@ -6,9 +6,9 @@ use clap::{Args, Subcommand};
 use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, BurstConfig};
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::denoise::chroma::{denoise_linear, DenoiseConfig, DenoiseMethod};
-use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
 use quantacolor::metrics::{evaluate, EvalOptions, Scores};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
+use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
 use quantacolor::progress::{Progress, Silent};
 use quantacolor::simulate::{
     simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulatedCapture, SimulationConfig,
@@ -81,7 +81,13 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
                 }
                 None => BurstConfig::default(),
             };
-            denoise_grid(scenes.as_deref(), luma_gains, chroma_gains, &burst, progress)
+            denoise_grid(
+                scenes.as_deref(),
+                luma_gains,
+                chroma_gains,
+                &burst,
+                progress,
+            )
         }
     }
 }

@@ -9,7 +9,7 @@ use clap::Args;
 use ndarray::Array3;
 use quantacolor::capture::{io, Capture};
 use quantacolor::denoise::chroma::DenoiseMethod;
-use quantacolor::display::{auto_exposure_scale, encode_srgb8, hstack};
+use quantacolor::display::{auto_exposure_scale, encode_srgb8, hstack, RenderOptions};
 use quantacolor::metrics::{evaluate, EvalOptions, Scores};
 use quantacolor::pipeline::{reconstruct, Method, ReconstructConfig};
 use quantacolor::progress::Progress;
@@ -84,7 +84,18 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
             rc.denoise.method = DenoiseMethod::None;
         }
         let rec = reconstruct(&capture, &rc, progress)?;
-        write_reconstruction(&args.out.join(name), &capture_dir, &rc, &rec)?;
+        let preview = RenderOptions {
+            w_weights: capture.meta.w_weights,
+            ..RenderOptions::default()
+        };
+        write_reconstruction(
+            &args.out.join(name),
+            &capture_dir,
+            &capture,
+            &rc,
+            &rec,
+            &preview,
+        )?;
         let seconds = rec.timings.iter().map(|t| t.seconds).sum();
         if let Some(merged) = &rec.merged_linear {
             let denoise_seconds: f64 = rec
@@ -94,7 +105,7 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
                 .map(|t| t.seconds)
                 .sum();
             rows.push(Row {
-                method: format!("{name}-no-denoise"),
+                method: format!("{name}-before-denoise"),
                 frames_used: rec.frames_used,
                 seconds: seconds - denoise_seconds,
                 scores: evaluate(merged.view(), truth.view(), &opts)?,

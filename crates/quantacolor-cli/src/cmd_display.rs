@@ -20,6 +20,17 @@ pub enum ToneMapArg {
     None,
 }
 
+impl ToneMapArg {
+    /// The operator with its published defaults.
+    pub fn to_tone_map(self) -> ToneMap {
+        match self {
+            ToneMapArg::Mantiuk06 => ToneMap::Mantiuk06(Mantiuk06Config::default()),
+            ToneMapArg::Global => ToneMap::Global(GlobalConfig::default()),
+            ToneMapArg::None => ToneMap::None,
+        }
+    }
+}
+
 #[derive(Debug, Args)]
 pub struct DisplayArgs {
     /// Linear reconstruction, float32 (H, W, 3) .npy (e.g. OUT/linear.npy).
@@ -88,11 +99,7 @@ pub fn run(args: &DisplayArgs) -> Result<()> {
     let options = RenderOptions {
         exposure: args.exposure,
         color_matrix,
-        tonemap: match args.tonemap {
-            ToneMapArg::Mantiuk06 => ToneMap::Mantiuk06(Mantiuk06Config::default()),
-            ToneMapArg::Global => ToneMap::Global(GlobalConfig::default()),
-            ToneMapArg::None => ToneMap::None,
-        },
+        tonemap: args.tonemap.to_tone_map(),
         mesopic: args.mesopic,
         w_weights: w_weights_beside(&args.linear).unwrap_or([1.0, 1.0, 1.0]),
     };

@@ -1,12 +1,15 @@
 //! `quantacolor reconstruct`: capture directory -> linear.npy, linear.exr, preview.png,
 //! report.toml.
 
+use crate::cmd_display::ToneMapArg;
 use crate::output::StagedDir;
 use anyhow::{Context, Result};
 use clap::Args;
 use quantacolor::capture::{io, Capture};
 use quantacolor::denoise::chroma::{DenoiseMethod, DenoiseReport};
-use quantacolor::display::{auto_exposure_scale, encode_srgb8};
+use quantacolor::display::{
+    auto_exposure_scale, encode_srgb8, write_rendered, BitDepth, ColorMatrix, RenderOptions,
+};
 use quantacolor::pipeline::{reconstruct, Method, ReconstructConfig, Reconstruction};
 use quantacolor::progress::Progress;
 use serde::Serialize;
@@ -62,6 +65,15 @@ pub struct ReconstructArgs {
     /// Naive method: number of frames centred on the reference frame (default: all).
     #[arg(long)]
     pub window: Option<usize>,
+    /// Tone mapping of preview.png (re-render later with `quantacolor display`).
+    #[arg(long, value_enum, default_value_t = ToneMapArg::Global)]
+    pub tonemap: ToneMapArg,
+    /// Noise-aware low-light view of preview.png with offset L0 (supplement Eq. 9–10).
+    #[arg(long, value_name = "L0", allow_hyphen_values = true)]
+    pub mesopic: Option<f32>,
+    /// Colour matrix for preview.png from `quantacolor calibrate-color`.
+    #[arg(long)]
+    pub ccm: Option<PathBuf>,
 }
 
 #[derive(Serialize)]
@@ -73,7 +85,8 @@ struct Report<'a> {
     height: usize,
     width: usize,
     units: &'static str,
-    preview_exposure_scale: f32,
+    /// W = wR·R + wG·G + wB·B of the capture (read back by `quantacolor display`).
+    w_weights: [f64; 3],
     #[serde(skip_serializing_if = "Option::is_none")]
     sub_blocks: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -81,6 +94,8 @@ struct Report<'a> {
     #[serde(skip_serializing_if = "Option::is_none")]
     denoise: Option<&'a DenoiseReport>,
     config: &'a ReconstructConfig,
+    /// How preview.png was rendered.
+    preview: &'a RenderOptions,
     timings: &'a [quantacolor::pipeline::StageTiming],
 }
 
@@ -94,8 +109,23 @@ pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
     if let Some(dir) = &args.dump_stages {
         dump_stages(dir, &capture, &rec)?;
     }
-    write_reconstruction(&args.out, &args.capture, &config, &rec)?;
+    let preview = preview_options(args, &capture)?;
+    write_reconstruction(&args.out, &args.capture, &capture, &config, &rec, &preview)?;
     Ok(())
+}
+
+/// Render options of preview.png from the command line.
+pub fn preview_options(args: &ReconstructArgs, capture: &Capture) -> Result<RenderOptions> {
+    Ok(RenderOptions {
+        exposure: None,
+        color_matrix: match &args.ccm {
+            Some(p) => Some(ColorMatrix::read(p)?),
+            None => None,
+        },
+        tonemap: args.tonemap.to_tone_map(),
+        mesopic: args.mesopic,
+        w_weights: capture.meta.w_weights,
+    })
 }
 
 /// The reconstruction config: defaults, then `--config`, then the other options.
@@ -199,16 +229,19 @@ fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()
 pub fn write_reconstruction(
     out: &Path,
     capture_dir: &Path,
+    capture: &Capture,
     config: &ReconstructConfig,
     rec: &Reconstruction,
+    preview: &RenderOptions,
 ) -> Result<()> {
     let staged = StagedDir::new(out)?;
     io::write_npy(staged.path("linear.npy"), &rec.linear)?;
     io::write_exr_rgb(staged.path("linear.exr"), &rec.linear)?;
-    let scale = auto_exposure_scale(rec.linear.view());
-    io::write_png_rgb8(
+    write_rendered(
         staged.path("preview.png"),
-        &encode_srgb8(rec.linear.view(), scale),
+        rec.linear.view(),
+        preview,
+        BitDepth::Eight,
     )?;
     let (height, width, _) = rec.linear.dim();
     let report = Report {
@@ -219,11 +252,12 @@ pub fn write_reconstruction(
         height,
         width,
         units: "mean photon detections per binary frame of an R, G or B pixel, dark counts removed",
-        preview_exposure_scale: scale,
+        w_weights: capture.meta.w_weights,
         sub_blocks: rec.burst.as_ref().map(|b| b.sub_blocks.len()),
         alignment_blocks: rec.burst.as_ref().map(|b| b.alignment.plan.len()),
         denoise: rec.denoise.as_ref(),
         config,
+        preview,
         timings: &rec.timings,
     };
     let text = toml::to_string_pretty(&report).context("serialising report.toml")?;

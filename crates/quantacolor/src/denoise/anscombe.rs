@@ -163,7 +163,13 @@ mod tests {
     #[test]
     fn variance_is_stabilised_near_one() {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        for &(n, p) in &[(100u64, 0.1), (100, 0.5), (1000, 0.02), (1000, 0.9), (50, 0.3)] {
+        for &(n, p) in &[
+            (100u64, 0.1),
+            (100, 0.5),
+            (1000, 0.02),
+            (1000, 0.9),
+            (50, 0.3),
+        ] {
             let t = BinomialAnscombe::new(n as f64).unwrap();
             let dist = Binomial::new(n, p).unwrap();
             let samples: Vec<f64> = (0..20000)

@@ -364,7 +364,14 @@ pub fn stabilise(
     }
     let (sigmas, source) = match input.noise {
         Some(noise) => (
-            model_sigmas(&linear, &noise, &anscombe, &transform, dark, input.w_weights),
+            model_sigmas(
+                &linear,
+                &noise,
+                &anscombe,
+                &transform,
+                dark,
+                input.w_weights,
+            ),
             SigmaSource::BinomialModel,
         ),
         None => {
@@ -429,7 +436,11 @@ fn model_sigmas(
     w_weights: [f64; 3],
 ) -> [f32; 3] {
     let (h, w, _) = linear.dim();
-    let has_w = noise.flux.index_axis(Axis(0), 3).iter().any(|v| v.is_finite());
+    let has_w = noise
+        .flux
+        .index_axis(Axis(0), 3)
+        .iter()
+        .any(|v| v.is_finite());
     let variances: Vec<[f64; 3]> = (0..h)
         .into_par_iter()
         .flat_map_iter(|y| {
@@ -587,9 +598,7 @@ mod tests {
 
     #[test]
     fn none_is_the_identity_and_bad_input_is_an_error() {
-        let img = Array3::<f32>::from_shape_fn((16, 16, 3), |(y, x, c)| {
-            (y + x + c) as f32 * 0.01
-        });
+        let img = Array3::<f32>::from_shape_fn((16, 16, 3), |(y, x, c)| (y + x + c) as f32 * 0.01);
         let input = DenoiseInput {
             noise: None,
             frames: 100.0,
