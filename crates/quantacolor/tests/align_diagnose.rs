@@ -27,7 +27,9 @@ fn diagnose() {
         frames: 512,
         flux: FluxSpec::Mean { flux: 0.1 },
         motion: motion.parse::<MotionConfig>().unwrap(),
-        hot_fraction: 0.02,
+        hot_fraction: std::env::var("HOT")
+            .map(|v| v.parse().unwrap())
+            .unwrap_or(0.02),
         seed: 7,
         ..SimulationConfig::default()
     };
@@ -39,7 +41,16 @@ fn diagnose() {
     )
     .unwrap();
     let bits = BinaryFrames::from_packed(sim.packed_frames.clone(), sim.width).unwrap();
-    let cfg = AlignConfig::default();
+    let mut cfg = AlignConfig::default();
+    if let Ok(sig) = std::env::var("SIGMA") {
+        cfg.patch.presmooth_sigma = sig.parse().unwrap();
+    }
+    if let Ok(it) = std::env::var("LKIT") {
+        cfg.patch.lk_iterations = it.parse().unwrap();
+    }
+    if std::env::var("GREY").is_ok() {
+        cfg.grey = quantacolor::align::GreyChoice::Demosaic;
+    }
     let al = align(&bits, &sim.cfa, Some(&sim.hot_pixels), 256, &cfg, &Silent).unwrap();
     let grid = &al.grid;
     let truth_w = sim.ground_truth.sum_axis(Axis(2));
@@ -91,6 +102,18 @@ fn diagnose() {
             .align(&al.grey.slice(s![b, .., ..]).to_owned())
             .unwrap();
         let medf = median_filter_flow(&raw, 1);
+        let ints = raw.iter().filter(|v| v.fract() == 0.0).count() as f64 / raw.len() as f64;
+        let ints_tex = textured
+            .iter()
+            .filter(|&&(ty, tx, ..)| {
+                raw[[ty, tx, 0]].fract() == 0.0 && raw[[ty, tx, 1]].fract() == 0.0
+            })
+            .count() as f64
+            / textured.len() as f64;
+        println!(
+            "b{b}: integer components {ints:.2}, integer textured tiles {ints_tex:.2} of {}",
+            textured.len()
+        );
         let fit = snap_to_affine_fit(&medf, grid, 1e6);
         let stages: [(&str, &Array3<f32>); 4] = [
             ("raw", &raw),
@@ -102,6 +125,7 @@ fn diagnose() {
             let mut line = format!("b{b} {:?} c={c:.1} {name:>6}:", range);
             for truth in 0..3 {
                 let (mut by, mut bx, mut es) = (0.0, 0.0, Vec::new());
+                let (mut sy, mut sx, mut et, mut tt) = (Vec::new(), Vec::new(), 0.0, 0.0);
                 for &(ty, tx, cy, cx) in &textured {
                     let t = match truth {
                         0 => {
@@ -124,6 +148,12 @@ fn diagnose() {
                     let ex = f[[ty, tx, 1]] as f64 - t.1;
                     by += ey;
                     bx += ex;
+                    sy.push(ey);
+                    sx.push(ex);
+                    if (ey * ey + ex * ex) < 1.0 {
+                        et += ey * t.0 + ex * t.1;
+                        tt += t.0 * t.0 + t.1 * t.1;
+                    }
                     es.push((ey * ey + ex * ex).sqrt());
                 }
                 let n = textured.len() as f64;
@@ -133,12 +163,49 @@ fn diagnose() {
                     let _ = (k, ty, tx);
                 }
                 let _ = &mut sp;
+                if truth == 0 {
+                    line += &format!(
+                        " medsigned ({:+.3},{:+.3}) slope {:+.4}",
+                        med(&mut sy),
+                        med(&mut sx),
+                        et / tt.max(1e-9)
+                    );
+                }
                 line += &format!(
                     "  [{truth}] bias ({by:+.3},{bx:+.3}) med {:.3}",
                     med(&mut es)
                 );
             }
-            println!("{line}");
+            if m.object.is_some() {
+                let mut on = Vec::new();
+                let mut fl = Vec::new();
+                for &(ty, tx, cy, cx) in &textured {
+                    if m.on_object([cy, cx])
+                        && m.on_object([cy - half, cx - half])
+                        && m.on_object([cy + half, cx + half])
+                    {
+                        let (f0, f1) = (c.floor() as usize, c.ceil() as usize);
+                        let (a, bb) = (
+                            m.true_displacement(f0, cy, cx),
+                            m.true_displacement(f1, cy, cx),
+                        );
+                        let t = ((a.0 + bb.0) / 2.0, (a.1 + bb.1) / 2.0);
+                        let (ey, ex) = (f[[ty, tx, 0]] as f64 - t.0, f[[ty, tx, 1]] as f64 - t.1);
+                        on.push((ey * ey + ex * ex).sqrt());
+                        fl.push(format!("{:.1}", f[[ty, tx, 1]]));
+                    }
+                }
+                let n_on = on.len();
+                println!(
+                    "  object {name}: median EPE {:.3} over {n_on} tiles, truth dx {:.2}; dx {}",
+                    med(&mut on),
+                    m.object.as_ref().unwrap().dx[c as usize],
+                    fl[..fl.len().min(30)].join(" ")
+                );
+            }
+            if std::env::var("ALL").is_ok() || name == "final" {
+                println!("{}", &line[..line.len().min(110)]);
+            }
         }
     }
 }

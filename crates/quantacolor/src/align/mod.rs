@@ -70,6 +70,11 @@ pub struct AlignConfig {
     /// frames relative to the reference frame ([`block_centre_flow`]). Measured: median
     /// end-point error at block centres 0.33 -> see `tests/align_simulated.rs` (handheld).
     pub centre_correction: bool, // true
+    /// Search radius (px) of the second motion model that tiles rejected by the camera fit
+    /// are given ([`ReferenceAligner::follow_second_motion`]); 0 disables it.
+    pub second_motion_radius_px: usize, // 16
+    /// Fewest rejected tiles for which the second motion model is fitted.
+    pub second_motion_min_tiles: usize, // 4
 }
 
 impl Default for AlignConfig {
@@ -83,6 +88,8 @@ impl Default for AlignConfig {
             temporal_median: false,
             affine_tolerance_px: 2.0,
             centre_correction: true,
+            second_motion_radius_px: 16,
+            second_motion_min_tiles: 4,
         }
     }
 }
@@ -233,19 +240,39 @@ pub fn temporal_median_flow(flow: &Flow, reference_block: usize) -> Flow {
 /// Component-wise median of `tile_flow` (tiles_y, tiles_x, 2) over a (2r+1)² window of tiles
 /// (clipped at the grid edges).
 pub fn median_filter_flow(tile_flow: &Array3<f32>, radius: usize) -> Array3<f32> {
+    let (ty, tx, _) = tile_flow.dim();
+    median_filter_valid_flow(tile_flow, &Array2::from_elem((ty, tx), true), radius)
+}
+
+/// [`median_filter_flow`] over the tiles of each window marked `valid` (sub-pixel refined; see
+/// [`ReferenceAligner::align_with_validity`]), or over all of them where none is: the integer
+/// flows of tiles where Lucas–Kanade failed would pull the median toward whole pixels.
+pub fn median_filter_valid_flow(
+    tile_flow: &Array3<f32>,
+    valid: &Array2<bool>,
+    radius: usize,
+) -> Array3<f32> {
+    let (ty, tx, _) = tile_flow.dim();
+    assert_eq!(valid.dim(), (ty, tx), "flow and validity disagree");
     if radius == 0 {
         return tile_flow.clone();
     }
-    let (ty, tx, _) = tile_flow.dim();
     let mut out = tile_flow.clone();
     let mut window = Vec::with_capacity((2 * radius + 1).pow(2));
     for y in 0..ty {
         for x in 0..tx {
             for c in 0..2 {
                 window.clear();
-                for yy in y.saturating_sub(radius)..(y + radius + 1).min(ty) {
-                    for xx in x.saturating_sub(radius)..(x + radius + 1).min(tx) {
-                        window.push(tile_flow[[yy, xx, c]]);
+                for only_valid in [true, false] {
+                    for yy in y.saturating_sub(radius)..(y + radius + 1).min(ty) {
+                        for xx in x.saturating_sub(radius)..(x + radius + 1).min(tx) {
+                            if valid[[yy, xx]] || !only_valid {
+                                window.push(tile_flow[[yy, xx, c]]);
+                            }
+                        }
+                    }
+                    if !window.is_empty() {
+                        break;
                     }
                 }
                 window.sort_by(f32::total_cmp);
@@ -336,13 +363,24 @@ pub fn align(
     progress.start("patch alignment", plan.len() as u64);
     for b in 0..plan.len() {
         if b != plan.reference_block {
-            let f = aligner.align(&grey.slice(s![b, .., ..]).to_owned())?;
-            let f = median_filter_flow(&f, config.median_radius);
-            let f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
-            flow.slice_mut(s![b, .., .., ..]).assign(&f);
+            let block = grey.slice(s![b, .., ..]).to_owned();
+            let (f, valid) = aligner.align_with_validity(&block)?;
+            let f = median_filter_valid_flow(&f, &valid, config.median_radius);
+            let mut f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
             if let Some(fit) = affine_fit_field(&f, &grid, config.affine_tolerance_px) {
+                if config.second_motion_radius_px > 0 {
+                    f = aligner.follow_second_motion(
+                        &block,
+                        &f,
+                        &fit,
+                        config.affine_tolerance_px,
+                        config.second_motion_radius_px,
+                        config.second_motion_min_tiles,
+                    );
+                }
                 camera.slice_mut(s![b, .., .., ..]).assign(&fit);
             }
+            flow.slice_mut(s![b, .., .., ..]).assign(&f);
         }
         progress.advance(1);
     }
