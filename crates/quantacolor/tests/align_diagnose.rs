@@ -158,11 +158,6 @@ fn diagnose() {
                 }
                 let n = textured.len() as f64;
                 let (by, bx) = (by / n, bx / n);
-                let mut sp: Vec<f64> = Vec::new();
-                for (k, &(ty, tx, ..)) in textured.iter().enumerate() {
-                    let _ = (k, ty, tx);
-                }
-                let _ = &mut sp;
                 if truth == 0 {
                     line += &format!(
                         " medsigned ({:+.3},{:+.3}) slope {:+.4}",
@@ -176,7 +171,7 @@ fn diagnose() {
                     med(&mut es)
                 );
             }
-            if m.object.is_some() {
+            if let Some(object) = &m.object {
                 let mut on = Vec::new();
                 let mut fl = Vec::new();
                 for &(ty, tx, cy, cx) in &textured {
@@ -199,7 +194,7 @@ fn diagnose() {
                 println!(
                     "  object {name}: median EPE {:.3} over {n_on} tiles, truth dx {:.2}; dx {}",
                     med(&mut on),
-                    m.object.as_ref().unwrap().dx[c as usize],
+                    object.dx[c as usize],
                     fl[..fl.len().min(30)].join(" ")
                 );
             }

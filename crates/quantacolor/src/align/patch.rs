@@ -672,9 +672,6 @@ impl ReferenceAligner {
                 xs.sort_by(f32::total_cmp);
                 (ys[ys.len() / 2], xs[xs.len() / 2])
             };
-            if std::env::var("QC_DEBUG").is_ok() {
-                eprintln!("component {} tiles, median ({:.1},{:.1}), coarse {coarse:?}, best {best:?}, translation {translation:?}", component.len(), median(0), median(1));
-            }
             // Decide on 3x3 windows of tiles: one tile's costs are too noisy at low light.
             let cam_cost = |i: usize, j: usize| {
                 let d = (
