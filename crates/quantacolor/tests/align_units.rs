@@ -545,3 +545,117 @@ fn affine_snap_recovers_camera_motion_and_keeps_a_moving_object() {
     // Tolerance 0 disables the fit.
     assert_eq!(snap_to_affine_fit(&flow, &grid, 0.0), flow);
 }
+
+#[test]
+fn block_centre_flow_turns_block_means_into_centre_frame_flows() {
+    // Quadratic trajectory d(t) = 0.001 (t − 256)² + 0.01 (t − 256): block means differ from
+    // the value at the centre frame by 0.001 (B² − 1) / 12 and the reference block's mean from
+    // d(256) = 0; both are removed exactly for a quadratic.
+    let plan = BlockPlan::new(512, 64, 256).unwrap();
+    let d = |t: f64| 0.001 * (t - 256.0).powi(2) + 0.01 * (t - 256.0);
+    let n = plan.len();
+    let reference_mean: f64 = plan.blocks[plan.reference_block]
+        .clone()
+        .map(|t| d(t as f64))
+        .sum::<f64>()
+        / plan.blocks[plan.reference_block].len() as f64;
+    let mut measured = Array4::<f32>::zeros((n, 2, 3, 2));
+    for (k, range) in plan.blocks.iter().enumerate() {
+        let mean = range.clone().map(|t| d(t as f64)).sum::<f64>() / range.len() as f64;
+        measured
+            .slice_mut(ndarray::s![k, .., .., 0])
+            .fill((mean - reference_mean) as f32);
+        measured.slice_mut(ndarray::s![k, .., .., 1]).fill(1.5);
+    }
+    let centre = block_centre_flow(&measured, &plan);
+    for (k, &c) in plan.center_frames().iter().enumerate() {
+        assert!(
+            (centre[[k, 1, 2, 0]] as f64 - d(c)).abs() < 1e-3,
+            "block {k}: {} vs {}",
+            centre[[k, 1, 2, 0]],
+            d(c)
+        );
+        // A constant offset of every block from the reference frame is not motion.
+        assert!(centre[[k, 0, 0, 1]].abs() < 1e-4);
+    }
+    // Without it the 32-frame end blocks are off by 0.001 (64² − 32²) / 12 = 0.26 px.
+    let worst = (0..n)
+        .map(|k| (measured[[k, 0, 0, 0]] as f64 - d(plan.center_frames()[k])).abs())
+        .fold(0.0, f64::max);
+    assert!(worst > 0.2, "{worst}");
+}
+
+#[test]
+fn median_filter_skips_unrefined_tiles() {
+    let mut flow = Array3::<f32>::from_elem((3, 3, 2), 0.4);
+    let mut valid = Array2::from_elem((3, 3), true);
+    for (i, j) in [(0, 0), (0, 1), (1, 0), (1, 1), (2, 2)] {
+        flow[[i, j, 0]] = 0.0; // integer result where Lucas–Kanade failed
+        valid[[i, j]] = false;
+    }
+    // Unmasked, the five integer tiles win the median; masked, the refined ones decide.
+    assert_eq!(median_filter_flow(&flow, 1)[[1, 1, 0]], 0.0);
+    assert_eq!(median_filter_valid_flow(&flow, &valid, 1)[[1, 1, 0]], 0.4);
+    // A window with no refined tile falls back to all of them.
+    let none = Array2::from_elem((3, 3), false);
+    assert_eq!(
+        median_filter_valid_flow(&flow, &none, 1),
+        median_filter_flow(&flow, 1)
+    );
+}
+
+#[test]
+fn second_motion_follows_a_moving_square_over_a_still_background() {
+    let (h, w) = (128, 192);
+    let reference = texture(h, w, 0.0, 0.0);
+    // The block: the same still background, a 48 px square moved by (3, -7) px.
+    let moved = texture(h, w, 3.0, -7.0);
+    let on_square = |y: usize, x: usize| (40..88).contains(&y) && (72..120).contains(&x);
+    let block = Array2::from_shape_fn((h, w), |(y, x)| {
+        let (sy, sx) = (y as isize - 3, x as isize + 7);
+        if sy >= 0 && on_square(sy as usize, sx as usize) {
+            moved[[y, x]]
+        } else {
+            reference[[y, x]]
+        }
+    });
+    let aligner = ReferenceAligner::new(&reference, &PatchConfig::default()).unwrap();
+    let grid = aligner.grid().clone();
+    let camera = Array3::<f32>::zeros((grid.tiles_y, grid.tiles_x, 2));
+    // Tile flows as a mismatch-prone search might leave them: the square's tiles scattered
+    // around its motion, a few of them wrongly on the camera's.
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut flow = camera.clone();
+    let inside = |i: usize, j: usize| {
+        let (y, x) = (i * 8, j * 8);
+        on_square(y, x) && on_square(y + 15, x + 15)
+    };
+    for i in 0..grid.tiles_y {
+        for j in 0..grid.tiles_x {
+            if inside(i, j) && rng.gen_bool(0.8) {
+                flow[[i, j, 0]] = 3.0 + rng.gen_range(-4.0..4.0);
+                flow[[i, j, 1]] = -7.0 + rng.gen_range(-4.0..4.0);
+            }
+        }
+    }
+    let out = aligner.follow_second_motion(&block, &flow, &camera, 2.0, 16, 4);
+    let (mut on, mut off) = (Vec::new(), Vec::new());
+    for i in 0..grid.tiles_y {
+        for j in 0..grid.tiles_x {
+            if inside(i, j) {
+                on.push((out[[i, j, 0]] - 3.0).hypot(out[[i, j, 1]] + 7.0));
+            } else if !(4..12).contains(&i) || !(8..16).contains(&j) {
+                off.push(out[[i, j, 0]].hypot(out[[i, j, 1]]));
+            }
+        }
+    }
+    on.sort_by(f32::total_cmp);
+    assert!(on.len() >= 9);
+    assert!(on[on.len() * 3 / 4] < 0.1, "square tiles: {on:?}");
+    assert!(off.iter().all(|&e| e == 0.0), "background moved");
+    // Disabled below the component size.
+    assert_eq!(
+        aligner.follow_second_motion(&block, &flow, &camera, 2.0, 16, 1000),
+        flow
+    );
+}

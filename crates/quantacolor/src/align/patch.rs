@@ -311,6 +311,13 @@ impl ReferenceAligner {
 
     /// Flow `(tiles_y, tiles_x, 2)` of `(dy, dx)` from the reference to the grey image `block`.
     pub fn align(&self, block: &Array2<f32>) -> Result<Array3<f32>> {
+        Ok(self.align_with_validity(block)?.0)
+    }
+
+    /// [`ReferenceAligner::align`] and, per tile, whether Lucas–Kanade refined it to sub-pixel
+    /// precision (`false`: flat or one-directional tile, or the iterations left the ±1 px
+    /// window, and the flow is the integer search result).
+    pub fn align_with_validity(&self, block: &Array2<f32>) -> Result<(Array3<f32>, Array2<bool>)> {
         if block.dim() != self.dim() {
             return Err(Error::invalid(format!(
                 "block image is {:?}, the reference is {:?}",
@@ -324,6 +331,8 @@ impl ReferenceAligner {
         alt.levels.truncate(n_levels);
         // Offsets of the coarser level, in that level's pixels.
         let mut coarse: Option<Array3<f32>> = None;
+        let g0 = &self.grids[0];
+        let mut valid = Array2::from_elem((g0.tiles_y, g0.tiles_x), false);
         for level in (0..n_levels).rev() {
             let grid = &self.grids[level];
             let r_img = &self.pyramid.levels[level];
@@ -338,7 +347,7 @@ impl ReferenceAligner {
                     self.config.downsample_factors[level + 1] as f32,
                 )
             });
-            let offsets: Vec<(f32, f32)> = (0..grid.tiles_y * grid.tiles_x)
+            let offsets: Vec<(f32, f32, bool)> = (0..grid.tiles_y * grid.tiles_x)
                 .into_par_iter()
                 .map(|k| {
                     let (i, j) = (k / grid.tiles_x, k % grid.tiles_x);
@@ -372,37 +381,42 @@ impl ReferenceAligner {
                             }
                         }
                     }
-                    let mut flow = (best.1 .0 as f32, best.1 .1 as f32);
+                    let flow = (best.1 .0 as f32, best.1 .1 as f32);
                     if level == 0 {
-                        flow = self.refine(k, a_img, origin, flow);
+                        match self.refine(k, a_img, origin, flow) {
+                            Some(f) => (f.0, f.1, true),
+                            None => (flow.0, flow.1, false),
+                        }
+                    } else {
+                        (flow.0, flow.1, false)
                     }
-                    flow
                 })
                 .collect();
             let mut arr = Array3::<f32>::zeros((grid.tiles_y, grid.tiles_x, 2));
-            for (k, (dy, dx)) in offsets.into_iter().enumerate() {
+            for (k, (dy, dx, ok)) in offsets.into_iter().enumerate() {
                 arr[[k / grid.tiles_x, k % grid.tiles_x, 0]] = dy;
                 arr[[k / grid.tiles_x, k % grid.tiles_x, 1]] = dx;
+                if level == 0 {
+                    valid[[k / grid.tiles_x, k % grid.tiles_x]] = ok;
+                }
             }
             coarse = Some(arr);
         }
-        Ok(coarse.expect("at least one level"))
+        Ok((coarse.expect("at least one level"), valid))
     }
 
     /// Lucas–Kanade refinement of tile `k` from the integer offset `start`: minimises
-    /// Σ (alt(p + u) − ref(p))² by Gauss–Newton steps with the reference gradients; keeps
-    /// `start` when the tile lacks texture in some direction or the steps leave ±1 px.
+    /// Σ (alt(p + u) − ref(p))² by Gauss–Newton steps with the reference gradients; `None`
+    /// when the tile lacks texture in some direction or the steps leave ±1 px.
     fn refine(
         &self,
         k: usize,
         alt: &Array2<f32>,
         (oy, ox): (usize, usize),
         start: (f32, f32),
-    ) -> (f32, f32) {
+    ) -> Option<(f32, f32)> {
         let tile = &self.lk[k];
-        let Some([a, b, c]) = tile.inv else {
-            return start;
-        };
+        let [a, b, c] = tile.inv?;
         let reference = &self.pyramid.levels[0];
         let (h, w) = reference.dim();
         let ts = self.grids[0].tile_size;
@@ -422,13 +436,13 @@ impl ReferenceAligner {
             let step = (-(a * by + b * bx), -(b * by + c * bx));
             u = (u.0 + step.0, u.1 + step.1);
             if (u.0 - start.0).abs() > 1.0 || (u.1 - start.1).abs() > 1.0 {
-                return start;
+                return None;
             }
             if step.0.abs() < 1e-3 && step.1.abs() < 1e-3 {
                 break;
             }
         }
-        u
+        Some(u)
     }
 }
 
@@ -497,4 +511,281 @@ fn parent_candidates(
     // heavily averaged, nearly one-directional texture) cannot then drag a tile far away.
     seeds.push((0.0, 0.0));
     seeds
+}
+
+impl ReferenceAligner {
+    /// Second motion model for tiles the camera model rejects (paper §4.1: patch-wise alignment
+    /// must follow independently moving objects; the robust affine camera fit leaves them out).
+    ///
+    /// `flow` is a block's tile flow after the camera fit, `camera` the fit itself. Tiles whose
+    /// flow lies more than `tolerance` px from the fit are rejected; each 8-connected set of at
+    /// least `min_tiles` rejected tiles gets one common translation: every integer offset within
+    /// ±`radius` px of the set's median flow is scored by the summed L1 patch cost over the set
+    /// and its neighbouring tiles (whose edge against the rest of the scene resolves periodic
+    /// texture that a single tile cannot), on pyramid level 1 and then within ±f px on level 0,
+    /// and refined to sub-pixel as the median of the tiles' Lucas–Kanade results. Every tile
+    /// within two tiles of the set then takes that translation where its own patch cost there
+    /// is lower than at the camera flow, and the camera flow otherwise.
+    pub fn follow_second_motion(
+        &self,
+        block: &Array2<f32>,
+        flow: &Array3<f32>,
+        camera: &Array3<f32>,
+        tolerance: f32,
+        radius: usize,
+        min_tiles: usize,
+    ) -> Array3<f32> {
+        let grid = &self.grids[0];
+        let (ty, tx) = (grid.tiles_y, grid.tiles_x);
+        if block.dim() != self.dim() || flow.dim() != (ty, tx, 2) || camera.dim() != flow.dim() {
+            return flow.clone();
+        }
+        let rejected = Array2::from_shape_fn((ty, tx), |(i, j)| {
+            let dy = flow[[i, j, 0]] - camera[[i, j, 0]];
+            let dx = flow[[i, j, 1]] - camera[[i, j, 1]];
+            (dy * dy + dx * dx).sqrt() > tolerance
+        });
+        let components: Vec<Vec<(usize, usize)>> = connected_components(&rejected)
+            .into_iter()
+            .filter(|c| c.len() >= min_tiles.max(1))
+            .collect();
+        if components.is_empty() {
+            return flow.clone();
+        }
+        let alt0 = if self.config.presmooth_sigma > 0.0 {
+            gaussian_blur(
+                &block.as_standard_layout().to_owned(),
+                self.config.presmooth_sigma,
+            )
+        } else {
+            block.as_standard_layout().to_owned()
+        };
+        // Level 1 of both pyramids (level 0 alone when the pyramid has one level).
+        let f = if self.grids.len() > 1 {
+            self.config.downsample_factors[1]
+        } else {
+            1
+        };
+        let alt1 = box_downsample(&alt0, f);
+        let ref0 = &self.pyramid.levels[0];
+        let ref1 = if f > 1 { &self.pyramid.levels[1] } else { ref0 };
+        let ts = grid.tile_size;
+        let origin = |i: usize, j: usize| (i * grid.tile_stride, j * grid.tile_stride);
+        let cost0 = |i: usize, j: usize, d: (isize, isize)| {
+            tile_cost(ref0, &alt0, origin(i, j), ts, d, Norm::L1)
+        };
+        let cost1 = |i: usize, j: usize, d: (isize, isize)| {
+            let (oy, ox) = origin(i, j);
+            tile_cost(ref1, &alt1, (oy / f, ox / f), (ts / f).max(2), d, Norm::L1)
+        };
+        let dilate = |tiles: &[(usize, usize)], dist: usize| {
+            let mut mask = Array2::from_elem((ty, tx), false);
+            for &(i, j) in tiles {
+                for y in i.saturating_sub(dist)..(i + dist + 1).min(ty) {
+                    for x in j.saturating_sub(dist)..(j + dist + 1).min(tx) {
+                        mask[[y, x]] = true;
+                    }
+                }
+            }
+            mask
+        };
+        // Total cost when every tile takes the better of the camera flow and the offset `d`:
+        // tiles of the camera's motion score the same for every `d`, so the minimum is the
+        // motion of the others.
+        let search = |tiles: &[(usize, usize)],
+                      cost: &(dyn Fn(usize, usize, (isize, isize)) -> f32 + Sync),
+                      scale: f32,
+                      centre: (isize, isize),
+                      r: isize| {
+            let cam: Vec<f32> = tiles
+                .iter()
+                .map(|&(i, j)| {
+                    let d = (
+                        (camera[[i, j, 0]] / scale).round() as isize,
+                        (camera[[i, j, 1]] / scale).round() as isize,
+                    );
+                    cost(i, j, d)
+                })
+                .collect();
+            let offsets: Vec<(isize, isize)> = (-r..=r)
+                .flat_map(|dy| (-r..=r).map(move |dx| (centre.0 + dy, centre.1 + dx)))
+                .collect();
+            offsets
+                .par_iter()
+                .map(|&d| {
+                    let total: f32 = tiles
+                        .iter()
+                        .zip(&cam)
+                        .map(|(&(i, j), &c)| (cost(i, j, d) / SWITCH_MARGIN).min(c))
+                        .filter(|c| c.is_finite())
+                        .sum();
+                    (total, d)
+                })
+                .min_by(|a, b| {
+                    a.0.total_cmp(&b.0)
+                        .then((a.1 .0.abs() + a.1 .1.abs()).cmp(&(b.1 .0.abs() + b.1 .1.abs())))
+                })
+                .map(|(_, d)| d)
+                .expect("at least one offset")
+        };
+        let mut out = flow.clone();
+        for component in &components {
+            let median = |c: usize| {
+                let mut v: Vec<f32> = component.iter().map(|&(i, j)| flow[[i, j, c]]).collect();
+                v.sort_by(f32::total_cmp);
+                v[v.len() / 2]
+            };
+            let support: Vec<(usize, usize)> = dilate(component, 1)
+                .indexed_iter()
+                .filter(|(_, &m)| m)
+                .map(|(p, _)| p)
+                .collect();
+            let fi = f as f32;
+            let coarse = search(
+                &support,
+                &cost1,
+                fi,
+                (
+                    (median(0) / fi).round() as isize,
+                    (median(1) / fi).round() as isize,
+                ),
+                (radius / f) as isize,
+            );
+            let best = search(
+                &support,
+                &cost0,
+                1.0,
+                (coarse.0 * f as isize, coarse.1 * f as isize),
+                f as isize,
+            );
+            let start = (best.0 as f32, best.1 as f32);
+            let refined: Vec<(f32, f32)> = component
+                .iter()
+                .filter_map(|&(i, j)| self.refine(i * tx + j, &alt0, origin(i, j), start))
+                .collect();
+            let translation = if refined.is_empty() {
+                start
+            } else {
+                let mut ys: Vec<f32> = refined.iter().map(|r| r.0).collect();
+                let mut xs: Vec<f32> = refined.iter().map(|r| r.1).collect();
+                ys.sort_by(f32::total_cmp);
+                xs.sort_by(f32::total_cmp);
+                (ys[ys.len() / 2], xs[xs.len() / 2])
+            };
+            // Decide on 3x3 windows of tiles: one tile's costs are too noisy at low light.
+            let cam_cost = |i: usize, j: usize| {
+                let d = (
+                    camera[[i, j, 0]].round() as isize,
+                    camera[[i, j, 1]].round() as isize,
+                );
+                cost0(i, j, d)
+            };
+            let region = dilate(component, 2);
+            // Per tile: summed costs over its 3x3 window at the translation and at the camera.
+            let mut costs = Array2::<(f32, f32)>::from_elem((ty, tx), (0.0, 0.0));
+            for ((i, j), &near) in dilate(component, 3).indexed_iter() {
+                if near {
+                    let (c_obj, c_cam) = (cost0(i, j, best), cam_cost(i, j));
+                    if c_obj.is_finite() && c_cam.is_finite() {
+                        costs[[i, j]] = (c_obj, c_cam);
+                    }
+                }
+            }
+            // Labels: Some(true) second motion, Some(false) camera, None ambiguous (e.g. a
+            // periodic texture whose period is the motion between the two).
+            let mut label = Array2::<Option<bool>>::from_elem((ty, tx), None);
+            for ((i, j), &near) in region.indexed_iter() {
+                if !near {
+                    continue;
+                }
+                let (mut o, mut c) = (0.0, 0.0);
+                for y in i.saturating_sub(1)..(i + 2).min(ty) {
+                    for x in j.saturating_sub(1)..(j + 2).min(tx) {
+                        o += costs[[y, x]].0;
+                        c += costs[[y, x]].1;
+                    }
+                }
+                label[[i, j]] = if o < SWITCH_MARGIN * c {
+                    Some(true)
+                } else if c < SWITCH_MARGIN * o {
+                    Some(false)
+                } else {
+                    None
+                };
+            }
+            // Ambiguous tiles take the majority label of their decided neighbours, repeatedly.
+            for _ in 0..16 {
+                let mut changed = false;
+                let snapshot = label.clone();
+                for ((i, j), &near) in region.indexed_iter() {
+                    if !near || snapshot[[i, j]].is_some() {
+                        continue;
+                    }
+                    let (mut yes, mut no) = (0, 0);
+                    for y in i.saturating_sub(1)..(i + 2).min(ty) {
+                        for x in j.saturating_sub(1)..(j + 2).min(tx) {
+                            match snapshot[[y, x]] {
+                                Some(true) if region[[y, x]] => yes += 1,
+                                Some(false) if region[[y, x]] => no += 1,
+                                _ => {}
+                            }
+                        }
+                    }
+                    if yes + no > 0 {
+                        label[[i, j]] = Some(yes > no);
+                        changed = true;
+                    }
+                }
+                if !changed {
+                    break;
+                }
+            }
+            for ((i, j), &near) in region.indexed_iter() {
+                if !near {
+                    continue;
+                }
+                if label[[i, j]] == Some(true) {
+                    out[[i, j, 0]] = translation.0;
+                    out[[i, j, 1]] = translation.1;
+                } else {
+                    out[[i, j, 0]] = camera[[i, j, 0]];
+                    out[[i, j, 1]] = camera[[i, j, 1]];
+                }
+            }
+        }
+        out
+    }
+}
+
+/// A tile leaves the camera's motion for a second one only where its patch cost there is below
+/// this fraction of its cost at the camera flow: periodic static texture, equally good at a
+/// period's offset, then stays with the camera instead of following the photon noise.
+const SWITCH_MARGIN: f32 = 0.9;
+
+/// 8-connected sets of `true` cells, each as its (row, column) list.
+fn connected_components(mask: &Array2<bool>) -> Vec<Vec<(usize, usize)>> {
+    let (h, w) = mask.dim();
+    let mut seen = Array2::from_elem((h, w), false);
+    let mut out = Vec::new();
+    for start in mask.indexed_iter().filter(|(_, &m)| m).map(|(p, _)| p) {
+        if seen[start] {
+            continue;
+        }
+        seen[start] = true;
+        let mut stack = vec![start];
+        let mut component = Vec::new();
+        while let Some((i, j)) = stack.pop() {
+            component.push((i, j));
+            for y in i.saturating_sub(1)..(i + 2).min(h) {
+                for x in j.saturating_sub(1)..(j + 2).min(w) {
+                    if mask[[y, x]] && !seen[[y, x]] {
+                        seen[[y, x]] = true;
+                        stack.push((y, x));
+                    }
+                }
+            }
+        }
+        out.push(component);
+    }
+    out
 }
