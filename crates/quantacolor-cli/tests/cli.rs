@@ -278,3 +278,68 @@ fn dump_stages_writes_every_intermediate() {
     let planes = read(&dump.join("merged_planes_rgbw.npy"));
     assert!(String::from_utf8_lossy(&planes[..128]).contains("(4, 64, 96)"));
 }
+
+/// `--denoise`, `--sigma-y/-c`, `--tonemap` and `--mesopic` of `reconstruct`: one run per
+/// option; report.toml says what the denoiser did; the re-render reads the saved image.
+#[test]
+fn reconstruct_denoise_and_preview_options() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "4");
+    let run = |name: &str, extra: &[&str]| {
+        let out = tmp.path().join(name);
+        let mut args = vec![
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend_from_slice(extra);
+        ok(&args);
+        let report: toml::Table =
+            toml::from_str(&std::fs::read_to_string(out.join("report.toml")).unwrap()).unwrap();
+        (read(&out.join("linear.npy")), report)
+    };
+    let (none, report) = run("none", &["--denoise", "none"]);
+    assert!(!report.contains_key("denoise"));
+    let (chroma, report) = run("chroma", &[]);
+    let denoise = report["denoise"].as_table().unwrap();
+    assert_eq!(denoise["method"].as_str(), Some("chroma-bm3d"));
+    assert_eq!(denoise["sigma_source"].as_str(), Some("binomial-model"));
+    let (plain, report) = run("plain", &["--denoise", "bm3d", "--tonemap", "mantiuk06"]);
+    assert_eq!(report["denoise"]["method"].as_str(), Some("bm3d"));
+    assert_eq!(
+        report["preview"]["tonemap"]["operator"].as_str(),
+        Some("mantiuk06")
+    );
+    let (_, report) = run(
+        "given",
+        &["--sigma-y", "0.5", "--sigma-c", "3", "--mesopic", "-1"],
+    );
+    let sigmas = report["denoise"]["sigmas"].as_array().unwrap();
+    assert_eq!(sigmas[0].as_float(), Some(0.5));
+    assert_eq!(sigmas[1].as_float(), Some(3.0));
+    assert_eq!(report["preview"]["mesopic"].as_float(), Some(-1.0));
+    assert_ne!(none, chroma);
+    assert_ne!(chroma, plain);
+    expect_failure(
+        &[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            tmp.path().join("bad").to_str().unwrap(),
+            "--sigma-y=-1",
+        ],
+        "--sigma-y",
+    );
+    assert!(!tmp.path().join("bad").exists());
+    ok(&[
+        "display",
+        tmp.path().join("chroma/linear.npy").to_str().unwrap(),
+        "--out",
+        tmp.path().join("view.tif").to_str().unwrap(),
+        "--tonemap",
+        "none",
+    ]);
+    assert!(tmp.path().join("view.tif").exists());
+}

@@ -119,3 +119,66 @@ fn sigma_sources_without_a_model_and_when_given() {
     let (_, report) = denoise_linear(img.view(), &input, &plain).unwrap();
     assert_eq!(report.unwrap().sigmas, [0.7; 3]);
 }
+
+/// End to end on a simulated capture with known truth: chroma-BM3D improves on the merge it
+/// denoises (PSNR and SSIM) and beats plain colour BM3D with one σ on SSIM (paper Fig. 6).
+#[test]
+fn chroma_bm3d_improves_the_merge_and_beats_plain_colour_bm3d() {
+    use quantacolor::metrics::{evaluate, EvalOptions};
+    use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
+    use quantacolor::simulate::MotionConfig;
+    let config = SimulationConfig {
+        frames: 512,
+        flux: FluxSpec::Mean { flux: 0.05 },
+        motion: "pan".parse::<MotionConfig>().unwrap(),
+        seed: 21,
+        ..SimulationConfig::default()
+    };
+    let sim = simulate_with_cfa(
+        &config,
+        &Scene::from_spec("builtin:chart").unwrap(),
+        &colorspad_cfa(),
+        &Silent,
+    )
+    .unwrap();
+    let capture = sim.to_capture().unwrap();
+    let rc = ReconstructConfig::default();
+    let burst = reconstruct_burst(
+        &capture,
+        capture.reference_frame(),
+        &burst_config_for(&rc),
+        &Silent,
+    )
+    .unwrap();
+    let input = denoise_input(&capture, Some(&burst), config.frames);
+    let opts = EvalOptions {
+        border: 16,
+        normalize_percentile: Some(99.5),
+    };
+    let score = |method| {
+        let cfg = DenoiseConfig {
+            method,
+            ..rc.denoise.clone()
+        };
+        let (out, _) = denoise_linear(burst.merged.linear.view(), &input, &cfg).unwrap();
+        evaluate(out.view(), sim.ground_truth.view(), &opts).unwrap()
+    };
+    let (none, plain, chroma) = (
+        score(DenoiseMethod::None),
+        score(DenoiseMethod::Bm3d),
+        score(DenoiseMethod::ChromaBm3d),
+    );
+    println!(
+        "sRGB PSNR/SSIM: none {:.2}/{:.4}, plain BM3D {:.2}/{:.4}, chroma-BM3D {:.2}/{:.4}",
+        none.psnr_srgb,
+        none.ssim_srgb,
+        plain.psnr_srgb,
+        plain.ssim_srgb,
+        chroma.psnr_srgb,
+        chroma.ssim_srgb
+    );
+    // Measured: +2.9 dB and +0.20 SSIM over none, +0.12 SSIM over plain BM3D.
+    assert!(chroma.psnr_srgb > none.psnr_srgb + 1.5);
+    assert!(chroma.ssim_srgb > none.ssim_srgb + 0.1);
+    assert!(chroma.ssim_srgb > plain.ssim_srgb + 0.05);
+}
