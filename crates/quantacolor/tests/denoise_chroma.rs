@@ -61,7 +61,7 @@ fn binomial_noise_model_matches_the_measured_noise_of_the_merge() {
     assert_eq!(stab.source, SigmaSource::BinomialModel);
     let border = 12;
     let mut block_sigmas = [0.0; 3];
-    for ch in 0..3 {
+    for (ch, block_sigma_out) in block_sigmas.iter_mut().enumerate() {
         let plane = stab.planes.index_axis(ndarray::Axis(0), ch);
         let inner = plane.slice(s![border..-border, border..-border]);
         let measured = std_dev(inner.iter().copied());
@@ -73,7 +73,7 @@ fn binomial_noise_model_matches_the_measured_noise_of_the_merge() {
             .map(|b| b.mean().unwrap())
             .collect();
         let block_sigma = std_dev(block_means.into_iter()) * 8.0;
-        block_sigmas[ch] = block_sigma;
+        *block_sigma_out = block_sigma;
         println!(
             "channel {ch}: modelled σ {modelled:.3}, measured {measured:.3}, 8×8 block σ {block_sigma:.3}"
         );

@@ -448,7 +448,7 @@ fn model_sigmas(
                 let lam = [0, 1, 2, 3].map(|c| noise.flux[[c, y, x]] as f64);
                 let n = [0, 1, 2, 3].map(|c| noise.effective_frames[[c, y, x]] as f64);
                 let channels = if has_w { 4 } else { 3 };
-                if (0..channels).any(|c| !lam[c].is_finite() || !(n[c] > 0.0)) {
+                if (0..channels).any(|c| !lam[c].is_finite() || n[c].is_nan() || n[c] <= 0.0) {
                     return None;
                 }
                 let var_lam = [0, 1, 2, 3].map(|c| {
