@@ -4,7 +4,8 @@
 
 use ndarray::{s, Array3, Axis};
 use quantacolor::align::{
-    align, median_filter_flow, snap_to_affine_fit, AlignConfig, ReferenceAligner,
+    affine_fit_field, align, median_filter_flow, median_filter_valid_flow, snap_to_affine_fit,
+    AlignConfig, ReferenceAligner,
 };
 use quantacolor::capture::BinaryFrames;
 use quantacolor::cfa::colorspad_cfa;
@@ -304,4 +305,201 @@ fn centre_flow_on_truth() {
             epe(&o)
         );
     }
+}
+
+/// Gain of the raw tile flow: the through-origin regression slope of estimated against true
+/// displacement (block mean position relative to the reference block's mean position), per
+/// component, over textured tiles within 1 px of the truth. Environment: MOTION, FLUX, HOT
+/// (hot-pixel fraction), DARKVAR (`dark_variation`), SIGMA (pre-smoothing), BLOCK (frames),
+/// PREFILTER=1 ([1,2,1]/4 binomial on the grey images before alignment), GREY=demosaic.
+#[test]
+#[ignore]
+fn gain() {
+    let env = |k: &str| std::env::var(k).ok();
+    let motion = env("MOTION").unwrap_or("handheld".into());
+    let cfa = colorspad_cfa();
+    let config = SimulationConfig {
+        height: cfa.height(),
+        width: cfa.width(),
+        frames: 512,
+        flux: FluxSpec::Mean {
+            flux: env("FLUX").map(|v| v.parse().unwrap()).unwrap_or(0.1),
+        },
+        motion: motion.parse::<MotionConfig>().unwrap(),
+        hot_fraction: env("HOT").map(|v| v.parse().unwrap()).unwrap_or(0.02),
+        dark_variation: env("DARKVAR").map(|v| v.parse().unwrap()).unwrap_or(0.3),
+        seed: 7,
+        ..SimulationConfig::default()
+    };
+    let sim = simulate_with_cfa(
+        &config,
+        &Scene::from_spec("builtin:chart").unwrap(),
+        &cfa,
+        &Silent,
+    )
+    .unwrap();
+    let bits = BinaryFrames::from_packed(sim.packed_frames.clone(), sim.width).unwrap();
+    let mut cfg = AlignConfig::default();
+    if let Some(s) = env("SIGMA") {
+        cfg.patch.presmooth_sigma = s.parse().unwrap();
+    }
+    if let Some(b) = env("BLOCK") {
+        cfg.blocks.block_size = Some(b.parse().unwrap());
+    }
+    if env("GREY").as_deref() == Some("demosaic") {
+        cfg.grey = quantacolor::align::GreyChoice::Demosaic;
+    }
+    let hot = (config.hot_fraction > 0.0).then_some(&sim.hot_pixels);
+    let reference = sim.meta.reference_frame.unwrap_or(256);
+    let al = align(&bits, &sim.cfa, hot, reference, &cfg, &Silent).unwrap();
+    let mut grey = al.grey.clone();
+    if env("PREFILTER").is_some() {
+        for mut g in grey.outer_iter_mut() {
+            let (h, w) = g.dim();
+            let src = g.to_owned();
+            let at = |y: isize, x: isize| {
+                src[[
+                    y.clamp(0, h as isize - 1) as usize,
+                    x.clamp(0, w as isize - 1) as usize,
+                ]]
+            };
+            for y in 0..h as isize {
+                for x in 0..w as isize {
+                    let mut s = 0.0;
+                    for (dy, a) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
+                        for (dx, b) in [(-1, 1.0), (0, 2.0), (1, 1.0)] {
+                            s += a * b * at(y + dy, x + dx);
+                        }
+                    }
+                    g[[y as usize, x as usize]] = s / 16.0;
+                }
+            }
+        }
+    }
+    let grid = &al.grid;
+    let truth_w = sim.ground_truth.sum_axis(Axis(2));
+    let half = grid.tile_size as f64 / 2.0;
+    let mut textured = Vec::new();
+    for (ty, &cy) in grid.tile_centers_y.iter().enumerate() {
+        for (tx, &cx) in grid.tile_centers_x.iter().enumerate() {
+            let (y0, x0) = (
+                (cy as f64 - half).max(0.0) as usize,
+                (cx as f64 - half).max(0.0) as usize,
+            );
+            let (y1, x1) = (
+                ((cy as f64 + half) as usize).min(truth_w.nrows()),
+                ((cx as f64 + half) as usize).min(truth_w.ncols()),
+            );
+            let tile = truth_w.slice(s![y0..y1, x0..x1]);
+            let m = tile.mean().unwrap();
+            if m > 0.0 && tile.std(0.0) / m > 0.1 {
+                textured.push((ty, tx, cy as f64, cx as f64));
+            }
+        }
+    }
+    let aligner = ReferenceAligner::new(
+        &grey.slice(s![al.plan.reference_block, .., ..]).to_owned(),
+        &cfg.patch,
+    )
+    .unwrap();
+    let m = &sim.motion;
+    let mean_disp = |r: std::ops::Range<usize>, y: f64, x: f64| {
+        let n = r.len() as f64;
+        let (mut a, mut b) = (0.0, 0.0);
+        for t in r {
+            let d = m.true_displacement(t, y, x);
+            a += d.0;
+            b += d.1;
+        }
+        (a / n, b / n)
+    };
+    let refr = al.plan.blocks[al.plan.reference_block].clone();
+    // Per stage (raw, median, fit): sums [component][est·true, true²] over tiles within 1 px
+    // of the truth (raw) or all textured tiles (median, fit), and the inlier count.
+    let mut acc = [[[0.0f64; 2]; 2]; 3];
+    let mut inliers = [0usize; 3];
+    let mut errs = Vec::new();
+    for (b, range) in al.plan.blocks.iter().enumerate() {
+        if b == al.plan.reference_block {
+            continue;
+        }
+        let (raw, valid) = aligner
+            .align_with_validity(&grey.slice(s![b, .., ..]).to_owned())
+            .unwrap();
+        let medf = median_filter_valid_flow(&raw, &valid, cfg.median_radius);
+        let fit = affine_fit_field(&medf, grid, cfg.affine_tolerance_px).unwrap();
+        for &(ty, tx, cy, cx) in &textured {
+            let a = mean_disp(range.clone(), cy, cx);
+            let r = mean_disp(refr.clone(), cy, cx);
+            let t = [a.0 - r.0, a.1 - r.1];
+            for (stage, f) in [&raw, &medf, &fit].into_iter().enumerate() {
+                let e = [f[[ty, tx, 0]] as f64, f[[ty, tx, 1]] as f64];
+                let d = ((e[0] - t[0]).powi(2) + (e[1] - t[1]).powi(2)).sqrt();
+                if stage == 0 {
+                    errs.push(d);
+                    if env("OUTLIERS").is_some() && d >= 1.0 && b == 7 {
+                        println!(
+                            "outlier b{b} tile ({ty},{tx}) est ({:+.2},{:+.2}) truth ({:+.2},{:+.2}) median ({:+.2},{:+.2})",
+                            e[0], e[1], t[0], t[1], medf[[ty, tx, 0]], medf[[ty, tx, 1]]
+                        );
+                    }
+                }
+                if d < 1.0 {
+                    inliers[stage] += 1;
+                }
+                if d < 1.0 || stage > 0 {
+                    for c in 0..2 {
+                        acc[stage][c][0] += e[c] * t[c];
+                        acc[stage][c][1] += t[c] * t[c];
+                    }
+                }
+            }
+        }
+    }
+    let n = errs.len() as f64;
+    let g = |st: usize, c: usize| acc[st][c][0] / acc[st][c][1];
+    println!(
+        "GAIN motion={motion} flux={:?} hot={} darkvar={} sigma={} B={} prefilter={} grey={:?}: \
+         gain (y, x) raw-inliers ({:.4}, {:.4}) median ({:.4}, {:.4}) fit ({:.4}, {:.4}); \
+         inliers raw {:.2} median {:.2} fit {:.2}; raw median EPE {:.3}; final median EPE {:.3}",
+        config.flux,
+        config.hot_fraction,
+        config.dark_variation,
+        cfg.patch.presmooth_sigma,
+        al.plan.block_size,
+        env("PREFILTER").is_some(),
+        al.grey_method,
+        g(0, 0),
+        g(0, 1),
+        g(1, 0),
+        g(1, 1),
+        g(2, 0),
+        g(2, 1),
+        inliers[0] as f64 / n,
+        inliers[1] as f64 / n,
+        inliers[2] as f64 / n,
+        med(&mut errs),
+        final_epe(&sim, &al, &textured),
+    );
+}
+
+fn final_epe(
+    sim: &quantacolor::simulate::SimulatedCapture,
+    al: &quantacolor::align::Alignment,
+    textured: &[(usize, usize, f64, f64)],
+) -> f64 {
+    let mut v = Vec::new();
+    for (b, &c) in al.plan.center_frames().iter().enumerate() {
+        let (f0, f1) = (c.floor() as usize, c.ceil() as usize);
+        for &(ty, tx, cy, cx) in textured {
+            let (a, bb) = (
+                sim.motion.true_displacement(f0, cy, cx),
+                sim.motion.true_displacement(f1, cy, cx),
+            );
+            let ey = al.flow[[b, ty, tx, 0]] as f64 - (a.0 + bb.0) / 2.0;
+            let ex = al.flow[[b, ty, tx, 1]] as f64 - (a.1 + bb.1) / 2.0;
+            v.push((ey * ey + ex * ex).sqrt());
+        }
+    }
+    med(&mut v)
 }

@@ -123,10 +123,11 @@ fn run(cfa: &Cfa, motion: &str, frames: usize, flux: f64) -> (f64, f64, f64) {
 }
 
 // Thresholds are regression guards at about 1.3x the errors measured when they were set
-// (0.1 photons/pixel/frame, 512 frames: handheld 0.18, pan 0.09, circular 0.15, object 0.15 and
-// its background 0.09 px; 0.02 photons and 2000 frames: 0.21 px). The project's targets are
-// 0.15 px and 0.3 px: pan, circular, the low-light case and the object meet them, handheld is
-// near. Before the block-centre correction (block images measure the trajectory's mean over a
+// (0.1 photons/pixel/frame, 512 frames: handheld 0.106 (blue noise 0.106), pan 0.058, circular
+// 0.110, object 0.15 and its background 0.044 px; 0.02 photons and 2000 frames: 0.129 px). The
+// project's targets are 0.15 px and 0.3 px: all rows meet them. Before the Tukey stage of the
+// camera fit (mismatched tiles pulled the fit toward zero motion: gain 0.97) handheld was at
+// 0.18 px. Before the block-centre correction (block images measure the trajectory's mean over a
 // block, not its centre-frame position) handheld and circular were at 0.33 px.
 
 #[test]
@@ -137,21 +138,21 @@ fn colorspad_cfa_handheld_pan_and_circular_at_0_1_photons() {
         let (e, _, _) = run(&cfa, motion, 512, 0.1);
         worst = worst.max(e);
     }
-    assert!(worst <= 0.24, "worst median EPE {worst:.3} px");
+    assert!(worst <= 0.15, "worst median EPE {worst:.3} px");
 }
 
 #[test]
 fn blue_noise_cfa_handheld_at_0_1_photons() {
     let cfa = generate(&Pattern::BlueNoise { w_fraction: 0.75 }, 254, 496, 0).unwrap();
     let (e, _, _) = run(&cfa, "handheld", 512, 0.1);
-    assert!(e <= 0.24, "median EPE {e:.3} px");
+    assert!(e <= 0.15, "median EPE {e:.3} px");
 }
 
 #[test]
 fn low_light_0_02_photons_2000_frames() {
     let cfa = colorspad_cfa();
     let (e, _, _) = run(&cfa, "handheld", 2000, 0.02);
-    assert!(e <= 0.28, "median EPE {e:.3} px");
+    assert!(e <= 0.17, "median EPE {e:.3} px");
 }
 
 #[test]
@@ -161,5 +162,5 @@ fn moving_object_is_followed_and_background_stays_still() {
     // The object's texture is periodic (6 px): its tiles follow it through the second motion
     // model fitted to the tiles the camera fit rejects.
     assert!(on <= 0.2, "object tiles: median EPE {on:.3} px");
-    assert!(off <= 0.12, "background tiles: median EPE {off:.3} px");
+    assert!(off <= 0.06, "background tiles: median EPE {off:.3} px");
 }
