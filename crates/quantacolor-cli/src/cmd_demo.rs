@@ -141,12 +141,12 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
     staged.commit()?;
 
     println!(
-        "{:<18} {:>7} {:>9} {:>9} {:>9} {:>9} {:>8}",
+        "{:<22} {:>7} {:>9} {:>9} {:>9} {:>9} {:>8}",
         "method", "frames", "PSNR lin", "SSIM lin", "PSNR sRGB", "SSIM sRGB", "time s"
     );
     for r in &rows {
         println!(
-            "{:<18} {:>7} {:>9.2} {:>9.4} {:>9.2} {:>9.4} {:>8.2}",
+            "{:<22} {:>7} {:>9.2} {:>9.4} {:>9.2} {:>9.4} {:>8.2}",
             r.method,
             r.frames_used,
             r.scores.psnr_linear,
