@@ -417,9 +417,7 @@ fn anscombe_trials(noise: &MergeNoise) -> f64 {
         if v.is_empty() {
             return None;
         }
-        let mid = v.len() / 2;
-        let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-        Some(*m as f64)
+        Some(upper_median(&mut v, f32::total_cmp) as f64)
     };
     of_channel(3).or_else(|| of_channel(1)).unwrap_or(1.0)
 }
@@ -497,9 +495,7 @@ fn model_sigmas(
         if v.is_empty() {
             return 0.0;
         }
-        let mid = v.len() / 2;
-        let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-        m.sqrt() as f32
+        upper_median(&mut v, f64::total_cmp).sqrt() as f32
     })
 }
 
@@ -520,9 +516,13 @@ pub fn mad_sigma(plane: ndarray::ArrayView2<f32>) -> f32 {
     if coeffs.is_empty() {
         return 0.0;
     }
-    let mid = coeffs.len() / 2;
-    let (_, m, _) = coeffs.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
-    *m / 0.6745
+    upper_median(&mut coeffs, f32::total_cmp) / 0.6745
+}
+
+/// The element of rank len/2 of a non-empty slice (reorders it).
+fn upper_median<T: Copy>(values: &mut [T], cmp: fn(&T, &T) -> std::cmp::Ordering) -> T {
+    let mid = values.len() / 2;
+    *values.select_nth_unstable_by(mid, cmp).1
 }
 
 /// Applies the forward transform to an (H, W, 3) image, giving (3, H, W) planes (for tests and
