@@ -3,24 +3,9 @@
 //! inputs untouched).
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn quantacolor(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_quantacolor"))
-        .args(args)
-        .output()
-        .expect("binary runs")
-}
-
-fn ok(args: &[&str]) -> Output {
-    let out = quantacolor(args);
-    assert!(
-        out.status.success(),
-        "{args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    out
-}
+mod cli_support;
+use cli_support::{ok, quantacolor};
 
 fn simulate(dir: &Path, seed: &str) {
     ok(&[
