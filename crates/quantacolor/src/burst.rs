@@ -60,6 +60,17 @@ pub struct BurstReconstruction {
     pub timings: Vec<StageTiming>,
 }
 
+impl BurstReconstruction {
+    /// Dense (H, W, 2) flow (dy, dx) that the merge used at (fractional) frame `t`: the scene
+    /// point at p in the reference frame is at p + flow(p) in frame t (the convention of
+    /// [`crate::simulate::Motion::dense_flow`], so the two compare directly).
+    pub fn merge_flow(&self, t: f64) -> Array3<f32> {
+        let (_, h, w) = self.alignment.grey.dim();
+        let tile_flow = frame_flow(&self.alignment.flow, &self.alignment.plan, t);
+        dense_flow(&tile_flow, &self.alignment.grid, h, w)
+    }
+}
+
 /// Sub-blocks summed and merged at a time: bounds memory to a few (H, W) images per chunk.
 const SUB_BLOCK_CHUNK: usize = 8;
 
