@@ -2,7 +2,9 @@
 //! Wronski et al. 2019 Eq. 1; Takeda et al. 2007): every output pixel gathers, per channel, the
 //! CFA sites of every sub-block that land near it after motion compensation, weighted by the
 //! anisotropic kernel and the sub-block's robustness, then inverts the Bernoulli response of
-//! the accumulated counts (paper Eq. 6).
+//! the accumulated counts (paper Eq. 6). Samples are first splatted into sub-pixel phase bins
+//! on the reference grid, so the regression runs once whatever the number of sub-blocks
+//! (this project's implementation choice; the sum it computes is the paper's).
 
 use super::kernels::KernelField;
 use crate::cfa::{Cfa, Channel};
@@ -60,6 +62,9 @@ pub struct AccumulateConfig {
     /// frames) it beat 0.5 (radius 3) by +2.3, +0.2 and +0.5 dB: those captures are
     /// photon-noise limited. A noiseless synthetic burst with true flows prefers 0.5.
     pub spacing_exponent: f32, // 1 (dimensionless)
+    /// Phase bins per output pixel along each axis: sample positions are rounded to a grid this
+    /// much finer than the output before the kernel regression ([`MergeAccumulator`]).
+    pub bins_per_output_px: usize, // 2
 }
 
 impl Default for AccumulateConfig {
@@ -70,6 +75,7 @@ impl Default for AccumulateConfig {
             cutoff: 9.0,
             w_saturation: 0.98,
             spacing_exponent: 1.0,
+            bins_per_output_px: 2,
         }
     }
 }
@@ -91,19 +97,76 @@ pub struct MergedPlanes {
     pub w_fallback: Array2<bool>,
 }
 
-/// Streaming form of [`demosaic_merge`]: sub-blocks are added in chunks, so memory stays
-/// bounded by one chunk plus the (H·s, W·s) accumulators, whatever the number of frames.
+/// Streaming form of [`demosaic_merge`] whose cost does not grow with the number of sub-blocks
+/// times the kernel footprint (DESIGN "Motion at the sensor's time resolution").
+///
+/// [`MergeAccumulator::add`] only *splats*: every CFA site of a sub-block is moved to its
+/// reference-grid position p (the inverse of the sub-block's flow, by fixed-point iteration)
+/// and its robustness-weighted count and frames are added to the phase bin nearest p, per
+/// channel, on a grid `bins_per_output_px` times finer than the output grid. That is O(H·W) per
+/// sub-block, so frame-granular motion (many short sub-blocks) is cheap.
+/// [`MergeAccumulator::finish`] then runs the kernel regression of supplement Eq. 1–3 once,
+/// over the bins instead of the samples. A sample's position is rounded to its bin centre
+/// (at most 1/(2·bins) output px away: a uniform error of std 0.14 px for 2 bins, small
+/// against the kernels' ≥ 0.25 px std); the test `fast_merge_matches_the_per_sample_merge`
+/// compares it with the direct per-sample sum.
+///
+/// Memory: 12 f32 per bin, about 25 MB for 496x254 at scale 1 and 100 MB at scale 2,
+/// whatever the number of frames.
 pub struct MergeAccumulator<'a> {
     cfa: &'a Cfa,
     kernels: &'a KernelField,
     config: AccumulateConfig,
     codes: Vec<u8>,
-    inv_cov: Vec<f32>,
+    /// Sites never splatted (hot pixels), row-major (H·W).
+    excluded: Option<Vec<bool>>,
     channel_scale: [f32; 4],
     inv_scale: [f32; 4],
-    radius: isize,
-    /// acc[(oy·ws + ox)·12 + c·3 + {0: Σ w·counts, 1: Σ w·F, 2: Σ w²·F}]
-    acc: Vec<f32>,
+    /// Gather radius of the regression (reference px).
+    radius: f32,
+    /// Bins per reference px along each axis.
+    bins_per_px: usize,
+    /// Reference px of margin around the image covered by bins (samples landing outside the
+    /// image still reach border pixels).
+    margin: usize,
+    bins_h: usize,
+    bins_w: usize,
+    /// bins[(by·bins_w + bx)·12 + c·3 + {0: Σ r·counts, 1: Σ r·F, 2: Σ r²·F}]; bin (by, bx)
+    /// sits at reference position (by/u − margin, bx/u − margin).
+    bins: Vec<f32>,
+}
+
+/// Bilinear sample of the interleaved (H, W, 2) `flow` at real position (y, x), clamped.
+#[inline]
+fn flow_bilinear(flow: &[f32], h: usize, w: usize, y: f32, x: f32) -> [f32; 2] {
+    let y = y.clamp(0.0, (h - 1) as f32);
+    let x = x.clamp(0.0, (w - 1) as f32);
+    let y0 = (y.floor() as usize).min(h.saturating_sub(2));
+    let x0 = (x.floor() as usize).min(w.saturating_sub(2));
+    let (y1, x1) = ((y0 + 1).min(h - 1), (x0 + 1).min(w - 1));
+    let (fy, fx) = (y - y0 as f32, x - x0 as f32);
+    let mut out = [0.0; 2];
+    for (c, o) in out.iter_mut().enumerate() {
+        let at = |yy: usize, xx: usize| flow[(yy * w + xx) * 2 + c];
+        let top = at(y0, x0) * (1.0 - fx) + at(y0, x1) * fx;
+        let bottom = at(y1, x0) * (1.0 - fx) + at(y1, x1) * fx;
+        *o = top * (1.0 - fy) + bottom * fy;
+    }
+    out
+}
+
+/// Reference-grid position of the sensor site `q` of a (sub-)block with forward `flow` (the
+/// scene point at p is at p + flow(p) in the block): the p with p + flow(p) = q, by three
+/// fixed-point steps p ← q − flow(p) from p = q − flow(q) (exact for translations, error
+/// ~|∇flow|³ otherwise).
+#[inline]
+pub fn reference_position(flow: &[f32], h: usize, w: usize, q: [f32; 2]) -> [f32; 2] {
+    let mut p = q;
+    for _ in 0..4 {
+        let f = flow_bilinear(flow, h, w, p[0], p[1]);
+        p = [q[0] - f[0], q[1] - f[1]];
+    }
+    p
 }
 
 impl<'a> MergeAccumulator<'a> {
@@ -111,7 +174,6 @@ impl<'a> MergeAccumulator<'a> {
     pub fn new(cfa: &'a Cfa, kernels: &'a KernelField, config: &AccumulateConfig) -> Result<Self> {
         let (h, w) = (cfa.height(), cfa.width());
         validate(&[], &[], kernels, h, w, config)?;
-        let scale = config.scale;
         let channel_scale = KernelField::channel_scale(cfa).map(|s| {
             if s > 0.0 {
                 s.powf(config.spacing_exponent)
@@ -121,22 +183,46 @@ impl<'a> MergeAccumulator<'a> {
         });
         let inv_scale: [f32; 4] = channel_scale.map(|s| if s > 0.0 { 1.0 / s } else { 0.0 });
         let max_scale = channel_scale.iter().copied().fold(0.0f32, f32::max);
-        let radius = ((3.0 * kernels.max_std * max_scale.sqrt()).ceil() as usize)
-            .clamp(1, config.max_radius.max(1)) as isize;
+        let radius = (3.0 * kernels.max_std * max_scale.sqrt())
+            .ceil()
+            .clamp(1.0, config.max_radius.max(1) as f32);
+        let bins_per_px = config.scale * config.bins_per_output_px;
+        let margin = radius as usize;
+        let bins_h = (h - 1 + 2 * margin) * bins_per_px + 1;
+        let bins_w = (w - 1 + 2 * margin) * bins_per_px + 1;
         Ok(MergeAccumulator {
             cfa,
             kernels,
             config: config.clone(),
             codes: cfa.codes().iter().copied().collect(),
-            inv_cov: kernels.inv_cov.iter().copied().collect(),
+            excluded: None,
             channel_scale,
             inv_scale,
             radius,
-            acc: vec![0.0; h * scale * w * scale * 12],
+            bins_per_px,
+            margin,
+            bins_h,
+            bins_w,
+            bins: vec![0.0; bins_h * bins_w * 12],
         })
     }
 
-    /// Adds `sub_blocks` (whose `SubBlockRobustness::Block(i)` index `block_robustness`).
+    /// Sites (e.g. hot pixels) whose counts are never merged; their pixels are estimated from
+    /// the other sites (and, under motion, from the other sub-blocks' sites landing there).
+    pub fn exclude_sites(&mut self, mask: &Array2<bool>) -> Result<()> {
+        if mask.dim() != self.cfa.codes().dim() {
+            return Err(Error::invalid(format!(
+                "merge: excluded-site mask has shape {:?}, the CFA is {:?}",
+                mask.dim(),
+                self.cfa.codes().dim()
+            )));
+        }
+        self.excluded = Some(mask.iter().copied().collect());
+        Ok(())
+    }
+
+    /// Splats `sub_blocks` (whose `SubBlockRobustness::Block(i)` index `block_robustness`)
+    /// into the phase bins.
     pub fn add(&mut self, sub_blocks: &[SubBlock], block_robustness: &[Array2<f32>]) -> Result<()> {
         let (h, w) = (self.cfa.height(), self.cfa.width());
         validate(
@@ -147,134 +233,149 @@ impl<'a> MergeAccumulator<'a> {
             w,
             &self.config,
         )?;
-        let scale = self.config.scale;
-        let ws = w * scale;
-        let codes = &self.codes[..];
-        let inv_cov = &self.inv_cov[..];
-        let inv_scale = self.inv_scale;
-        let radius = self.radius;
-        // Standard-layout views of every sub-block (copies only if a caller passed another layout).
-        let counts: Vec<_> = sub_blocks
-            .iter()
-            .map(|b| b.counts.as_standard_layout())
-            .collect();
-        let flows: Vec<_> = sub_blocks
-            .iter()
-            .map(|b| b.flow.as_standard_layout())
-            .collect();
+        let u = self.bins_per_px as f32;
+        let margin = self.margin as f32;
+        let (bins_h, bins_w) = (self.bins_h, self.bins_w);
         let block_maps: Vec<_> = block_robustness
             .iter()
             .map(|m| m.as_standard_layout())
             .collect();
-        let own_maps: Vec<_> = sub_blocks
-            .iter()
-            .map(|b| match &b.robustness {
+        for sub in sub_blocks {
+            let counts = sub.counts.as_standard_layout();
+            let counts = counts.as_slice().expect("standard layout");
+            let flow = sub.flow.as_standard_layout();
+            let flow = flow.as_slice().expect("standard layout");
+            let own = match &sub.robustness {
                 SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
                 _ => None,
-            })
-            .collect();
-        let robust: Vec<Option<&[f32]>> = sub_blocks
-            .iter()
-            .zip(&own_maps)
-            .map(|(b, own)| match &b.robustness {
+            };
+            let robust: Option<&[f32]> = match &sub.robustness {
                 SubBlockRobustness::Full => None,
                 SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
                 SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
-            })
-            .collect();
+            };
+            let excluded = self.excluded.as_deref();
+            // Target bin and robustness weight of every site, in parallel by rows.
+            let targets: Vec<(u32, f32)> = (0..h)
+                .into_par_iter()
+                .flat_map_iter(|y| {
+                    (0..w).map(move |x| {
+                        let i = y * w + x;
+                        if excluded.is_some_and(|e| e[i]) {
+                            return (u32::MAX, 0.0);
+                        }
+                        let p = reference_position(flow, h, w, [y as f32, x as f32]);
+                        let r = robust.map_or(1.0, |m| {
+                            let ry = (p[0].round().max(0.0) as usize).min(h - 1);
+                            let rx = (p[1].round().max(0.0) as usize).min(w - 1);
+                            m[ry * w + rx]
+                        });
+                        let by = ((p[0] + margin) * u).round();
+                        let bx = ((p[1] + margin) * u).round();
+                        if r <= 0.0
+                            || by < 0.0
+                            || bx < 0.0
+                            || by >= bins_h as f32
+                            || bx >= bins_w as f32
+                        {
+                            return (u32::MAX, 0.0);
+                        }
+                        ((by as usize * bins_w + bx as usize) as u32, r)
+                    })
+                })
+                .collect();
+            let frames = sub.frames as f32;
+            for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(&self.codes) {
+                if bin == u32::MAX {
+                    continue;
+                }
+                let slot = bin as usize * 12 + (code as usize & 3) * 3;
+                let cell = &mut self.bins[slot..slot + 3];
+                cell[0] += r * count as f32;
+                cell[1] += r * frames;
+                cell[2] += r * r * frames;
+            }
+        }
+        Ok(())
+    }
 
+    /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel bit rates and MLE
+    /// fluxes (paper Eq. 6), holes filled, W saturation fallback applied.
+    pub fn finish(self, dark_per_frame: f64, w_weights: [f64; 3]) -> MergedPlanes {
+        let scale = self.config.scale;
+        let (h, w) = (self.cfa.height(), self.cfa.width());
+        let (hs, ws) = (h * scale, w * scale);
+        let channel_scale = self.channel_scale;
+        let inv_scale = self.inv_scale;
+        let cutoff = self.config.cutoff;
+        let u = self.bins_per_px as f32;
+        let inv_u = 1.0 / u;
+        let margin = self.margin as f32;
+        let radius = self.radius;
+        let (bins_h, bins_w) = (self.bins_h as isize, self.bins_w as isize);
+        let bins = &self.bins[..];
+        let inv_cov = self.kernels.inv_cov.as_standard_layout();
+        let inv_cov = inv_cov.as_slice().expect("standard layout");
         let inv_s = 1.0 / scale as f32;
         let offset = 0.5 * inv_s - 0.5;
-        let cutoff = self.config.cutoff;
-        let (hi_y, hi_x) = (h as isize - 1, w as isize - 1);
-
-        self.acc
-            .par_chunks_mut(ws * 12)
-            .enumerate()
-            .for_each(|(oy, acc)| {
-                let py = oy as f32 * inv_s + offset;
-                let iy = (py.round() as usize).min(h - 1);
-                for k in 0..sub_blocks.len() {
-                    let cnt = counts[k].as_slice().expect("standard layout");
-                    let flow = flows[k].as_slice().expect("standard layout");
-                    let rob = robust[k];
-                    let frames = sub_blocks[k].frames as f32;
-                    for ox in 0..ws {
-                        let px = ox as f32 * inv_s + offset;
-                        let ix = (px.round() as usize).min(w - 1);
-                        let pidx = iy * w + ix;
-                        let r = rob.map_or(1.0, |m| m[pidx]);
-                        if r <= 0.0 {
-                            continue;
-                        }
-                        let sy = py + flow[2 * pidx];
-                        let sx = px + flow[2 * pidx + 1];
-                        let (cy, cx) = (sy.round() as isize, sx.round() as isize);
-                        let (y0, y1) = ((cy - radius).max(0), (cy + radius).min(hi_y));
-                        let (x0, x1) = ((cx - radius).max(0), (cx + radius).min(hi_x));
-                        if y0 > y1 || x0 > x1 {
-                            continue;
-                        }
-                        let (a, b2, c) = (
-                            inv_cov[3 * pidx],
-                            2.0 * inv_cov[3 * pidx + 1],
-                            inv_cov[3 * pidx + 2],
-                        );
-                        let cell = &mut acc[ox * 12..ox * 12 + 12];
-                        let rf = r * frames;
-                        let rrf = r * rf;
-                        for qy in y0..=y1 {
-                            let dy = qy as f32 - sy;
-                            let row = qy as usize * w;
-                            let row_codes = &codes[row + x0 as usize..=row + x1 as usize];
-                            let row_counts = &cnt[row + x0 as usize..=row + x1 as usize];
-                            let ady2 = a * dy * dy;
-                            let bdy = b2 * dy;
-                            let mut dx = x0 as f32 - sx;
-                            for (&code, &count) in row_codes.iter().zip(row_counts) {
-                                let ch = code as usize & 3;
-                                let quad = (ady2 + dx * (bdy + c * dx)) * inv_scale[ch];
-                                dx += 1.0;
-                                if quad < cutoff {
-                                    let g = (-0.5 * quad).exp();
-                                    let slot = &mut cell[ch * 3..ch * 3 + 3];
-                                    slot[0] += g * r * count as f32;
-                                    slot[1] += g * rf;
-                                    slot[2] += g * g * rrf;
-                                }
+        // (Σ g·S0, Σ g·S1, Σ g²·S2) per channel of every output pixel.
+        let mut sums = vec![[0.0f32; 12]; hs * ws];
+        sums.par_chunks_mut(ws).enumerate().for_each(|(oy, row)| {
+            let py = oy as f32 * inv_s + offset;
+            let iy = (py.round().max(0.0) as usize).min(h - 1);
+            let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
+            let by1 = (((py + radius + margin) * u).floor() as isize).min(bins_h - 1);
+            for (ox, out) in row.iter_mut().enumerate() {
+                let px = ox as f32 * inv_s + offset;
+                let ix = (px.round().max(0.0) as usize).min(w - 1);
+                let k = 3 * (iy * w + ix);
+                let (a, b2, c) = (inv_cov[k], 2.0 * inv_cov[k + 1], inv_cov[k + 2]);
+                let bx0 = (((px - radius + margin) * u).ceil() as isize).max(0);
+                let bx1 = (((px + radius + margin) * u).floor() as isize).min(bins_w - 1);
+                for by in by0..=by1 {
+                    let dy = by as f32 * inv_u - margin - py;
+                    let ady2 = a * dy * dy;
+                    let bdy = b2 * dy;
+                    let row_start = (by * bins_w) as usize;
+                    let mut dx = bx0 as f32 * inv_u - margin - px;
+                    for bx in bx0..=bx1 {
+                        let quad = ady2 + dx * (bdy + c * dx);
+                        dx += inv_u;
+                        let cell = &bins[(row_start + bx as usize) * 12..][..12];
+                        for ch in 0..4 {
+                            let s = &cell[ch * 3..ch * 3 + 3];
+                            if s[1] == 0.0 {
+                                continue;
+                            }
+                            let q = quad * inv_scale[ch];
+                            if q < cutoff {
+                                let g = (-0.5 * q).exp();
+                                out[ch * 3] += g * s[0];
+                                out[ch * 3 + 1] += g * s[1];
+                                out[ch * 3 + 2] += g * g * s[2];
                             }
                         }
                     }
                 }
-            });
-        Ok(())
-    }
-
-    /// Per-channel bit rates and MLE fluxes (paper Eq. 6) from the accumulated samples, holes
-    /// filled, W saturation fallback applied.
-    pub fn finish(self, dark_per_frame: f64, w_weights: [f64; 3]) -> MergedPlanes {
-        let scale = self.config.scale;
-        let (hs, ws) = (self.cfa.height() * scale, self.cfa.width() * scale);
-        let channel_scale = self.channel_scale;
+            }
+        });
         let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut effective_frames = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
-        for oy in 0..hs {
-            for ox in 0..ws {
-                let base = (oy * ws + ox) * 12;
-                for ch in 0..4 {
-                    let s = &self.acc[base + ch * 3..base + ch * 3 + 3];
-                    if s[1] > 1e-6 && s[2] > 0.0 {
-                        let p = s[0] / s[1];
-                        let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
-                        bit_rate[[ch, oy, ox]] = p;
-                        effective_frames[[ch, oy, ox]] = n_eff as f32;
-                        flux[[ch, oy, ox]] =
-                            mle_flux(p as f64 * n_eff, n_eff, dark_per_frame) as f32;
-                    }
+        for (i, s) in sums.iter().enumerate() {
+            let (oy, ox) = (i / ws, i % ws);
+            for ch in 0..4 {
+                let s = &s[ch * 3..ch * 3 + 3];
+                if s[1] > 1e-6 && s[2] > 0.0 {
+                    let p = s[0] / s[1];
+                    let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
+                    bit_rate[[ch, oy, ox]] = p;
+                    effective_frames[[ch, oy, ox]] = n_eff as f32;
+                    flux[[ch, oy, ox]] = mle_flux(p as f64 * n_eff, n_eff, dark_per_frame) as f32;
                 }
             }
         }
+        drop(sums);
         // Fill pixels that no sample reached (sparse channels, image borders).
         for channel in Channel::ALL {
             let ch = channel.index();
@@ -321,17 +422,17 @@ impl<'a> MergeAccumulator<'a> {
 /// Joint demosaic and merge of `sub_blocks` (supplement Eq. 1–3).
 ///
 /// For output pixel p (reference coordinates; on a `scale` grid, pixel (Y, X) sits at
-/// ((Y + ½)/s − ½, (X + ½)/s − ½)) and each sub-block k, the CFA sites q of every channel c
-/// within `max_radius` of p + flow_k(p) contribute weight
-/// w = exp(−½ dᵀ Ω_c⁻¹ d)·R_k(p) with d = q − (p + flow_k(p)) (the sample's offset on the
-/// reference grid), Ω_c = Ω(p)·scale_c^α ([`KernelField::channel_scale`], α =
-/// `spacing_exponent`): num_c += w·counts_k(q),
-/// den_c += w·frames_k. Then p̂_c = num_c/den_c and λ_c = mle_flux(p̂_c·N, N, dark) with the
-/// effective number of frames N = (Σ w·F)² / Σ w²·F (Kish), so the saturation clamp of the MLE
-/// acts at the right count. Flows, kernels and robustness are read at the nearest reference
-/// pixel. Pixels that no sample reaches are filled by normalized convolution of their plane.
-/// Where W's p̂ exceeds `w_saturation` but R, G, B do not, W := wR·R + wG·G + wB·B
-/// (supplement §7), so Eq. 8 keeps the RGB estimate there.
+/// ((Y + ½)/s − ½, (X + ½)/s − ½)), every CFA site q of channel c of every sub-block k is
+/// placed at its reference position p_q (the p' with p' + flow_k(p') = q) and contributes
+/// weight w = exp(−½ dᵀ Ω_c⁻¹ d)·R_k(p_q) with d = p_q − p, Ω_c = Ω(p)·scale_c^α
+/// ([`KernelField::channel_scale`], α = `spacing_exponent`), within `max_radius`:
+/// num_c += w·counts_k(q), den_c += w·frames_k. Then p̂_c = num_c/den_c and
+/// λ_c = mle_flux(p̂_c·N, N, dark) with the effective number of frames N = (Σ w·F)² / Σ w²·F
+/// (Kish), so the saturation clamp of the MLE acts at the right count. Kernels are read at
+/// the nearest reference pixel of p, robustness at the nearest of p_q, and p_q is rounded to
+/// the phase bins of [`MergeAccumulator`]. Pixels that no sample reaches are filled by
+/// normalized convolution of their plane. Where W's p̂ exceeds `w_saturation` but R, G, B do
+/// not, W := wR·R + wG·G + wB·B (supplement §7), so Eq. 8 keeps the RGB estimate there.
 pub fn demosaic_merge(
     sub_blocks: &[SubBlock],
     block_robustness: &[Array2<f32>],
@@ -361,6 +462,12 @@ fn validate(
         return Err(Error::invalid(format!(
             "merge: output scale {} must be between 1 and 8",
             config.scale
+        )));
+    }
+    if !(1..=8).contains(&config.bins_per_output_px) {
+        return Err(Error::invalid(format!(
+            "merge: bins per output pixel {} must be between 1 and 8",
+            config.bins_per_output_px
         )));
     }
     if !super::warp::positive(config.cutoff) {

@@ -14,6 +14,14 @@
 //! The ground truth is λ of R, G, B (dark counts excluded) at the reference frame, float32
 //! (H, W, 3), rendered through the same scene sampler as the frames.
 //!
+//! Pixel supersampling ([`SimulationConfig::pixel_supersampling`] = s > 1) models a scene with
+//! detail finer than a pixel: the scene raster is pre-filtered by a 1/s-pixel box instead of a
+//! whole pixel, and each pixel's λ (in every frame and in the ground truth) is the mean over s x s
+//! sample points at offsets ((i + ½)/s − ½, (j + ½)/s − ½) px, i.e. the pixel-area integral. The
+//! capture then also carries a high-resolution ground truth (s·H, s·W, 3) whose pixel (Y, X) is
+//! the scene at reference position ((Y + ½)/s − ½, (X + ½)/s − ½) (the merge's scale-s output
+//! grid) averaged over its own 1/s-pixel area; its s x s box mean is the ordinary ground truth.
+//!
 //! Everything is seeded: the same configuration, scene and seed give identical bytes, whatever
 //! the number of threads (each frame has its own random stream).
 
@@ -64,6 +72,10 @@ pub struct SimulationConfig {
     pub dark_variation: f64,
     /// Seed of the motion, dark counts and frames.
     pub seed: u64,
+    /// Sub-pixel samples per axis s (1 = none): each pixel integrates the scene over s x s
+    /// sample points, the scene keeps detail down to 1/s pixel, and the capture carries a
+    /// ground truth at s times the resolution (see the module documentation).
+    pub pixel_supersampling: usize,
 }
 
 impl Default for SimulationConfig {
@@ -82,6 +94,7 @@ impl Default for SimulationConfig {
             hot_rate_hz: [200.0, 2000.0],
             dark_variation: 0.3,
             seed: 1,
+            pixel_supersampling: 1,
         }
     }
 }
@@ -98,6 +111,9 @@ pub struct SimulatedCapture {
     pub hot_pixels: Array2<bool>,
     /// λ of R, G, B at the reference frame, (H, W, 3).
     pub ground_truth: Array3<f32>,
+    /// With pixel supersampling s > 1: λ of R, G, B at the reference frame on the merge's
+    /// scale-s grid, (s·H, s·W, 3); `None` for s = 1.
+    pub ground_truth_hr: Option<Array3<f32>>,
     pub motion: Motion,
     /// Dark count rate of every pixel, counts per second, (H, W).
     pub dark_count_rates_hz: Array2<f64>,
@@ -114,6 +130,8 @@ pub struct SimulatedCmosCapture {
     pub hot_pixels: Array2<bool>,
     /// Mean photoelectrons of R, G, B per frame at the reference frame, (H, W, 3).
     pub ground_truth: Array3<f32>,
+    /// As [`SimulatedCapture::ground_truth_hr`].
+    pub ground_truth_hr: Option<Array3<f32>>,
     pub motion: Motion,
     pub dark_count_rates_hz: Array2<f64>,
     pub sensor: SensorModel,
@@ -209,7 +227,9 @@ struct Prepared {
     motion: Motion,
     background: SceneRaster,
     object: Option<SceneRaster>,
+    supersampling: usize,
     ground_truth: Array3<f32>,
+    ground_truth_hr: Option<Array3<f32>>,
     dark: DarkCountMap,
     dark_per_frame: Array2<f32>,
     meta: CaptureMeta,
@@ -221,6 +241,7 @@ impl Prepared {
             background: &self.background,
             object: self.object.as_ref(),
             motion: &self.motion,
+            supersampling: self.supersampling,
         }
     }
 }
@@ -256,6 +277,13 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
             cfa.height()
         )));
     }
+    let ss = config.pixel_supersampling;
+    if ss == 0 || ss > 16 {
+        return Err(Error::invalid(format!(
+            "pixel supersampling must be 1..=16, got {ss}"
+        )));
+    }
+    let footprint = 1.0 / ss as f64; // sensor px: the box the rasters are pre-filtered by
     let sensor = SensorModel::table1(config.sensor);
     let reference = config.reference_frame.unwrap_or(t / 2);
     let motion = Motion::generate(
@@ -268,10 +296,11 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
     )?;
     let margin = motion.max_excursion(h, w).ceil() + 3.0;
     let qe = sensor.quantum_efficiency;
-    let mut background = to_detection_planes(scene.rasterise(h, w, margin), qe);
+    let mut background =
+        to_detection_planes(scene.rasterise_with_footprint(h, w, margin, footprint), qe);
     let mut object = motion.object.as_ref().map(|track| {
         let r = track.radius;
-        let step = 0.5;
+        let step = 0.5 * footprint;
         let n = ((2.0 * r + 4.0) / step).ceil() as usize + 1;
         let origin = [-(n as f64 - 1.0) * step / 2.0; 2];
         let planes = scene::supersample(n, n, origin, step, |y, x| {
@@ -279,7 +308,10 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
             let c = chart::object_texture(y, x);
             [c[0] * a, c[1] * a, c[2] * a, a]
         });
-        to_detection_planes(SceneRaster::new_filtered(planes, origin, step), qe)
+        to_detection_planes(
+            SceneRaster::new_filtered_footprint(planes, origin, step, footprint),
+            qe,
+        )
     });
 
     // Flux gain from the unscaled ground truth, then the ground truth from the scaled rasters.
@@ -287,6 +319,7 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
         background: &background,
         object: object.as_ref(),
         motion: &motion,
+        supersampling: ss,
     };
     let unscaled = field.rgb(reference, h, w);
     let w_values: Vec<f32> = unscaled
@@ -300,12 +333,14 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
             .slice_mut(s![0..4, .., ..])
             .mapv_inplace(|v| v * gain);
     }
-    let ground_truth = FluxField {
+    let field = FluxField {
         background: &background,
         object: object.as_ref(),
         motion: &motion,
-    }
-    .rgb(reference, h, w);
+        supersampling: ss,
+    };
+    let ground_truth = field.rgb(reference, h, w);
+    let ground_truth_hr = (ss > 1).then(|| field.rgb_hr(reference, h, w, ss));
 
     let dark = DarkCountMap::generate(
         h,
@@ -330,7 +365,9 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
         motion,
         background,
         object,
+        supersampling: ss,
         ground_truth,
+        ground_truth_hr,
         dark,
         dark_per_frame,
         meta,
@@ -388,6 +425,7 @@ pub fn simulate_with_cfa(
         meta: prep.meta,
         hot_pixels: prep.dark.hot_pixels,
         ground_truth: prep.ground_truth,
+        ground_truth_hr: prep.ground_truth_hr,
         motion: prep.motion,
         dark_count_rates_hz: prep.dark.rates_hz,
         sensor: prep.sensor,
@@ -431,6 +469,7 @@ pub fn simulate_cmos_with_cfa(
         meta: prep.meta,
         hot_pixels: prep.dark.hot_pixels,
         ground_truth: prep.ground_truth,
+        ground_truth_hr: prep.ground_truth_hr,
         motion: prep.motion,
         dark_count_rates_hz: prep.dark.rates_hz,
         sensor: prep.sensor,

@@ -33,10 +33,21 @@ pub(crate) fn frame_rng(seed: u64, t: usize) -> ChaCha8Rng {
 /// `background` holds four planes (R, G, B, W) in detections per frame; `object` (present for
 /// the object motion) holds R, G, B, W premultiplied by coverage, then the coverage, on a raster
 /// centred on the object's centre.
+///
+/// With `supersampling` s > 1 a pixel's λ is the mean over s x s sample points at offsets
+/// ((i + ½)/s − ½, (j + ½)/s − ½) pixel from its centre (the rasters then hold the scene
+/// pre-filtered by a 1/s-pixel box, so the mean is the pixel-area integral).
 pub(crate) struct FluxField<'a> {
     pub background: &'a SceneRaster,
     pub object: Option<&'a SceneRaster>,
     pub motion: &'a Motion,
+    pub supersampling: usize,
+}
+
+/// Sub-pixel sample offsets ((i + ½)/s − ½ for i in 0..s), pixels.
+pub(crate) fn sub_pixel_offsets(s: usize) -> Vec<f64> {
+    let s = s.max(1);
+    (0..s).map(|i| (i as f64 + 0.5) / s as f64 - 0.5).collect()
 }
 
 impl FluxField<'_> {
@@ -61,36 +72,74 @@ impl FluxField<'_> {
         }
     }
 
+    /// λ of channel `k` at sensor position `(yf, xf)` of frame `t`, integrated over the pixel's
+    /// sub-pixel samples when `supersampling` > 1.
+    #[inline]
+    fn pixel(
+        &self,
+        t: usize,
+        k: usize,
+        (a, b): ([[f64; 2]; 2], [f64; 2]),
+        yf: f64,
+        xf: f64,
+        offsets: &[f64],
+    ) -> f32 {
+        let map = |y: f64, x: f64| {
+            [
+                a[0][0] * y + a[0][1] * x + b[0],
+                a[1][0] * y + a[1][1] * x + b[1],
+            ]
+        };
+        if offsets.len() <= 1 {
+            return self.at(t, k, map(yf, xf));
+        }
+        let mut sum = 0.0f32;
+        for &oy in offsets {
+            for &ox in offsets {
+                sum += self.at(t, k, map(yf + oy, xf + ox));
+            }
+        }
+        sum / (offsets.len() * offsets.len()) as f32
+    }
+
     /// λ of every pixel of row `y` of frame `t`, each through its own CFA channel.
     pub fn row(&self, t: usize, y: usize, cfa_row: &[u8], out: &mut [f32]) {
-        let (a, b) = self.motion.inverse_affine(t);
+        let affine = self.motion.inverse_affine(t);
+        let offsets = sub_pixel_offsets(self.supersampling);
         let yf = y as f64;
         for (x, (o, &code)) in out.iter_mut().zip(cfa_row).enumerate() {
-            let xf = x as f64;
-            let p = [
-                a[0][0] * yf + a[0][1] * xf + b[0],
-                a[1][0] * yf + a[1][1] * xf + b[1],
-            ];
-            *o = self.at(t, code as usize, p);
+            *o = self.pixel(t, code as usize, affine, yf, x as f64, &offsets);
         }
     }
 
-    /// Ground truth: λ of R, G, B at every pixel of frame `t`, (H, W, 3).
+    /// Ground truth: λ of R, G, B at every pixel of frame `t` (integrated over the pixel's
+    /// sub-pixel samples like the frames), (H, W, 3).
     pub fn rgb(&self, t: usize, height: usize, width: usize) -> Array3<f32> {
-        let mut gt = Array3::<f32>::zeros((height, width, 3));
-        let (a, b) = self.motion.inverse_affine(t);
+        self.rgb_grid(t, height, width, 1, &sub_pixel_offsets(self.supersampling))
+    }
+
+    /// High-resolution ground truth at `scale` s: pixel (Y, X) of the (s·H, s·W, 3) result is
+    /// λ of R, G, B at sensor position ((Y + ½)/s − ½, (X + ½)/s − ½) of frame `t` (the merge's
+    /// scale-s output grid), from the rasters as they are (pre-filtered by the footprint set by
+    /// `supersampling`, so with `scale == supersampling` each value is the mean over its own
+    /// 1/s-pixel area, and the s x s box mean of the result is [`FluxField::rgb`]).
+    pub fn rgb_hr(&self, t: usize, height: usize, width: usize, scale: usize) -> Array3<f32> {
+        self.rgb_grid(t, height * scale, width * scale, scale, &[0.0])
+    }
+
+    /// λ of R, G, B on an `hs` x `ws` grid whose pixel (Y, X) sits at sensor position
+    /// ((Y + ½)/s − ½, (X + ½)/s − ½), averaged over `offsets` x `offsets` around it.
+    fn rgb_grid(&self, t: usize, hs: usize, ws: usize, s: usize, offsets: &[f64]) -> Array3<f32> {
+        let mut gt = Array3::<f32>::zeros((hs, ws, 3));
+        let affine = self.motion.inverse_affine(t);
+        let grid = |i: usize| (i as f64 + 0.5) / s as f64 - 0.5;
         gt.axis_iter_mut(Axis(0))
             .into_par_iter()
             .enumerate()
             .for_each(|(y, mut row)| {
-                for x in 0..width {
-                    let (yf, xf) = (y as f64, x as f64);
-                    let p = [
-                        a[0][0] * yf + a[0][1] * xf + b[0],
-                        a[1][0] * yf + a[1][1] * xf + b[1],
-                    ];
+                for x in 0..ws {
                     for k in 0..3 {
-                        row[[x, k]] = self.at(t, k, p);
+                        row[[x, k]] = self.pixel(t, k, affine, grid(y), grid(x), offsets);
                     }
                 }
             });

@@ -1,10 +1,15 @@
 //! Scenes: linear RGB radiance to be imaged, from image files or built in, and their rasters.
 //!
 //! A scene is fitted to the sensor plus a motion margin ("cover" fit, centred) and stored as a
-//! [`SceneRaster`]: planes on a regular grid of at most half a sensor pixel spacing (procedural
-//! scenes are rasterised at exactly 2x with 3x3 supersampling per raster cell), pre-filtered by
-//! the pixel footprint (a box one sensor pixel wide), and then sampled bilinearly at the
-//! sub-pixel positions the motion gives. Frames and ground truth use the same sampler.
+//! [`SceneRaster`]: planes on a regular grid of at most half a footprint spacing (procedural
+//! scenes are rasterised at exactly 2 samples per footprint with 3x3 supersampling per raster
+//! cell), pre-filtered by the footprint (a box one footprint wide), and then sampled bilinearly
+//! at the sub-pixel positions the motion gives. Frames and ground truth use the same sampler.
+//!
+//! The footprint is one sensor pixel for ordinary captures. With pixel supersampling s (see
+//! [`super::SimulationConfig::pixel_supersampling`]) it is 1/s pixel: the raster then keeps the
+//! scene's detail finer than a pixel, and the renderer integrates each pixel over its s x s
+//! sub-pixel samples instead.
 
 use super::chart;
 use crate::display::srgb::srgb_to_linear;
@@ -98,6 +103,24 @@ impl Scene {
     /// Rasterises the scene over a `height` x `width` sensor plus `margin` pixels on every side,
     /// pre-filtered by the pixel footprint.
     pub fn rasterise(&self, height: usize, width: usize, margin: f64) -> SceneRaster {
+        self.rasterise_with_footprint(height, width, margin, 1.0)
+    }
+
+    /// As [`Scene::rasterise`], pre-filtered by a box `footprint` sensor pixels wide (1 = the
+    /// pixel; 1/s for a sensor that integrates s x s sub-pixel samples), on a grid of at most
+    /// half a footprint spacing where the scene has that much detail.
+    pub fn rasterise_with_footprint(
+        &self,
+        height: usize,
+        width: usize,
+        margin: f64,
+        footprint: f64,
+    ) -> SceneRaster {
+        let footprint = if footprint > 0.0 && footprint <= 1.0 {
+            footprint
+        } else {
+            1.0
+        };
         let centre = [(height as f64 - 1.0) / 2.0, (width as f64 - 1.0) / 2.0];
         match self {
             Scene::Constant(c) => SceneRaster {
@@ -107,20 +130,21 @@ impl Scene {
             },
             Scene::Chart { hdr } => {
                 let hdr = *hdr;
-                let step = 0.5;
+                let step = 0.5 * footprint;
                 let origin = [-margin - 1.0, -margin - 1.0];
                 let hr = ((height as f64 + 2.0 * margin + 2.0) / step).ceil() as usize + 1;
                 let wr = ((width as f64 + 2.0 * margin + 2.0) / step).ceil() as usize + 1;
                 let planes = supersample(hr, wr, origin, step, |y, x| {
                     chart::chart_value(y, x, height, width, hdr)
                 });
-                SceneRaster::new_filtered(planes, origin, step)
+                SceneRaster::new_filtered_footprint(planes, origin, step, footprint)
             }
             Scene::Image { image, .. } => {
                 let (hi, wi, _) = image.dim();
                 let (hs, ws) = (height as f64 + 2.0 * margin, width as f64 + 2.0 * margin);
                 let scale = (hi as f64 / hs).min(wi as f64 / ws); // image px per sensor px
-                let factor = ((scale / 2.0).floor() as usize).max(1);
+                                                                  // Box-downsample while keeping at least 2 image samples per footprint.
+                let factor = ((scale * footprint / 2.0).floor() as usize).max(1);
                 let planes = box_downsample(image, factor);
                 let scale = scale / factor as f64;
                 let (hp, wp) = (planes.dim().1, planes.dim().2);
@@ -129,7 +153,7 @@ impl Scene {
                     centre[0] - (hp as f64 - 1.0) / 2.0 * step,
                     centre[1] - (wp as f64 - 1.0) / 2.0 * step,
                 ];
-                SceneRaster::new_filtered(planes, origin, step)
+                SceneRaster::new_filtered_footprint(planes, origin, step, footprint)
             }
         }
     }
@@ -239,8 +263,18 @@ pub struct SceneRaster {
 
 impl SceneRaster {
     /// Wraps `planes` after filtering them by a one-sensor-pixel box (the pixel footprint).
-    pub fn new_filtered(mut planes: Array3<f32>, origin: [f64; 2], step: f64) -> SceneRaster {
-        let taps = box_taps(1.0 / step);
+    pub fn new_filtered(planes: Array3<f32>, origin: [f64; 2], step: f64) -> SceneRaster {
+        Self::new_filtered_footprint(planes, origin, step, 1.0)
+    }
+
+    /// Wraps `planes` after filtering them by a box `footprint` sensor pixels wide.
+    pub fn new_filtered_footprint(
+        mut planes: Array3<f32>,
+        origin: [f64; 2],
+        step: f64,
+        footprint: f64,
+    ) -> SceneRaster {
+        let taps = box_taps(footprint / step);
         for mut plane in planes.outer_iter_mut() {
             let mut owned = plane.to_owned();
             filter_rows(&mut owned, &taps);
