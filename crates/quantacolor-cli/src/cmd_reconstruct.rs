@@ -46,7 +46,8 @@ pub struct ReconstructArgs {
     /// Burst method: output grid scale (2 = super-resolution).
     #[arg(long)]
     pub scale: Option<usize>,
-    /// Burst method: largest motion inside one sub-block, px (smaller = more sub-blocks).
+    /// Burst method: largest camera motion inside one sub-block, px (smaller = more, shorter
+    /// sub-blocks; default 0.25).
     #[arg(long)]
     pub max_sub_block_motion: Option<f64>,
     /// Write intermediate stages (block grey images, flow, reference, merged planes) as .npy.
@@ -177,7 +178,7 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
         if !(m.is_finite() && m > 0.0) {
             anyhow::bail!("--max-sub-block-motion must be a positive number of pixels");
         }
-        config.burst.max_sub_block_motion_px = m;
+        config.burst.refine.max_sub_block_motion_px = m;
     }
     Ok(config)
 }

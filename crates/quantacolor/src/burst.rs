@@ -1,58 +1,54 @@
-//! The burst reconstruction (paper §4, Fig. 4): alignment of temporal blocks, sub-blocks whose
-//! motion agrees to a fraction of a pixel, joint demosaic-merge, RGBW combination and MLE flux.
+//! The burst reconstruction (paper §4, Fig. 4) as a sequence of named stages:
 //!
-//! Frames are never visited one at a time with a kernel: each block is cut into sub-blocks
-//! short enough that the interpolated motion changes by at most `max_sub_block_motion_px`
-//! inside them, their bits are summed straight from the packed words, and the merge treats
-//! each sub-block sum as one multi-bit sample per pixel at the sub-block's centre-frame motion.
+//! 1. [`align`]: block sums, grey images, hierarchical tile alignment (paper §4.1);
+//! 2. [`FrameMotion::from_alignment`]: each block's motion as an affine camera motion plus a
+//!    local residual (moving objects);
+//! 3. [`reference_image`]: the Wiener-merged grey reference (supplement §1.2);
+//! 4. [`plan_sub_blocks`] and [`refine_camera_motion`]: sub-blocks of tens of frames whose
+//!    camera motion is re-measured against the reference (this project's own stage, see
+//!    [`crate::align::refine`]; the paper interpolates block motion linearly in time);
+//! 5. [`merge_guide`]: reference, kernels and robustness from the refined block motion;
+//! 6. the joint demosaic-merge of every sub-block at its own motion, streamed through the
+//!    phase-bin [`MergeAccumulator`] (supplement Eq. 1–3), MLE flux (Eq. 6) and the RGBW
+//!    combination (Eq. 8).
+//!
+//! Frames are never visited one at a time with a kernel: a sub-block's bits are summed straight
+//! from the packed words and splatted once; the kernel regression runs once per image.
 
-use crate::align::{align, flow_at, frame_flow, AlignConfig, Alignment, HotPixelCorrector};
+use crate::align::{
+    align, plan_sub_blocks, refine_camera_motion, AlignConfig, Alignment, FrameMotion,
+    RefineConfig,
+};
 use crate::capture::Capture;
 use crate::error::Result;
 use crate::merge::{
-    kernel_field, reference_image, robustness, MergeAccumulator, MergeConfig, MergedBurst,
+    merge_guide, reference_image, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst,
     SubBlock, SubBlockRobustness,
 };
-use crate::naive::combine_rgbw;
 use crate::pipeline::StageTiming;
 use crate::progress::Progress;
-use ndarray::{s, Array2, Array3, Axis};
+use ndarray::{s, Array2, Array3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
+use std::time::Instant;
 
 /// Configuration of the burst reconstruction.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct BurstConfig {
     pub align: AlignConfig,
+    /// Sub-blocks and their camera motion at frame granularity.
+    pub refine: RefineConfig,
     pub merge: MergeConfig,
-    /// Largest change of the estimated motion inside one sub-block (px): the error of treating
-    /// a sub-block's frames as one sample at its centre-frame motion. Default: infinite, i.e.
-    /// one sub-block per alignment block. Measured (builtin chart, handheld, 0.1 photons/px/frame,
-    /// 10,000 frames): with the simulator's true motion, cutting blocks into 16 sub-blocks gains
-    /// ~4 dB; with the estimated motion it loses 0.7–3 dB, because frame-level interpolation
-    /// between blocks spreads tile mismatches that whole blocks' robustness weights reject.
-    pub max_sub_block_motion_px: f64, // inf px
-    /// Shortest sub-block (frames): bounds the merge cost under very fast motion.
-    pub min_sub_block_frames: usize, // 8 frames
-}
-
-impl Default for BurstConfig {
-    fn default() -> Self {
-        BurstConfig {
-            align: AlignConfig::default(),
-            merge: MergeConfig::default(),
-            max_sub_block_motion_px: f64::INFINITY,
-            min_sub_block_frames: 8,
-        }
-    }
 }
 
 /// Result of the burst reconstruction with its intermediate stages.
 #[derive(Debug, Clone)]
 pub struct BurstReconstruction {
     pub alignment: Alignment,
+    /// The motion of every sub-block the merge used (unless driven by a motion oracle).
+    pub motion: FrameMotion,
     pub merged: MergedBurst,
     /// Frame ranges of the sub-blocks that were merged.
     pub sub_blocks: Vec<Range<usize>>,
@@ -61,77 +57,16 @@ pub struct BurstReconstruction {
 }
 
 impl BurstReconstruction {
-    /// Dense (H, W, 2) flow (dy, dx) that the merge used at (fractional) frame `t`: the scene
-    /// point at p in the reference frame is at p + flow(p) in frame t (the convention of
+    /// Dense (H, W, 2) flow (dy, dx) of the estimated motion at (fractional) frame `t`: the
+    /// scene point at p in the reference frame is at p + flow(p) in frame t (the convention of
     /// [`crate::simulate::Motion::dense_flow`], so the two compare directly).
     pub fn merge_flow(&self, t: f64) -> Array3<f32> {
-        let (_, h, w) = self.alignment.grey.dim();
-        let tile_flow = frame_flow(&self.alignment.flow, &self.alignment.plan, t);
-        dense_flow(&tile_flow, &self.alignment.grid, h, w)
+        self.motion.flow_at_frame(t)
     }
 }
 
 /// Sub-blocks summed and merged at a time: bounds memory to a few (H, W) images per chunk.
 const SUB_BLOCK_CHUNK: usize = 8;
-
-/// Dense (H, W, 2) flow from tile flows by bilinear interpolation between tile centres.
-pub fn dense_flow(
-    tile_flow: &Array3<f32>,
-    grid: &crate::align::TileGrid,
-    h: usize,
-    w: usize,
-) -> Array3<f32> {
-    let mut dense = Array3::<f32>::zeros((h, w, 2));
-    dense
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, mut row)| {
-            for x in 0..w {
-                let f = flow_at(tile_flow, grid, y as f32, x as f32);
-                row[[x, 0]] = f[0];
-                row[[x, 1]] = f[1];
-            }
-        });
-    dense
-}
-
-/// Largest displacement between the frame flows of frames `a` and `b` over all tiles (px).
-fn motion_between(alignment: &Alignment, a: f64, b: f64) -> f64 {
-    let fa = frame_flow(&alignment.flow, &alignment.plan, a);
-    let fb = frame_flow(&alignment.flow, &alignment.plan, b);
-    fa.lanes(Axis(2))
-        .into_iter()
-        .zip(fb.lanes(Axis(2)))
-        .map(|(p, q)| (((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)) as f64).sqrt())
-        .fold(0.0, f64::max)
-}
-
-/// Cuts every block into equal sub-blocks so that the motion inside each changes by at most
-/// `config.max_sub_block_motion_px` (measured between the block's ends from the frame-level
-/// motion), never shorter than `config.min_sub_block_frames`.
-pub fn plan_sub_blocks(alignment: &Alignment, config: &BurstConfig) -> Vec<(usize, Range<usize>)> {
-    let mut out = Vec::new();
-    for (b, range) in alignment.plan.blocks.iter().enumerate() {
-        let len = range.len();
-        let travel = motion_between(
-            alignment,
-            range.start as f64,
-            (range.end.max(range.start + 1) - 1) as f64,
-        );
-        let pieces_for_motion = (travel / config.max_sub_block_motion_px.max(1e-6)).ceil() as usize;
-        let max_pieces = (len / config.min_sub_block_frames.max(1)).max(1);
-        let pieces = pieces_for_motion.clamp(1, max_pieces);
-        for i in 0..pieces {
-            let start = range.start + i * len / pieces;
-            let end = range.start + (i + 1) * len / pieces;
-            if end > start {
-                out.push((b, start..end));
-            }
-        }
-    }
-    out
-}
 
 /// Runs alignment and the joint demosaic-merge on `capture` for `reference_frame`.
 pub fn reconstruct_burst(
@@ -147,30 +82,42 @@ pub fn reconstruct_burst(
 /// is at p + flow(p) in frame t.
 pub type MotionOracle<'a> = &'a (dyn Fn(f64) -> Array3<f32> + Sync);
 
-/// [`reconstruct_burst`] with the merge driven by `motion` instead of the estimated flow when
+/// Wall-clock laps of the stages.
+struct Laps {
+    last: Instant,
+    timings: Vec<StageTiming>,
+}
+
+impl Laps {
+    fn new() -> Self {
+        Laps {
+            last: Instant::now(),
+            timings: Vec::new(),
+        }
+    }
+
+    fn lap(&mut self, stage: &str) {
+        self.timings.push(StageTiming {
+            stage: stage.to_string(),
+            seconds: self.last.elapsed().as_secs_f64(),
+        });
+        self.last = Instant::now();
+    }
+}
+
+/// [`reconstruct_burst`] with the merge driven by `motion` instead of the estimated motion when
 /// given (e.g. a simulator's true motion: the quality benchmark's upper bound). Alignment still
-/// runs for the block plan and the grey images.
+/// runs for the block and sub-block plan and the grey images; refinement is skipped.
 pub fn reconstruct_burst_with_motion(
     capture: &Capture,
     reference_frame: usize,
     config: &BurstConfig,
-    motion: Option<MotionOracle<'_>>,
+    oracle: Option<MotionOracle<'_>>,
     progress: &dyn Progress,
 ) -> Result<BurstReconstruction> {
     let frames = &capture.frames;
-    let (h, w) = (frames.height(), frames.width());
     let hot = capture.hot_pixels.as_ref();
-    let mut timings = Vec::new();
-    let mut lap = {
-        let mut last = std::time::Instant::now();
-        move |stage: &str, timings: &mut Vec<StageTiming>| {
-            timings.push(StageTiming {
-                stage: stage.to_string(),
-                seconds: last.elapsed().as_secs_f64(),
-            });
-            last = std::time::Instant::now();
-        }
-    };
+    let mut laps = Laps::new();
     let alignment = align(
         frames,
         &capture.cfa,
@@ -179,124 +126,114 @@ pub fn reconstruct_burst_with_motion(
         &config.align,
         progress,
     )?;
-    lap("align", &mut timings);
+    laps.lap("align");
 
-    // Reference image, kernels and per-block robustness (supplement §1.2–1.3).
+    let mut motion = FrameMotion::from_alignment(&alignment, config.align.affine_tolerance_px);
     let grey_blocks: Vec<Array2<f32>> = alignment.grey.outer_iter().map(|g| g.to_owned()).collect();
-    let block_flows: Vec<Array3<f32>> = (0..alignment.plan.len())
-        .map(|b| match motion {
-            Some(oracle) => oracle(alignment.plan.center_frames()[b]),
-            None => {
-                let tile_flow = alignment.flow.slice(s![b, .., .., ..]).to_owned();
-                dense_flow(&tile_flow, &alignment.grid, h, w)
-            }
-        })
-        .collect();
-    let reference_block = alignment.plan.reference_block;
+    let block_centres = alignment.plan.center_frames();
+    let block_flows = |motion: &FrameMotion| -> Vec<Array3<f32>> {
+        (0..alignment.plan.len())
+            .map(|b| match oracle {
+                Some(oracle) => oracle(block_centres[b]),
+                None => motion.block_flow(b),
+            })
+            .collect()
+    };
     let grey_trials = alignment.plan.block_size as f32;
-    let merge_cfg = &config.merge;
-    let reference = reference_image(
+    let reference_block = alignment.plan.reference_block;
+    let detections_per_frame = alignment
+        .grey
+        .slice(s![reference_block, .., ..])
+        .mean()
+        .unwrap_or(0.0) as f64;
+    plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
+    if oracle.is_none() && config.refine.enabled {
+        let reference = reference_image(
+            &grey_blocks,
+            &block_flows(&motion),
+            reference_block,
+            grey_trials,
+            &config.merge.wiener,
+        )?;
+        refine_camera_motion(
+            frames,
+            &capture.cfa,
+            alignment.grey_method,
+            hot,
+            &reference,
+            &mut motion,
+            &config.refine,
+            progress,
+        )?;
+        laps.lap("motion refinement");
+    }
+    let guide = merge_guide(
         &grey_blocks,
-        &block_flows,
+        &block_flows(&motion),
         reference_block,
         grey_trials,
-        &merge_cfg.wiener,
+        &config.merge,
     )?;
-    let kernels = kernel_field(&reference, &merge_cfg.kernels)?;
-    let robustness_maps = grey_blocks
-        .iter()
-        .zip(&block_flows)
-        .enumerate()
-        .map(|(k, (grey, flow))| {
-            if k == reference_block {
-                Ok(Array2::ones((h, w)))
-            } else {
-                robustness(&reference, grey, flow, grey_trials, &merge_cfg.robustness)
-            }
-        })
-        .collect::<Result<Vec<_>>>()?;
-    drop(block_flows);
-    // A sub-block's flow interpolates the flows of the two blocks whose centres enclose it, so
-    // it is only as reliable as both: its robustness is the minimum of the two blocks' maps
-    // (index n_blocks + k for the segment between centres k and k + 1).
-    let n_blocks = robustness_maps.len();
-    let mut robustness_maps = robustness_maps;
-    for k in 0..n_blocks.saturating_sub(1) {
-        let pair = ndarray::Zip::from(&robustness_maps[k])
-            .and(&robustness_maps[k + 1])
-            .map_collect(|&a, &b| a.min(b));
-        robustness_maps.push(pair);
-    }
-    let centers = alignment.plan.center_frames();
-    let robustness_index = |block: usize, centre: f64| -> usize {
-        if n_blocks < 2 || (centre - centers[block]).abs() < 0.5 {
-            return block;
-        }
-        let k = centers
-            .windows(2)
-            .position(|w| centre < w[1])
-            .unwrap_or(n_blocks - 2);
-        n_blocks + k
-    };
-    lap("reference, kernels, robustness", &mut timings);
+    drop(grey_blocks);
+    laps.lap("reference, kernels, robustness");
 
-    // Joint demosaic-merge of sub-block sums, streamed in chunks (supplement §1.3).
-    let corrector = hot
-        .map(|m| {
-            HotPixelCorrector::new(
-                &capture.cfa,
-                m,
-                config.align.hot_pixels.k,
-                config.align.hot_pixels.seed,
-            )
-        })
-        .transpose()?;
-    let ranges = plan_sub_blocks(&alignment, config);
-    let mut accumulator = MergeAccumulator::new(&capture.cfa, &kernels, &merge_cfg.accumulate)?;
-    progress.start("merge", ranges.len() as u64);
-    for chunk in ranges.chunks(SUB_BLOCK_CHUNK) {
+    let merged = merge_sub_blocks(capture, &motion, oracle, guide, &config.merge, progress)?;
+    laps.lap("demosaic-merge");
+    Ok(BurstReconstruction {
+        alignment,
+        sub_blocks: motion.sub_blocks.clone(),
+        motion,
+        merged,
+        timings: laps.timings,
+    })
+}
+
+/// Joint demosaic-merge of every sub-block of `motion` at its own flow (or the `oracle`'s at
+/// its centre frame), streamed in chunks through the phase-bin accumulator; hot pixels are
+/// left out. Then MLE flux and Eq. 8.
+fn merge_sub_blocks(
+    capture: &Capture,
+    motion: &FrameMotion,
+    oracle: Option<MotionOracle<'_>>,
+    guide: MergeGuide,
+    config: &MergeConfig,
+    progress: &dyn Progress,
+) -> Result<MergedBurst> {
+    let mut accumulator = MergeAccumulator::new(&capture.cfa, &guide.kernels, &config.accumulate)?;
+    if let Some(hot) = &capture.hot_pixels {
+        accumulator.exclude_sites(hot)?;
+    }
+    let indices: Vec<usize> = (0..motion.sub_blocks.len()).collect();
+    progress.start("merge", indices.len() as u64);
+    for chunk in indices.chunks(SUB_BLOCK_CHUNK) {
         let sub_blocks: Vec<SubBlock> = chunk
             .par_iter()
             .with_max_len(1)
-            .map(|(block, range)| {
-                let counts = match &corrector {
-                    Some(c) => c.corrected_block_sum(frames, range.clone()),
-                    None => frames.sum_range(range.clone()),
-                };
+            .map(|&k| {
+                let range = motion.sub_blocks[k].clone();
                 let centre = (range.start + range.end - 1) as f64 / 2.0;
-                let flow = match motion {
-                    Some(oracle) => oracle(centre),
-                    None => {
-                        let tile_flow = frame_flow(&alignment.flow, &alignment.plan, centre);
-                        dense_flow(&tile_flow, &alignment.grid, h, w)
-                    }
-                };
                 SubBlock {
-                    counts,
+                    counts: capture.frames.sum_range(range.clone()),
                     frames: range.len() as u32,
-                    flow,
-                    robustness: SubBlockRobustness::Block(robustness_index(*block, centre)),
+                    flow: match oracle {
+                        Some(oracle) => oracle(centre),
+                        None => motion.sub_block_flow(k),
+                    },
+                    robustness: SubBlockRobustness::Block(motion.block_of[k]),
                 }
             })
             .collect();
-        accumulator.add(&sub_blocks, &robustness_maps)?;
+        accumulator.add(&sub_blocks, &guide.robustness)?;
         progress.advance(chunk.len() as u64);
     }
     progress.finish();
-    let planes = accumulator.finish(capture.meta.dark_counts_per_frame(), capture.meta.w_weights);
-    // RGBW combination (paper Eq. 8).
-    let linear = combine_rgbw(&planes.flux, capture.meta.w_weights);
-    lap("demosaic-merge", &mut timings);
-    Ok(BurstReconstruction {
-        alignment,
-        merged: MergedBurst {
-            linear,
-            planes,
-            reference,
-            robustness: robustness_maps[..n_blocks].to_vec(),
-            kernels,
-        },
-        sub_blocks: ranges.into_iter().map(|(_, r)| r).collect(),
-        timings,
-    })
+    let planes = accumulator.finish(
+        capture.meta.dark_counts_per_frame(),
+        capture.meta.w_weights,
+    );
+    Ok(MergedBurst::from_planes(
+        planes,
+        guide,
+        capture.meta.w_weights,
+    ))
 }

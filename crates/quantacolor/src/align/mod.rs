@@ -7,6 +7,8 @@
 //! 3. [`grey`]: grey block images (W interpolation, tile average or demosaic, by CFA class).
 //! 4. [`patch`]: hierarchical tile alignment of each grey block image to the reference's.
 //! 5. [`motion`]: frame-level flow by interpolation in time, per-pixel flow in space.
+//! 6. [`refine`]: camera motion re-measured on short sub-blocks against the reference image
+//!    (this project's own stage, run by [`crate::burst`] once the reference exists).
 //!
 //! [`align`] runs them in order with memory bounded in T: block sums are made one block at a
 //! time (a few in parallel) and only the grey images, `(H, W)` f32 per block, are kept.
@@ -16,12 +18,16 @@ pub mod grey;
 pub mod hot_pixels;
 pub mod motion;
 pub mod patch;
+pub mod refine;
 
 pub use blocks::{BlockConfig, BlockPlan};
 pub use grey::{grey_image, GreyChoice, GreyMethod};
 pub use hot_pixels::{dark_count_rate_map, hot_pixel_mask, HotPixelConfig, HotPixelCorrector};
 pub use motion::{block_centre_flow, flow_at, frame_flow};
 pub use patch::{Norm, PatchConfig, ReferenceAligner, TileGrid};
+pub use refine::{
+    plan_sub_blocks, refine_camera_motion, AffineMotion, FrameMotion, RefineConfig, RefineLevel,
+};
 
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;

@@ -128,7 +128,7 @@ pub fn block_centre_flow(flow: &Array4<f32>, plan: &BlockPlan) -> Array4<f32> {
 }
 
 /// Inverse of a square matrix by Gauss–Jordan elimination with partial pivoting.
-fn invert(mut m: Vec<Vec<f64>>) -> Option<Vec<Vec<f64>>> {
+pub(super) fn invert(mut m: Vec<Vec<f64>>) -> Option<Vec<Vec<f64>>> {
     let n = m.len();
     let mut inv: Vec<Vec<f64>> = (0..n)
         .map(|i| (0..n).map(|j| if i == j { 1.0 } else { 0.0 }).collect())

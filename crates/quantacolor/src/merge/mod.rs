@@ -23,7 +23,7 @@ pub mod robustness;
 pub mod warp;
 
 pub use accumulate::{
-    demosaic_merge, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock, SubBlockRobustness,
+    demosaic_merge, reference_position, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock, SubBlockRobustness,
 };
 pub use kernels::{kernel_field, KernelConfig, KernelField};
 pub use reference::{reference_image, WienerConfig};
@@ -80,8 +80,62 @@ pub struct MergedBurst {
     pub kernels: KernelField,
 }
 
-/// Merges a burst (paper §4.2, Fig. 4): reference image, kernels, robustness, joint
-/// demosaic-merge, RGBW combination (Eq. 8).
+/// What steers the joint demosaic-merge: the reference image, its kernels and every block's
+/// robustness map (stages 1–3 above).
+#[derive(Debug, Clone)]
+pub struct MergeGuide {
+    /// (H, W) Wiener-merged grey reference.
+    pub reference: Array2<f32>,
+    pub kernels: KernelField,
+    /// (H, W) robustness map per block (the reference block's is all ones).
+    pub robustness: Vec<Array2<f32>>,
+}
+
+/// Stages 1–3 of the merge (supplement §1.2–1.3): the Wiener-merged reference of the grey
+/// blocks warped by `block_flows`, its kernel field, and per-block robustness.
+pub fn merge_guide(
+    grey_blocks: &[Array2<f32>],
+    block_flows: &[Array3<f32>],
+    reference_block: usize,
+    grey_trials: f32,
+    config: &MergeConfig,
+) -> Result<MergeGuide> {
+    let blocks = grey_blocks.len();
+    if reference_block >= blocks {
+        return Err(Error::invalid(format!(
+            "merge: reference block {reference_block} is outside the {blocks} blocks"
+        )));
+    }
+    let (h, w) = grey_blocks[reference_block].dim();
+    let reference = reference_image(
+        grey_blocks,
+        block_flows,
+        reference_block,
+        grey_trials,
+        &config.wiener,
+    )?;
+    let kernels = kernel_field(&reference, &config.kernels)?;
+    let robustness_maps = grey_blocks
+        .iter()
+        .zip(block_flows)
+        .enumerate()
+        .map(|(k, (grey, flow))| {
+            if k == reference_block {
+                Ok(Array2::ones((h, w)))
+            } else {
+                robustness(&reference, grey, flow, grey_trials, &config.robustness)
+            }
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(MergeGuide {
+        reference,
+        kernels,
+        robustness: robustness_maps,
+    })
+}
+
+/// Merges a burst (paper §4.2, Fig. 4): [`merge_guide`], joint demosaic-merge, RGBW
+/// combination (Eq. 8). [`crate::burst`] runs the same stages, streaming the sub-blocks.
 pub fn merge_burst(input: &BurstInput, config: &MergeConfig) -> Result<MergedBurst> {
     let blocks = input.grey_blocks.len();
     if input.reference_block >= blocks {
@@ -97,50 +151,37 @@ pub fn merge_burst(input: &BurstInput, config: &MergeConfig) -> Result<MergedBur
             input.grey_blocks[input.reference_block].dim()
         )));
     }
-    let reference = reference_image(
+    let guide = merge_guide(
         input.grey_blocks,
         input.block_flows,
         input.reference_block,
         input.grey_trials,
-        &config.wiener,
+        config,
     )?;
-    let kernels = kernel_field(&reference, &config.kernels)?;
-    let robustness_maps = input
-        .grey_blocks
-        .iter()
-        .zip(input.block_flows)
-        .enumerate()
-        .map(|(k, (grey, flow))| {
-            if k == input.reference_block {
-                Ok(Array2::ones((h, w)))
-            } else {
-                robustness(
-                    &reference,
-                    grey,
-                    flow,
-                    input.grey_trials,
-                    &config.robustness,
-                )
-            }
-        })
-        .collect::<Result<Vec<_>>>()?;
     let planes = demosaic_merge(
         input.sub_blocks,
-        &robustness_maps,
+        &guide.robustness,
         input.cfa,
-        &kernels,
+        &guide.kernels,
         input.dark_per_frame,
         input.w_weights,
         &config.accumulate,
     )?;
-    let linear = combine_rgbw(&planes.flux, input.w_weights);
-    Ok(MergedBurst {
-        linear,
-        planes,
-        reference,
-        robustness: robustness_maps,
-        kernels,
-    })
+    Ok(MergedBurst::from_planes(planes, guide, input.w_weights))
+}
+
+impl MergedBurst {
+    /// The RGBW combination of paper Eq. 8 over merged `planes`, with the guide kept for
+    /// inspection.
+    pub fn from_planes(planes: MergedPlanes, guide: MergeGuide, w_weights: [f64; 3]) -> Self {
+        MergedBurst {
+            linear: combine_rgbw(&planes.flux, w_weights),
+            planes,
+            reference: guide.reference,
+            robustness: guide.robustness,
+            kernels: guide.kernels,
+        }
+    }
 }
 
 /// Grey image of one block for alignment and the reference: the mean bit rate counts/frames of

@@ -1,0 +1,772 @@
+//! Camera motion at the sensor's time resolution: this project's own stage, not the paper's.
+//!
+//! The paper (§4.1; Ma et al. 2020 §4.2) measures motion once per temporal block (50–1000
+//! frames) and interpolates it linearly in time to every frame. Under hand shake the true
+//! trajectory curves inside a block, so samples merged at the interpolated motion smear (the
+//! quality suite measured up to 5 dB below a merge driven by the true motion). Here the camera
+//! part of the motion is re-measured on short *sub-blocks* (tens of frames, chosen so that the
+//! motion inside one stays below a fraction of a pixel) against the high-SNR reference image:
+//!
+//! 1. [`FrameMotion::from_alignment`] splits every block's tile flow into an affine camera
+//!    motion (the robust fit of [`super::affine_fit_field`]) and a local residual (moving
+//!    objects, kept at block granularity);
+//! 2. [`plan_sub_blocks`] cuts each block into sub-blocks from the camera's speed and the light
+//!    level;
+//! 3. [`refine_camera_motion`] fits each sub-block's affine camera motion by Gauss–Newton on
+//!    binned photon counts against the reference (coarse to fine, weighted by the binomial
+//!    variance, Huber-robust), starting from the block motion interpolated in time;
+//! 4. the six affine parameters are smoothed along time by a local quadratic fit (hand shake
+//!    is smooth; photon noise of one sub-block is not).
+//!
+//! A sub-block's samples are then merged at its own motion ([`FrameMotion::sub_block_flow`]).
+
+use super::blocks::BlockPlan;
+use super::grey::GreyMethod;
+use super::motion::{flow_at, frame_flow, invert};
+use super::patch::{gaussian_blur, TileGrid};
+use super::{affine_fit_field, Alignment, Flow};
+use crate::capture::BinaryFrames;
+use crate::cfa::{Cfa, Channel};
+use crate::error::{Error, Result};
+use crate::progress::Progress;
+use ndarray::{s, Array2, Array3};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+
+/// One coarse-to-fine level of the sub-block fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RefineLevel {
+    /// Side of the square bins that photon counts are summed over (px).
+    pub bin: usize, // px
+    /// Gaussian σ the reference is smoothed with at this level (px): the capture range.
+    pub sigma_px: f32, // px
+}
+
+/// Settings of the frame-granular camera motion ([`refine_camera_motion`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct RefineConfig {
+    /// Re-measure the camera motion of every sub-block; off = the paper's linear interpolation
+    /// of block motion (sub-blocks are still cut and merged at their interpolated motion).
+    pub enabled: bool, // true
+    /// Largest camera displacement inside one sub-block (px, over the image corners): sets the
+    /// sub-block length from the motion's speed.
+    pub max_sub_block_motion_px: f64, // 0.25 px
+    /// Fewest mean detections per pixel a sub-block must collect: sets the shortest sub-block
+    /// from the light level.
+    pub min_sub_block_counts: f64, // 3 detections
+    /// Shortest sub-block (frames).
+    pub min_sub_block_frames: usize, // 8 frames
+    /// Coarse-to-fine levels of the Gauss–Newton fit.
+    pub levels: Vec<RefineLevel>,
+    /// Gauss–Newton iterations per level (fewer when the update falls below 0.002 px).
+    pub iterations: usize, // 5
+    /// Half-width of the local quadratic fit along time (sub-blocks); 0 = no smoothing.
+    pub smooth_radius: usize, // 2 sub-blocks
+    /// A sub-block whose fit moves further than this from its starting motion (px, at the image
+    /// corners) is deemed failed and takes the smoothed motion of its neighbours.
+    pub max_correction_px: f64, // 4 px
+}
+
+impl Default for RefineConfig {
+    fn default() -> Self {
+        RefineConfig {
+            enabled: true,
+            max_sub_block_motion_px: 0.25,
+            min_sub_block_counts: 3.0,
+            min_sub_block_frames: 8,
+            levels: vec![
+                RefineLevel {
+                    bin: 4,
+                    sigma_px: 2.0,
+                },
+                RefineLevel {
+                    bin: 1,
+                    sigma_px: 1.0,
+                },
+            ],
+            iterations: 5,
+            smooth_radius: 2,
+            max_correction_px: 4.0,
+        }
+    }
+}
+
+/// Affine displacement field d(x) = b + m·(x − c) about the image centre c, in (y, x) order.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct AffineMotion {
+    pub b: [f64; 2],
+    pub m: [[f64; 2]; 2],
+}
+
+impl AffineMotion {
+    /// d(x) for a position x given relative to the centre.
+    #[inline]
+    pub fn at(&self, rel: [f64; 2]) -> [f64; 2] {
+        [
+            self.b[0] + self.m[0][0] * rel[0] + self.m[0][1] * rel[1],
+            self.b[1] + self.m[1][0] * rel[0] + self.m[1][1] * rel[1],
+        ]
+    }
+
+    /// The displacement e of the inverse map: if x ↦ x + d(x), then y ↦ y + e(y) undoes it.
+    pub fn inverse(&self) -> Option<AffineMotion> {
+        let a = [
+            [1.0 + self.m[0][0], self.m[0][1]],
+            [self.m[1][0], 1.0 + self.m[1][1]],
+        ];
+        let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
+        if det.abs() < 1e-9 {
+            return None;
+        }
+        let inv = [
+            [a[1][1] / det, -a[0][1] / det],
+            [-a[1][0] / det, a[0][0] / det],
+        ];
+        Some(AffineMotion {
+            b: [
+                -(inv[0][0] * self.b[0] + inv[0][1] * self.b[1]),
+                -(inv[1][0] * self.b[0] + inv[1][1] * self.b[1]),
+            ],
+            m: [
+                [inv[0][0] - 1.0, inv[0][1]],
+                [inv[1][0], inv[1][1] - 1.0],
+            ],
+        })
+    }
+
+    fn params(&self) -> [f64; 6] {
+        [
+            self.b[0], self.b[1], self.m[0][0], self.m[0][1], self.m[1][0], self.m[1][1],
+        ]
+    }
+
+    fn from_params(p: [f64; 6]) -> AffineMotion {
+        AffineMotion {
+            b: [p[0], p[1]],
+            m: [[p[2], p[3]], [p[4], p[5]]],
+        }
+    }
+
+    /// Largest displacement difference to `other` over the corners of a `half` = (H/2, W/2)
+    /// image (px).
+    fn distance(&self, other: &AffineMotion, half: [f64; 2]) -> f64 {
+        let mut worst = 0.0f64;
+        for sy in [-1.0, 1.0] {
+            for sx in [-1.0, 1.0] {
+                let rel = [sy * half[0], sx * half[1]];
+                let (a, b) = (self.at(rel), other.at(rel));
+                worst = worst.max(((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt());
+            }
+        }
+        worst
+    }
+
+    fn lerp(&self, other: &AffineMotion, a: f64) -> AffineMotion {
+        let (p, q) = (self.params(), other.params());
+        AffineMotion::from_params(std::array::from_fn(|i| p[i] * (1.0 - a) + q[i] * a))
+    }
+}
+
+/// Value at time `t` of a piecewise-linear function through `(times[i], values[i])`,
+/// extrapolated linearly beyond the ends.
+fn interpolate(times: &[f64], values: &[AffineMotion], t: f64) -> AffineMotion {
+    if values.len() == 1 {
+        return values[0];
+    }
+    let k = times
+        .windows(2)
+        .position(|w| t < w[1])
+        .unwrap_or(times.len() - 2);
+    let a = (t - times[k]) / (times[k + 1] - times[k]);
+    values[k].lerp(&values[k + 1], a)
+}
+
+/// Motion of every frame of a burst: an affine camera motion per sub-block plus, per block, the
+/// tile flow the camera does not explain (moving objects).
+#[derive(Debug, Clone)]
+pub struct FrameMotion {
+    pub height: usize,
+    pub width: usize,
+    /// The blocks the local residual is given for.
+    pub plan: BlockPlan,
+    pub grid: TileGrid,
+    /// Frames of each sub-block, in time order, covering the burst.
+    pub sub_blocks: Vec<Range<usize>>,
+    /// Block holding each sub-block.
+    pub block_of: Vec<usize>,
+    /// Forward camera displacement of each sub-block (reference → sub-block), about the image
+    /// centre.
+    pub camera: Vec<AffineMotion>,
+    /// (n_blocks, tiles_y, tiles_x, 2) tile flow minus the block's camera motion; zero where
+    /// the camera explains the tile.
+    pub local: Flow,
+    /// Whether any tile has a local residual.
+    has_local: bool,
+}
+
+/// Least-squares affine displacement through the tile flows `field` (tiles_y, tiles_x, 2).
+fn affine_from_tiles(field: &Array3<f32>, grid: &TileGrid, centre: [f64; 2]) -> AffineMotion {
+    let mut params = [[0.0f64; 3]; 2];
+    let mut normal = [[0.0f64; 3]; 3];
+    let mut rhs = [[0.0f64; 3]; 2];
+    for (i, &cy) in grid.tile_centers_y.iter().enumerate() {
+        for (j, &cx) in grid.tile_centers_x.iter().enumerate() {
+            let basis = [1.0, cy as f64 - centre[0], cx as f64 - centre[1]];
+            for r in 0..3 {
+                for c in 0..3 {
+                    normal[r][c] += basis[r] * basis[c];
+                }
+                for (k, rhs_k) in rhs.iter_mut().enumerate() {
+                    rhs_k[r] += basis[r] * field[[i, j, k]] as f64;
+                }
+            }
+        }
+    }
+    for k in 0..2 {
+        match super::solve3(normal, rhs[k]) {
+            Some(p) => params[k] = p,
+            None => {
+                // One row or column of tiles: translation only.
+                let n = (grid.tiles_y * grid.tiles_x) as f64;
+                params[k] = [rhs[k][0] / n, 0.0, 0.0];
+            }
+        }
+    }
+    AffineMotion {
+        b: [params[0][0], params[1][0]],
+        m: [
+            [params[0][1], params[0][2]],
+            [params[1][1], params[1][2]],
+        ],
+    }
+}
+
+impl FrameMotion {
+    /// Block-level motion of `alignment`: each block's robust affine fit (tolerance as in
+    /// [`super::AlignConfig::affine_tolerance_px`]) as its camera motion, the rest as local
+    /// residual; one sub-block per block.
+    pub fn from_alignment(alignment: &Alignment, tolerance_px: f32) -> FrameMotion {
+        let (_, h, w) = alignment.grey.dim();
+        let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+        let grid = alignment.grid.clone();
+        let mut local = alignment.flow.clone();
+        let mut camera = Vec::with_capacity(alignment.plan.len());
+        for b in 0..alignment.plan.len() {
+            let tiles = alignment.flow.slice(s![b, .., .., ..]).to_owned();
+            match affine_fit_field(&tiles, &grid, tolerance_px.max(1.0)) {
+                Some(fit) => {
+                    camera.push(affine_from_tiles(&fit, &grid, centre));
+                    let mut residual = local.slice_mut(s![b, .., .., ..]);
+                    residual -= &fit;
+                    residual.mapv_inplace(|v| if v.abs() < 1e-4 { 0.0 } else { v });
+                }
+                None => {
+                    camera.push(AffineMotion::default());
+                }
+            }
+        }
+        let has_local = local.iter().any(|&v| v != 0.0);
+        FrameMotion {
+            height: h,
+            width: w,
+            plan: alignment.plan.clone(),
+            grid,
+            sub_blocks: alignment.plan.blocks.clone(),
+            block_of: (0..alignment.plan.len()).collect(),
+            camera,
+            local,
+            has_local,
+        }
+    }
+
+    fn centre(&self) -> [f64; 2] {
+        [
+            (self.height as f64 - 1.0) / 2.0,
+            (self.width as f64 - 1.0) / 2.0,
+        ]
+    }
+
+    fn half_size(&self) -> [f64; 2] {
+        [self.height as f64 / 2.0, self.width as f64 / 2.0]
+    }
+
+    /// Centre frame of each sub-block.
+    pub fn sub_block_centres(&self) -> Vec<f64> {
+        self.sub_blocks
+            .iter()
+            .map(|r| (r.start + r.end - 1) as f64 / 2.0)
+            .collect()
+    }
+
+    /// Camera motion at (fractional) frame `t`, linear between sub-block centres.
+    pub fn camera_at(&self, t: f64) -> AffineMotion {
+        interpolate(&self.sub_block_centres(), &self.camera, t)
+    }
+
+    /// Dense (H, W, 2) flow of camera motion `camera` plus the local residual at frame `t`.
+    fn dense(&self, camera: &AffineMotion, t: f64) -> Array3<f32> {
+        let (h, w) = (self.height, self.width);
+        let centre = self.centre();
+        let local = self
+            .has_local
+            .then(|| frame_flow(&self.local, &self.plan, t));
+        let mut out = Array3::<f32>::zeros((h, w, 2));
+        out.outer_iter_mut()
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(y, mut row)| {
+                for x in 0..w {
+                    let d = camera.at([y as f64 - centre[0], x as f64 - centre[1]]);
+                    let l = local
+                        .as_ref()
+                        .map_or([0.0; 2], |l| flow_at(l, &self.grid, y as f32, x as f32));
+                    row[[x, 0]] = d[0] as f32 + l[0];
+                    row[[x, 1]] = d[1] as f32 + l[1];
+                }
+            });
+        out
+    }
+
+    /// Dense (H, W, 2) flow of sub-block `k` (reference → sub-block).
+    pub fn sub_block_flow(&self, k: usize) -> Array3<f32> {
+        let r = &self.sub_blocks[k];
+        self.dense(&self.camera[k], (r.start + r.end - 1) as f64 / 2.0)
+    }
+
+    /// Dense (H, W, 2) flow at (fractional) frame `t`.
+    pub fn flow_at_frame(&self, t: f64) -> Array3<f32> {
+        self.dense(&self.camera_at(t), t)
+    }
+
+    /// Dense (H, W, 2) flow of block `b`: the frame-weighted mean camera motion of its
+    /// sub-blocks (a block image is the time average of its frames) plus its local residual.
+    pub fn block_flow(&self, b: usize) -> Array3<f32> {
+        let mut sum = [0.0f64; 6];
+        let mut n = 0.0;
+        for (k, range) in self.sub_blocks.iter().enumerate() {
+            if self.block_of[k] == b {
+                let p = self.camera[k].params();
+                let f = range.len() as f64;
+                sum.iter_mut().zip(p).for_each(|(s, v)| *s += f * v);
+                n += f;
+            }
+        }
+        let mean = AffineMotion::from_params(sum.map(|s| s / n.max(1.0)));
+        self.dense(&mean, self.plan.center_frames()[b])
+    }
+}
+
+/// Cuts every block of `motion` (one sub-block per block, as from
+/// [`FrameMotion::from_alignment`]) into equal sub-blocks so that the camera moves at most
+/// `config.max_sub_block_motion_px` inside each, never shorter than
+/// `max(min_sub_block_frames, min_sub_block_counts / detections_per_frame)` frames; each
+/// sub-block starts at the block motion interpolated to its centre.
+pub fn plan_sub_blocks(motion: &mut FrameMotion, detections_per_frame: f64, config: &RefineConfig) {
+    let by_light = if detections_per_frame > 0.0 {
+        (config.min_sub_block_counts / detections_per_frame).ceil() as usize
+    } else {
+        usize::MAX
+    };
+    let shortest = by_light.max(config.min_sub_block_frames).max(1);
+    let half = motion.half_size();
+    let mut sub_blocks = Vec::new();
+    let mut block_of = Vec::new();
+    let mut camera = Vec::new();
+    for (b, range) in motion.plan.blocks.clone().into_iter().enumerate() {
+        let len = range.len();
+        let travel = motion
+            .camera_at(range.start as f64)
+            .distance(&motion.camera_at((range.end - 1) as f64), half);
+        let for_motion = (travel / config.max_sub_block_motion_px.max(1e-6)).ceil() as usize;
+        let pieces = for_motion.clamp(1, (len / shortest).max(1));
+        for i in 0..pieces {
+            let r = range.start + i * len / pieces..range.start + (i + 1) * len / pieces;
+            if !r.is_empty() {
+                camera.push(motion.camera_at((r.start + r.end - 1) as f64 / 2.0));
+                sub_blocks.push(r);
+                block_of.push(b);
+            }
+        }
+    }
+    motion.sub_blocks = sub_blocks;
+    motion.block_of = block_of;
+    motion.camera = camera;
+}
+
+/// Bins of one level: the grey channel's sites summed over `bin` x `bin` squares.
+struct BinLayout {
+    /// Site indices (row-major) of every bin.
+    sites: Vec<Vec<u32>>,
+    /// Mean site position of every bin, relative to the image centre.
+    centroid: Vec<[f64; 2]>,
+}
+
+/// A smoothed reference and its gradients.
+struct TemplateLevel {
+    value: Array2<f32>,
+    grad_y: Array2<f32>,
+    grad_x: Array2<f32>,
+}
+
+/// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
+#[inline]
+fn sample(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
+    let (h, w) = level.value.dim();
+    if !(y >= 0.0 && x >= 0.0 && y <= (h - 1) as f64 && x <= (w - 1) as f64) {
+        return None;
+    }
+    let (y0, x0) = (
+        (y.floor() as usize).min(h - 2),
+        (x.floor() as usize).min(w - 2),
+    );
+    let (fy, fx) = ((y - y0 as f64) as f32, (x - x0 as f64) as f32);
+    let bl = |img: &Array2<f32>| -> f64 {
+        let top = img[[y0, x0]] * (1.0 - fx) + img[[y0, x0 + 1]] * fx;
+        let bottom = img[[y0 + 1, x0]] * (1.0 - fx) + img[[y0 + 1, x0 + 1]] * fx;
+        (top * (1.0 - fy) + bottom * fy) as f64
+    };
+    Some([bl(&level.value), bl(&level.grad_y), bl(&level.grad_x)])
+}
+
+fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
+    let value = gaussian_blur(reference, sigma);
+    let (h, w) = value.dim();
+    let grad = |dy: usize, dx: usize| {
+        Array2::from_shape_fn((h, w), |(y, x)| {
+            let (ya, yb) = (y.saturating_sub(dy), (y + dy).min(h - 1));
+            let (xa, xb) = (x.saturating_sub(dx), (x + dx).min(w - 1));
+            let span = ((yb - ya) + (xb - xa)).max(1) as f32;
+            (value[[yb, xb]] - value[[ya, xa]]) / span
+        })
+    };
+    let (grad_y, grad_x) = (grad(1, 0), grad(0, 1));
+    TemplateLevel {
+        value,
+        grad_y,
+        grad_x,
+    }
+}
+
+/// Bins of `bin` px over the sites of `cfa` that the grey image is made of (W on a W-rich CFA,
+/// every site of a periodic CFA), hot pixels left out.
+fn bin_layout(cfa: &Cfa, method: GreyMethod, hot: Option<&Array2<bool>>, bin: usize) -> BinLayout {
+    let (h, w) = (cfa.height(), cfa.width());
+    let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+    // Tile averages sit half a period from the pixel they are stored at.
+    let offset = match method {
+        GreyMethod::TileAverage { py, px } => [(py as f64 - 1.0) / 2.0, (px as f64 - 1.0) / 2.0],
+        _ => [0.0, 0.0],
+    };
+    let (by, bx) = (h.div_ceil(bin), w.div_ceil(bin));
+    let mut sites = vec![Vec::new(); by * bx];
+    let mut sums = vec![[0.0f64; 2]; by * bx];
+    for y in 0..h {
+        for x in 0..w {
+            let use_site = match method {
+                GreyMethod::InterpolateW => cfa.channel(y, x) == Channel::W,
+                _ => true,
+            };
+            if use_site && !hot.is_some_and(|m| m[[y, x]]) {
+                let k = (y / bin) * bx + x / bin;
+                sites[k].push((y * w + x) as u32);
+                sums[k][0] += y as f64;
+                sums[k][1] += x as f64;
+            }
+        }
+    }
+    let centroid = sites
+        .iter()
+        .zip(&sums)
+        .map(|(s, m)| {
+            let n = s.len().max(1) as f64;
+            [
+                m[0] / n - offset[0] - centre[0],
+                m[1] / n - offset[1] - centre[1],
+            ]
+        })
+        .collect();
+    BinLayout { sites, centroid }
+}
+
+/// Gauss–Newton fit of the inverse camera map (sub-block → reference) of one sub-block with
+/// grey-site counts `counts` over `frames` frames; `None` when it does not converge.
+fn fit_sub_block(
+    counts: &Array2<u32>,
+    frames: usize,
+    layouts: &[BinLayout],
+    templates: &[TemplateLevel],
+    start: AffineMotion,
+    centre: [f64; 2],
+    iterations: usize,
+) -> Option<AffineMotion> {
+    let counts = counts.as_slice()?;
+    let mut params = start.params();
+    for (layout, template) in layouts.iter().zip(templates) {
+        for iteration in 0..iterations {
+            let motion = AffineMotion::from_params(params);
+            let mut normal = [[0.0f64; 6]; 6];
+            let mut rhs = [0.0f64; 6];
+            for (sites, rel) in layout.sites.iter().zip(&layout.centroid) {
+                if sites.is_empty() {
+                    continue;
+                }
+                let d = motion.at(*rel);
+                let Some([t, gy, gx]) =
+                    sample(template, rel[0] + centre[0] + d[0], rel[1] + centre[1] + d[1])
+                else {
+                    continue;
+                };
+                let n = sites.len() as f64;
+                let observed =
+                    sites.iter().map(|&i| counts[i as usize] as f64).sum::<f64>() / (n * frames as f64);
+                let residual = observed - t;
+                // Binomial variance of the bin mean, and a Huber weight at 3 std (moving
+                // objects, occlusions).
+                let variance = (t * (1.0 - t)).max(0.01) / (n * frames as f64);
+                let z = residual.abs() / variance.sqrt();
+                let weight = if z > 3.0 { 3.0 / z } else { 1.0 } / variance;
+                let jac = [
+                    gy,
+                    gx,
+                    gy * rel[0],
+                    gy * rel[1],
+                    gx * rel[0],
+                    gx * rel[1],
+                ];
+                for r in 0..6 {
+                    rhs[r] += weight * jac[r] * residual;
+                    for c in r..6 {
+                        normal[r][c] += weight * jac[r] * jac[c];
+                    }
+                }
+            }
+            for r in 0..6 {
+                for c in 0..r {
+                    normal[r][c] = normal[c][r];
+                }
+                normal[r][r] *= 1.0 + 1e-6;
+            }
+            let inv = invert(normal.iter().map(|row| row.to_vec()).collect())?;
+            let step: Vec<f64> = (0..6)
+                .map(|r| (0..6).map(|c| inv[r][c] * rhs[c]).sum())
+                .collect();
+            if step.iter().any(|v| !v.is_finite()) {
+                return None;
+            }
+            params.iter_mut().zip(&step).for_each(|(p, s)| *p += s);
+            let shift = (step[0].powi(2) + step[1].powi(2)).sqrt()
+                + centre[0].max(centre[1]) * step[2..].iter().map(|v| v.abs()).sum::<f64>();
+            if shift < 0.002 && iteration > 0 {
+                break;
+            }
+        }
+    }
+    Some(AffineMotion::from_params(params))
+}
+
+/// Local quadratic fit along time of every parameter of `camera` (sub-block centres `times`)
+/// over `radius` neighbours each side, from the sub-blocks marked `valid`.
+fn smooth_in_time(
+    camera: &[AffineMotion],
+    valid: &[bool],
+    times: &[f64],
+    radius: usize,
+) -> Vec<AffineMotion> {
+    let n = camera.len();
+    (0..n)
+        .map(|k| {
+            let lo = k.saturating_sub(radius);
+            let hi = (k + radius + 1).min(n);
+            let idx: Vec<usize> = (lo..hi).filter(|&j| valid[j]).collect();
+            if idx.is_empty() {
+                return camera[k];
+            }
+            let order = idx.len().min(3);
+            let scale = (times[hi - 1] - times[lo]).max(1.0);
+            let mut normal = vec![vec![0.0f64; order]; order];
+            let mut rhs = vec![[0.0f64; 6]; order];
+            for &j in &idx {
+                let u = (times[j] - times[k]) / scale;
+                let basis: Vec<f64> = (0..order).map(|p| u.powi(p as i32)).collect();
+                let p = camera[j].params();
+                for r in 0..order {
+                    for c in 0..order {
+                        normal[r][c] += basis[r] * basis[c];
+                    }
+                    for (i, v) in p.iter().enumerate() {
+                        rhs[r][i] += basis[r] * v;
+                    }
+                }
+            }
+            match invert(normal) {
+                Some(inv) => AffineMotion::from_params(std::array::from_fn(|i| {
+                    (0..order).map(|c| inv[0][c] * rhs[c][i]).sum()
+                })),
+                None => camera[k],
+            }
+        })
+        .collect()
+}
+
+/// Re-measures the camera motion of every sub-block of `motion` against `reference` (the
+/// Wiener-merged grey image, mean bit rate per frame of the grey channel) and smooths it in
+/// time; see the module documentation. Sub-blocks are summed from the packed frames; the `hot`
+/// pixels are left out of the bins.
+#[allow(clippy::too_many_arguments)]
+pub fn refine_camera_motion(
+    frames: &BinaryFrames,
+    cfa: &Cfa,
+    grey_method: GreyMethod,
+    hot: Option<&Array2<bool>>,
+    reference: &Array2<f32>,
+    motion: &mut FrameMotion,
+    config: &RefineConfig,
+    progress: &dyn Progress,
+) -> Result<()> {
+    if !config.enabled || matches!(grey_method, GreyMethod::Demosaic) {
+        return Ok(());
+    }
+    if config.levels.is_empty() || config.levels.iter().any(|l| l.bin == 0 || l.sigma_px <= 0.0) {
+        return Err(Error::invalid(
+            "motion refinement: levels need a bin of at least 1 px and a positive sigma",
+        ));
+    }
+    let centre = motion.centre();
+    let half = motion.half_size();
+    let layouts: Vec<BinLayout> = config
+        .levels
+        .iter()
+        .map(|l| bin_layout(cfa, grey_method, hot, l.bin))
+        .collect();
+    let templates: Vec<TemplateLevel> = config
+        .levels
+        .iter()
+        .map(|l| template_level(reference, l.sigma_px))
+        .collect();
+    progress.start("motion refinement", motion.sub_blocks.len() as u64);
+    let fitted: Vec<Option<AffineMotion>> = motion
+        .sub_blocks
+        .par_iter()
+        .zip(motion.camera.par_iter())
+        .with_max_len(1)
+        .map(|(range, start)| {
+            let counts = frames.sum_range(range.clone());
+            let result = start.inverse().and_then(|inverse_start| {
+                fit_sub_block(
+                    &counts,
+                    range.len(),
+                    &layouts,
+                    &templates,
+                    inverse_start,
+                    centre,
+                    config.iterations,
+                )
+                .and_then(|inv| inv.inverse())
+                .filter(|fit| fit.distance(start, half) <= config.max_correction_px)
+            });
+            progress.advance(1);
+            result
+        })
+        .collect();
+    progress.finish();
+    let valid: Vec<bool> = fitted.iter().map(|f| f.is_some()).collect();
+    let camera: Vec<AffineMotion> = fitted
+        .iter()
+        .zip(&motion.camera)
+        .map(|(f, start)| f.unwrap_or(*start))
+        .collect();
+    motion.camera = if config.smooth_radius > 0 {
+        smooth_in_time(
+            &camera,
+            &valid,
+            &motion.sub_block_centres(),
+            config.smooth_radius,
+        )
+    } else {
+        camera
+    };
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cfa::colorspad_cfa;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Binomial, Distribution};
+
+    /// Textured grey scene (bit rate per frame) at a real position.
+    fn scene(y: f64, x: f64) -> f64 {
+        let t = (y * 0.37).sin() * (x * 0.23).cos() + 0.5 * ((x + 2.0 * y) * 0.11).sin();
+        0.12 * (1.0 + 0.5 * t)
+    }
+
+    /// Counts of `frames` frames of a sub-block whose camera moved by `truth` (forward).
+    fn counts(cfa: &Cfa, truth: &AffineMotion, frames: usize, seed: u64) -> Array2<u32> {
+        let (h, w) = (cfa.height(), cfa.width());
+        let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+        let inverse = truth.inverse().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        Array2::from_shape_fn((h, w), |(y, x)| {
+            let rel = [y as f64 - centre[0], x as f64 - centre[1]];
+            let e = inverse.at(rel);
+            let p = scene(y as f64 + e[0], x as f64 + e[1]);
+            Binomial::new(frames as u64, p).unwrap().sample(&mut rng) as u32
+        })
+    }
+
+    #[test]
+    fn sub_block_fit_recovers_a_known_affine_motion() {
+        let cfa = colorspad_cfa();
+        let (h, w) = (cfa.height(), cfa.width());
+        let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+        let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        let config = RefineConfig::default();
+        let layouts: Vec<BinLayout> = config
+            .levels
+            .iter()
+            .map(|l| bin_layout(&cfa, GreyMethod::InterpolateW, None, l.bin))
+            .collect();
+        let templates: Vec<TemplateLevel> = config
+            .levels
+            .iter()
+            .map(|l| template_level(&reference, l.sigma_px))
+            .collect();
+        let theta = 0.004f64;
+        for (i, truth) in [
+            AffineMotion::default(),
+            AffineMotion {
+                b: [0.7, -1.3],
+                m: [[theta.cos() - 1.0, theta.sin()], [-theta.sin(), theta.cos() - 1.0]],
+            },
+        ]
+        .iter()
+        .enumerate()
+        {
+            let c = counts(&cfa, truth, 32, 7 + i as u64);
+            // Start 1 px off.
+            let start = AffineMotion {
+                b: [truth.b[0] + 0.8, truth.b[1] - 0.6],
+                ..*truth
+            };
+            let fit = fit_sub_block(
+                &c,
+                32,
+                &layouts,
+                &templates,
+                start.inverse().unwrap(),
+                centre,
+                config.iterations,
+            )
+            .unwrap()
+            .inverse()
+            .unwrap();
+            let err = fit.distance(truth, [h as f64 / 2.0, w as f64 / 2.0]);
+            println!("truth {truth:?}: fit {fit:?}, corner error {err:.4} px");
+            assert!(err < 0.3, "{err}");
+        }
+    }
+}

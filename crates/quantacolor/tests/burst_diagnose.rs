@@ -1,0 +1,136 @@
+//! Hand-run diagnostic of the frame-granular motion (prints, asserts nothing, so ignored):
+//! burst with and without motion refinement against the true-motion merge, and the median
+//! end-point error of the merge's motion, on tuning captures.
+//! `cargo test --release -p quantacolor --test burst_diagnose -- --ignored --nocapture`
+//! (QC_CASES="scene:motion:frames:flux;..." overrides the captures; scenes from ../shared/data).
+
+use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, BurstConfig};
+use quantacolor::cfa::colorspad_cfa;
+use quantacolor::metrics::{evaluate, EvalOptions};
+use quantacolor::progress::Silent;
+use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
+use std::time::Instant;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+#[test]
+#[ignore]
+fn diagnose_frame_motion() {
+    let cases = std::env::var("QC_CASES").unwrap_or_else(|_| {
+        "kodim02.png:handheld:512:0.1;builtin:chart:handheld:1024:0.1;kodim15.png:fast-handheld:512:0.1;ScanLines_StillLife.exr:handheld:2000:hdr".into()
+    });
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes");
+    let opts = EvalOptions {
+        border: 16,
+        normalize_percentile: Some(99.5),
+    };
+    for (i, case) in cases.split(';').enumerate() {
+        let parts: Vec<&str> = case.rsplitn(4, ':').collect();
+        let (flux, frames, motion, scene) = (parts[0], parts[1], parts[2], parts[3]);
+        let scene = if scene.starts_with("builtin:") {
+            Scene::from_spec(scene).unwrap()
+        } else {
+            Scene::load(scenes.join(scene)).unwrap()
+        };
+        let flux = if flux == "hdr" {
+            FluxSpec::Percentile {
+                percentile: 50.0,
+                peak: 0.1,
+            }
+        } else {
+            FluxSpec::Mean {
+                flux: flux.parse().unwrap(),
+            }
+        };
+        let motion_config: MotionConfig = match motion {
+            "fast40" => MotionConfig::FastHandheld {
+                amplitude_px: 40.0,
+                rotation_deg: 2.0,
+                cycles: 3.0,
+            },
+            m => m.parse().unwrap(),
+        };
+        let config = SimulationConfig {
+            frames: frames.parse().unwrap(),
+            flux,
+            motion: motion_config,
+            hot_fraction: 0.02,
+            seed: 900 + i as u64,
+            ..SimulationConfig::default()
+        };
+        let sim = simulate_with_cfa(&config, &scene, &colorspad_cfa(), &Silent).unwrap();
+        let capture = sim.to_capture().unwrap();
+        let reference = capture.reference_frame();
+        let (h, w) = (capture.cfa.height(), capture.cfa.width());
+        let oracle = |t: f64| sim.motion.dense_flow(t, h, w);
+        let score = |l: &ndarray::Array3<f32>| {
+            evaluate(l.view(), sim.ground_truth.view(), &opts)
+                .unwrap()
+                .psnr_srgb
+        };
+        let epe = |b: &quantacolor::burst::BurstReconstruction| {
+            let mut errs = Vec::new();
+            for k in 0..16 {
+                let t = (k as f64 + 0.5) / 16.0 * config.frames as f64;
+                let est = b.merge_flow(t);
+                let tru = sim.motion.dense_flow(t, h, w);
+                for y in (16..h - 16).step_by(4) {
+                    for x in (16..w - 16).step_by(4) {
+                        let dy = (est[[y, x, 0]] - tru[[y, x, 0]]) as f64;
+                        let dx = (est[[y, x, 1]] - tru[[y, x, 1]]) as f64;
+                        errs.push((dy * dy + dx * dx).sqrt());
+                    }
+                }
+            }
+            median(errs)
+        };
+        let mut variants: Vec<(String, BurstConfig)> = vec![("refined".into(), BurstConfig::default())];
+        let mut off = BurstConfig::default();
+        off.refine.enabled = false;
+        variants.push(("interpolated".into(), off));
+        if let Ok(extra) = std::env::var("QC_VARIANT") {
+            let cfg: BurstConfig = toml::from_str(&extra).unwrap();
+            variants.push(("variant".into(), cfg));
+        }
+        let truth = reconstruct_burst_with_motion(
+            &capture,
+            reference,
+            &BurstConfig::default(),
+            Some(&oracle),
+            &Silent,
+        )
+        .unwrap();
+        let t_psnr = score(&truth.merged.linear);
+        for (name, cfg) in &variants {
+            let start = Instant::now();
+            let b = reconstruct_burst(&capture, reference, cfg, &Silent).unwrap();
+            let secs = start.elapsed().as_secs_f64();
+            let p = score(&b.merged.linear);
+            if std::env::var("QC_DEBUG").is_ok() {
+                for (k, r) in b.motion.sub_blocks.iter().enumerate() {
+                    let c = (r.start + r.end - 1) as f64 / 2.0;
+                    let tru = sim.motion.dense_flow(c, h, w);
+                    let est = b.motion.sub_block_flow(k);
+                    println!(
+                        "  sub-block {k} {r:?}: camera b {:?}; centre flow est ({:.2}, {:.2}) true ({:.2}, {:.2}); corner est ({:.2}, {:.2}) true ({:.2}, {:.2})",
+                        b.motion.camera[k].b,
+                        est[[h / 2, w / 2, 0]], est[[h / 2, w / 2, 1]],
+                        tru[[h / 2, w / 2, 0]], tru[[h / 2, w / 2, 1]],
+                        est[[20, 20, 0]], est[[20, 20, 1]],
+                        tru[[20, 20, 0]], tru[[20, 20, 1]]
+                    );
+                }
+            }
+            println!(
+                "{case}: {name:<12} {p:.2} dB (true motion {t_psnr:.2}, {:+.2}), EPE {:.3} px, {} sub-blocks, {secs:.1} s {:?}",
+                p - t_psnr,
+                epe(&b),
+                b.sub_blocks.len(),
+                b.timings.iter().map(|t| format!("{} {:.2}", t.stage, t.seconds)).collect::<Vec<_>>()
+            );
+        }
+    }
+}
