@@ -366,16 +366,25 @@ struct Row {
     scores: [Scores; 7],
     /// Median alignment end-point error, px.
     epe: f64,
+    /// Median true motion, px (at the same pixels and frames).
+    motion_px: f64,
     sr: Option<SuperResolution>,
     seconds: f64,
 }
 
 /// Median over pixels (`border` excluded) and over 16 evenly spaced frames of the end-point
-/// error |merge flow − true flow|, px.
-fn median_epe(burst: &BurstReconstruction, motion: &Motion, frames: usize, border: usize) -> f64 {
+/// error |merge flow − true flow|, px, and of the true motion |true flow| (the error of
+/// assuming no motion), px.
+fn median_epe(
+    burst: &BurstReconstruction,
+    motion: &Motion,
+    frames: usize,
+    border: usize,
+) -> (f64, f64) {
     const SAMPLES: usize = 16;
     let (_, h, w) = burst.alignment.grey.dim();
     let mut errors: Vec<f32> = Vec::new();
+    let mut magnitudes: Vec<f32> = Vec::new();
     for k in 0..SAMPLES {
         let t = (k as f64 + 0.5) * frames as f64 / SAMPLES as f64 - 0.5;
         let est = burst.merge_flow(t);
@@ -385,14 +394,20 @@ fn median_epe(burst: &BurstReconstruction, motion: &Motion, frames: usize, borde
                 let dy = est[[y, x, 0]] - truth[[y, x, 0]];
                 let dx = est[[y, x, 1]] - truth[[y, x, 1]];
                 errors.push(dy.hypot(dx));
+                magnitudes.push(truth[[y, x, 0]].hypot(truth[[y, x, 1]]));
             }
         }
     }
-    if errors.is_empty() {
+    (median(&mut errors), median(&mut magnitudes))
+}
+
+/// Median (upper median for an even count); NaN for no values.
+fn median(values: &mut [f32]) -> f64 {
+    if values.is_empty() {
         return f64::NAN;
     }
-    let mid = errors.len() / 2;
-    let (_, m, _) = errors.select_nth_unstable_by(mid, f32::total_cmp);
+    let mid = values.len() / 2;
+    let (_, m, _) = values.select_nth_unstable_by(mid, f32::total_cmp);
     f64::from(*m)
 }
 
@@ -501,7 +516,7 @@ fn run_case(scenes: &Path, index: usize, case: &Case, opts: &EvalOptions) -> Res
         denoised(DenoiseMethod::Bm3d)?,
         denoised(DenoiseMethod::ChromaBm3d)?,
     ];
-    let epe = median_epe(&burst, &sim.motion, case.frames, opts.border);
+    let (epe, motion_px) = median_epe(&burst, &sim.motion, case.frames, opts.border);
     let sr = match &sim.ground_truth_hr {
         None => None,
         Some(gt_hr) => {
@@ -532,7 +547,7 @@ fn run_case(scenes: &Path, index: usize, case: &Case, opts: &EvalOptions) -> Res
     let seconds = started.elapsed().as_secs_f64();
     eprintln!(
         "{}: {seconds:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB, true motion {:.2} dB, \
-         EPE {epe:.3} px{}",
+         EPE {epe:.3} px (motion {motion_px:.2} px){}",
         case.id(),
         scores[BURST].psnr_srgb,
         scores[TRUE_MOTION].psnr_srgb,
@@ -547,6 +562,7 @@ fn run_case(scenes: &Path, index: usize, case: &Case, opts: &EvalOptions) -> Res
         case: index,
         scores,
         epe,
+        motion_px,
         sr,
         seconds,
     })
@@ -651,7 +667,9 @@ fn report(
          `reconstruct` runs burst + chroma-BM3D by default; `--denoise none` gives the first \
          column. EPE: median alignment end-point error |merge flow − true flow| (px) over the \
          pixels (16-pixel border excluded) at 16 evenly spaced frames; for moving objects over \
-         all pixels (camera and object).\n"
+         all pixels (camera and object). Motion: the median true displacement from the \
+         reference frame over the same pixels and frames (the EPE of assuming no motion). Time: \
+         wall-clock seconds for the capture (simulation and every column).\n"
     )?;
     writeln!(
         md,
@@ -687,10 +705,10 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
     writeln!(md, "## {title}\n")?;
     writeln!(
         md,
-        "| capture | {} | EPE (px) | time (s) |",
+        "| capture | {} | EPE (px) | motion (px) | time (s) |",
         METHODS.join(" | ")
     )?;
-    writeln!(md, "|---|{}---|---|", "---|".repeat(METHODS.len()))?;
+    writeln!(md, "|---|{}---|---|---|", "---|".repeat(METHODS.len()))?;
     for row in rows {
         let cells: Vec<String> = row
             .scores
@@ -699,10 +717,11 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
             .collect();
         writeln!(
             md,
-            "| {} | {} | {:.3} | {:.0} |",
+            "| {} | {} | {:.3} | {:.2} | {:.0} |",
             cases[row.case].label(),
             cells.join(" | "),
             row.epe,
+            row.motion_px,
             row.seconds
         )?;
     }
@@ -717,7 +736,7 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
     let n = rows.len();
     writeln!(
         md,
-        "| **mean** | {} | | |",
+        "| **mean** | {} | | | |",
         means
             .iter()
             .map(|m| format!("**{:.2} / {:.3}**", m.0, m.1))
