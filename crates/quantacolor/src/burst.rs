@@ -22,7 +22,7 @@ use crate::align::{
 use crate::capture::Capture;
 use crate::error::Result;
 use crate::merge::{
-    merge_guide, reference_image, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst,
+    merge_guide, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst,
     SubBlock, SubBlockRobustness,
 };
 use crate::pipeline::StageTiming;
@@ -148,19 +148,12 @@ pub fn reconstruct_burst_with_motion(
         .unwrap_or(0.0) as f64;
     plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
     if oracle.is_none() && config.refine.enabled {
-        let reference = reference_image(
-            &grey_blocks,
-            &block_flows(&motion),
-            reference_block,
-            grey_trials,
-            &config.merge.wiener,
-        )?;
         refine_camera_motion(
             frames,
             &capture.cfa,
             alignment.grey_method,
             hot,
-            &reference,
+            &grey_blocks,
             &mut motion,
             &config.refine,
             progress,
