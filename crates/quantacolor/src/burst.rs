@@ -16,14 +16,13 @@
 //! from the packed words and splatted once; the kernel regression runs once per image.
 
 use crate::align::{
-    align, plan_sub_blocks, refine_camera_motion, AlignConfig, Alignment, FrameMotion,
-    RefineConfig,
+    align, plan_sub_blocks, refine_camera_motion, AlignConfig, Alignment, FrameMotion, RefineConfig,
 };
 use crate::capture::Capture;
 use crate::error::Result;
 use crate::merge::{
-    merge_guide, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst,
-    SubBlock, SubBlockRobustness,
+    merge_guide, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst, SubBlock,
+    SubBlockRobustness,
 };
 use crate::pipeline::StageTiming;
 use crate::progress::Progress;
@@ -128,7 +127,14 @@ pub fn reconstruct_burst_with_motion(
     )?;
     laps.lap("align");
 
-    let mut motion = FrameMotion::from_alignment(&alignment, config.align.affine_tolerance_px);
+    let mut motion = FrameMotion::from_alignment(
+        &alignment,
+        config.align.affine_tolerance_px,
+        config.refine.min_local_tiles,
+    );
+    if !config.refine.keep_local_motion {
+        motion.drop_local_motion();
+    }
     let grey_blocks: Vec<Array2<f32>> = alignment.grey.outer_iter().map(|g| g.to_owned()).collect();
     let block_centres = alignment.plan.center_frames();
     let block_flows = |motion: &FrameMotion| -> Vec<Array3<f32>> {
@@ -220,10 +226,7 @@ fn merge_sub_blocks(
         progress.advance(chunk.len() as u64);
     }
     progress.finish();
-    let planes = accumulator.finish(
-        capture.meta.dark_counts_per_frame(),
-        capture.meta.w_weights,
-    );
+    let planes = accumulator.finish(capture.meta.dark_counts_per_frame(), capture.meta.w_weights);
     Ok(MergedBurst::from_planes(
         planes,
         guide,

@@ -22,7 +22,8 @@ fn diagnose_frame_motion() {
     let cases = std::env::var("QC_CASES").unwrap_or_else(|_| {
         "kodim02.png:handheld:512:0.1;builtin:chart:handheld:1024:0.1;kodim15.png:fast-handheld:512:0.1;ScanLines_StillLife.exr:handheld:2000:hdr".into()
     });
-    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes");
+    let scenes =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes");
     let opts = EvalOptions {
         border: 16,
         normalize_percentile: Some(99.5),
@@ -87,7 +88,8 @@ fn diagnose_frame_motion() {
             }
             median(errs)
         };
-        let mut variants: Vec<(String, BurstConfig)> = vec![("refined".into(), BurstConfig::default())];
+        let mut variants: Vec<(String, BurstConfig)> =
+            vec![("refined".into(), BurstConfig::default())];
         let mut off = BurstConfig::default();
         off.refine.enabled = false;
         variants.push(("interpolated".into(), off));

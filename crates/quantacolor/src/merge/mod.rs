@@ -23,7 +23,8 @@ pub mod robustness;
 pub mod warp;
 
 pub use accumulate::{
-    demosaic_merge, reference_position, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock, SubBlockRobustness,
+    demosaic_merge, reference_position, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock,
+    SubBlockRobustness,
 };
 pub use kernels::{kernel_field, KernelConfig, KernelField};
 pub use reference::{reference_image, WienerConfig};
