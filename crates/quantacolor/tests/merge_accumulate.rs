@@ -478,7 +478,11 @@ fn fast_merge_matches_the_per_sample_merge() {
         })
         .collect();
     let reference = Array2::from_shape_fn((h, w), |(y, x)| {
-        bit_rate(textured(y as f64, x as f64), quantacolor::cfa::Channel::W, DARK) as f32
+        bit_rate(
+            textured(y as f64, x as f64),
+            quantacolor::cfa::Channel::W,
+            DARK,
+        ) as f32
     });
     let kernels = kernel_field(&reference, &KernelConfig::default()).unwrap();
     // A radius wide enough that only the (smooth) kernel cutoff truncates: a hard square window
@@ -489,7 +493,9 @@ fn fast_merge_matches_the_per_sample_merge() {
         ..AccumulateConfig::default()
     };
     let fast = demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, &config).unwrap();
-    let radius = (3.0 * kernels.max_std as f64 * 16f64.sqrt()).ceil().clamp(1.0, 12.0);
+    let radius = (3.0 * kernels.max_std as f64 * 16f64.sqrt())
+        .ceil()
+        .clamp(1.0, 12.0);
     let direct = direct_bit_rates(&subs, &motions, &cfa, &kernels, &config, radius);
     // The same sum with every sample left at its sensor position (motion ignored): what a
     // merge that dropped the flows would give, for scale.
