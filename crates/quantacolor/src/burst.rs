@@ -155,10 +155,8 @@ pub fn reconstruct_burst_with_motion(
     plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
     if oracle.is_none() && config.refine.enabled {
         refine_camera_motion(
-            frames,
-            &capture.cfa,
+            capture,
             alignment.grey_method,
-            hot,
             &grey_blocks,
             &mut motion,
             &config.refine,

@@ -25,7 +25,7 @@ use super::grey::GreyMethod;
 use super::motion::{flow_at, frame_flow, invert};
 use super::patch::{gaussian_blur, TileGrid};
 use super::{affine_fit_field, Alignment, Flow};
-use crate::capture::BinaryFrames;
+use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
 use crate::merge::warp_to_reference;
@@ -645,16 +645,13 @@ fn fit_sub_block(
                 let jac = [gy, gx, gy * rel[0], gy * rel[1], gx * rel[0], gx * rel[1]];
                 for (r, (row, rhs_r)) in normal.iter_mut().zip(rhs.iter_mut()).enumerate() {
                     *rhs_r += weight * jac[r] * residual;
-                    for (c, cell) in row.iter_mut().enumerate().skip(r) {
-                        *cell += weight * jac[r] * jac[c];
+                    for (cell, jac_c) in row.iter_mut().zip(jac) {
+                        *cell += weight * jac[r] * jac_c;
                     }
                 }
             }
-            for r in 0..6 {
-                for c in 0..r {
-                    normal[r][c] = normal[c][r];
-                }
-                normal[r][r] *= 1.0 + 1e-6;
+            for (r, row) in normal.iter_mut().enumerate() {
+                row[r] *= 1.0 + 1e-6;
             }
             let inv = invert(normal.iter().map(|row| row.to_vec()).collect())?;
             let step: Vec<f64> = (0..6)
@@ -726,13 +723,11 @@ fn smooth_in_time(
 /// template that holds the sub-block's own photon noise pulls the fit toward that noise
 /// (measured: 0.3–0.4 px errors on the reference block of a low-texture static capture with
 /// the Wiener reference as template, 0.02 px on the others). The coarse level uses the mean of
-/// all blocks. Sub-blocks are summed from the packed frames; the `hot` pixels are left out of
+/// all blocks. Sub-blocks are summed from the packed frames; the capture's hot pixels are left out of
 /// the bins.
 pub fn refine_camera_motion(
-    frames: &BinaryFrames,
-    cfa: &Cfa,
+    capture: &Capture,
     grey_method: GreyMethod,
-    hot: Option<&Array2<bool>>,
     grey_blocks: &[Array2<f32>],
     motion: &mut FrameMotion,
     config: &RefineConfig,
@@ -761,10 +756,24 @@ pub fn refine_camera_motion(
     let layouts: Vec<BinLayout> = config
         .levels
         .iter()
-        .map(|l| bin_layout(cfa, grey_method, hot, l.bin))
+        .map(|l| {
+            bin_layout(
+                &capture.cfa,
+                grey_method,
+                capture.hot_pixels.as_ref(),
+                l.bin,
+            )
+        })
         .collect();
     for _ in 0..config.passes.max(1) {
-        refine_pass(frames, &layouts, grey_blocks, motion, config, progress)?;
+        refine_pass(
+            &capture.frames,
+            &layouts,
+            grey_blocks,
+            motion,
+            config,
+            progress,
+        )?;
         // The templates are registered wherever the block motion put them; the convention is
         // zero motion at the reference frame.
         let anchor = motion.camera_at(motion.plan.reference_frame as f64);
