@@ -886,6 +886,11 @@ fn speed(frames: usize, progress: &dyn Progress) -> Result<()> {
         rayon::current_num_threads(),
         burst_s / naive_s
     );
+    println!(
+        "  {} alignment blocks, {} sub-blocks merged",
+        burst.alignment.plan.len(),
+        burst.sub_blocks.len()
+    );
     for t in &burst.timings {
         println!("  {:<32} {:.3} s", t.stage, t.seconds);
     }

@@ -422,6 +422,18 @@ impl FrameMotion {
         let local = self
             .has_local
             .then(|| frame_flow(&self.local, &self.plan, t));
+        // Tiles whose 3x3 neighbourhood holds a local residual: elsewhere the bilinear
+        // interpolation between tile centres is zero and is skipped.
+        let near_local = local.as_ref().map(|l| {
+            let (ty, tx, _) = l.dim();
+            Array2::from_shape_fn((ty, tx), |(i, j)| {
+                (i.saturating_sub(1)..(i + 2).min(ty)).any(|a| {
+                    (j.saturating_sub(1)..(j + 2).min(tx))
+                        .any(|b| l[[a, b, 0]] != 0.0 || l[[a, b, 1]] != 0.0)
+                })
+            })
+        });
+        let stride = self.grid.tile_stride.max(1);
         let mut out = Array3::<f32>::zeros((h, w, 2));
         out.outer_iter_mut()
             .into_par_iter()
@@ -429,9 +441,17 @@ impl FrameMotion {
             .for_each(|(y, mut row)| {
                 for x in 0..w {
                     let d = camera.at([y as f64 - centre[0], x as f64 - centre[1]]);
-                    let l = local
-                        .as_ref()
-                        .map_or([0.0; 2], |l| flow_at(l, &self.grid, y as f32, x as f32));
+                    let l = match (&local, &near_local) {
+                        (Some(l), Some(near)) => {
+                            let (ty, tx) = near.dim();
+                            if near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]] {
+                                flow_at(l, &self.grid, y as f32, x as f32)
+                            } else {
+                                [0.0; 2]
+                            }
+                        }
+                        _ => [0.0; 2],
+                    };
                     row[[x, 0]] = d[0] as f32 + l[0];
                     row[[x, 1]] = d[1] as f32 + l[1];
                 }
@@ -513,49 +533,58 @@ struct BinLayout {
     centroid: Vec<[f64; 2]>,
 }
 
-/// A smoothed reference and its gradients.
+/// A smoothed reference and its gradients, interleaved per pixel for the fit's inner loop.
 struct TemplateLevel {
-    value: Array2<f32>,
-    grad_y: Array2<f32>,
-    grad_x: Array2<f32>,
+    height: usize,
+    width: usize,
+    /// (value, ∂/∂y, ∂/∂x) of every pixel, row-major.
+    samples: Vec<[f32; 3]>,
 }
 
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
 #[inline]
 fn sample(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
-    let (h, w) = level.value.dim();
+    let (h, w) = (level.height, level.width);
     if !(y >= 0.0 && x >= 0.0 && y <= (h - 1) as f64 && x <= (w - 1) as f64) {
         return None;
     }
-    let (y0, x0) = (
-        (y.floor() as usize).min(h - 2),
-        (x.floor() as usize).min(w - 2),
-    );
+    let (y0, x0) = ((y as usize).min(h - 2), (x as usize).min(w - 2));
     let (fy, fx) = ((y - y0 as f64) as f32, (x - x0 as f64) as f32);
-    let bl = |img: &Array2<f32>| -> f64 {
-        let top = img[[y0, x0]] * (1.0 - fx) + img[[y0, x0 + 1]] * fx;
-        let bottom = img[[y0 + 1, x0]] * (1.0 - fx) + img[[y0 + 1, x0 + 1]] * fx;
-        (top * (1.0 - fy) + bottom * fy) as f64
-    };
-    Some([bl(&level.value), bl(&level.grad_y), bl(&level.grad_x)])
+    let i = y0 * w + x0;
+    let (a, b, c, d) = (
+        level.samples[i],
+        level.samples[i + 1],
+        level.samples[i + w],
+        level.samples[i + w + 1],
+    );
+    let mut out = [0.0f64; 3];
+    for (k, o) in out.iter_mut().enumerate() {
+        let top = a[k] * (1.0 - fx) + b[k] * fx;
+        let bottom = c[k] * (1.0 - fx) + d[k] * fx;
+        *o = (top * (1.0 - fy) + bottom * fy) as f64;
+    }
+    Some(out)
 }
 
 fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
     let value = gaussian_blur(reference, sigma);
     let (h, w) = value.dim();
-    let grad = |dy: usize, dx: usize| {
-        Array2::from_shape_fn((h, w), |(y, x)| {
-            let (ya, yb) = (y.saturating_sub(dy), (y + dy).min(h - 1));
-            let (xa, xb) = (x.saturating_sub(dx), (x + dx).min(w - 1));
-            let span = ((yb - ya) + (xb - xa)).max(1) as f32;
-            (value[[yb, xb]] - value[[ya, xa]]) / span
-        })
-    };
-    let (grad_y, grad_x) = (grad(1, 0), grad(0, 1));
+    let mut samples = vec![[0.0f32; 3]; h * w];
+    for y in 0..h {
+        let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
+        for x in 0..w {
+            let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            samples[y * w + x] = [
+                value[[y, x]],
+                (value[[yb, x]] - value[[ya, x]]) / (yb - ya).max(1) as f32,
+                (value[[y, xb]] - value[[y, xa]]) / (xb - xa).max(1) as f32,
+            ];
+        }
+    }
     TemplateLevel {
-        value,
-        grad_y,
-        grad_x,
+        height: h,
+        width: w,
+        samples,
     }
 }
 
@@ -614,12 +643,22 @@ fn fit_sub_block(
     let counts = counts.as_slice()?;
     let mut params = start.params();
     for (layout, template) in layouts.iter().zip(templates) {
+        // (mean bit rate, sites) of every bin.
+        let observed: Vec<(f64, f64)> = layout
+            .sites
+            .iter()
+            .map(|sites| {
+                let n = sites.len() as f64;
+                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+                (sum as f64 / (n * frames as f64).max(1.0), n)
+            })
+            .collect();
         for iteration in 0..iterations {
             let motion = AffineMotion::from_params(params);
-            let mut normal = [[0.0f64; 6]; 6];
-            let mut rhs = [0.0f64; 6];
-            for (sites, rel) in layout.sites.iter().zip(&layout.centroid) {
-                if sites.is_empty() {
+            // Upper triangle of the normal matrix, row by row, then the right-hand side.
+            let mut acc = [0.0f64; 27];
+            for (&(observed, n), rel) in observed.iter().zip(&layout.centroid) {
+                if n == 0.0 {
                     continue;
                 }
                 let d = motion.at(*rel);
@@ -630,12 +669,6 @@ fn fit_sub_block(
                 ) else {
                     continue;
                 };
-                let n = sites.len() as f64;
-                let observed = sites
-                    .iter()
-                    .map(|&i| counts[i as usize] as f64)
-                    .sum::<f64>()
-                    / (n * frames as f64);
                 let residual = observed - t;
                 // Binomial variance of the bin mean, and a Huber weight at 3 std (moving
                 // objects, occlusions).
@@ -643,16 +676,27 @@ fn fit_sub_block(
                 let z = residual.abs() / variance.sqrt();
                 let weight = if z > 3.0 { 3.0 / z } else { 1.0 } / variance;
                 let jac = [gy, gx, gy * rel[0], gy * rel[1], gx * rel[0], gx * rel[1]];
-                for (r, (row, rhs_r)) in normal.iter_mut().zip(rhs.iter_mut()).enumerate() {
-                    *rhs_r += weight * jac[r] * residual;
-                    for (cell, jac_c) in row.iter_mut().zip(jac) {
-                        *cell += weight * jac[r] * jac_c;
+                let mut k = 0;
+                for r in 0..6 {
+                    let wj = weight * jac[r];
+                    for jac_c in &jac[r..] {
+                        acc[k] += wj * jac_c;
+                        k += 1;
                     }
+                    acc[21 + r] += wj * residual;
                 }
             }
-            for (r, row) in normal.iter_mut().enumerate() {
-                row[r] *= 1.0 + 1e-6;
+            let mut normal = [[0.0f64; 6]; 6];
+            let mut k = 0;
+            for r in 0..6 {
+                for c in r..6 {
+                    normal[r][c] = acc[k];
+                    normal[c][r] = acc[k];
+                    k += 1;
+                }
+                normal[r][r] *= 1.0 + 1e-6;
             }
+            let rhs = &acc[21..];
             let inv = invert(normal.iter().map(|row| row.to_vec()).collect())?;
             let step: Vec<f64> = (0..6)
                 .map(|r| (0..6).map(|c| inv[r][c] * rhs[c]).sum())
