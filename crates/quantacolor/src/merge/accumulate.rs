@@ -302,7 +302,6 @@ impl<'a> MergeAccumulator<'a> {
     /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel bit rates and MLE
     /// fluxes (paper Eq. 6), holes filled, W saturation fallback applied.
     pub fn finish(self, dark_per_frame: f64, w_weights: [f64; 3]) -> MergedPlanes {
-        let t0 = std::time::Instant::now();
         let scale = self.config.scale;
         let (h, w) = (self.cfa.height(), self.cfa.width());
         let (hs, ws) = (h * scale, w * scale);
@@ -377,9 +376,6 @@ impl<'a> MergeAccumulator<'a> {
             }
         }
         drop(sums);
-        if std::env::var("QC_MERGE_TIMING").is_ok() {
-            eprintln!("finish regression {:.3} s", t0.elapsed().as_secs_f64());
-        }
         // Fill pixels that no sample reached (sparse channels, image borders).
         for channel in Channel::ALL {
             let ch = channel.index();
