@@ -2,13 +2,14 @@
 //!
 //! 1. [`align`]: block sums, grey images, hierarchical tile alignment (paper §4.1);
 //! 2. [`FrameMotion::from_alignment`]: each block's motion as an affine camera motion plus a
-//!    local residual (moving objects);
-//! 3. [`reference_image`]: the Wiener-merged grey reference (supplement §1.2);
-//! 4. [`plan_sub_blocks`] and [`refine_camera_motion`]: sub-blocks of tens of frames whose
-//!    camera motion is re-measured against the reference (this project's own stage, see
-//!    [`crate::align::refine`]; the paper interpolates block motion linearly in time);
-//! 5. [`merge_guide`]: reference, kernels and robustness from the refined block motion;
-//! 6. the joint demosaic-merge of every sub-block at its own motion, streamed through the
+//!    local motion where many tiles move alike (moving objects);
+//! 3. [`plan_sub_blocks`] and [`refine_camera_motion`]: sub-blocks of tens of frames whose
+//!    camera motion is re-measured against the other blocks' grey images (this project's own
+//!    stage, see [`crate::align::refine`]; the paper interpolates block motion linearly in
+//!    time);
+//! 4. [`merge_guide`]: the Wiener-merged reference (supplement §1.2), its kernels and the
+//!    blocks' robustness, from the refined block motion;
+//! 5. the joint demosaic-merge of every sub-block at its own motion, streamed through the
 //!    phase-bin [`MergeAccumulator`] (supplement Eq. 1–3), MLE flux (Eq. 6) and the RGBW
 //!    combination (Eq. 8).
 //!

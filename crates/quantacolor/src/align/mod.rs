@@ -64,8 +64,8 @@ pub struct AlignConfig {
     /// neighbours: motion is smooth in time, isolated mismatches (e.g. a grating matched one
     /// period off) are not, and frame-level interpolation between blocks would spread them.
     /// Off by default: with few blocks it flattens real motion peaks (median end-point error
-    /// at block centres 0.61 -> 0.81 px, handheld, 512 frames); it helps when blocks are cut
-    /// into sub-blocks (see `BurstConfig::max_sub_block_motion_px`).
+    /// at block centres 0.61 -> 0.81 px, handheld, 512 frames). It helped the earlier merge of
+    /// sub-blocks at interpolated block motion; not measured with [`refine`].
     pub temporal_median: bool, // false
     /// Tiles whose (median-filtered) flow lies within this distance of the block's robust
     /// affine fit take the fit: camera motion (translation, small rotation) is affine to first

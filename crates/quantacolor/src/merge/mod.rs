@@ -7,11 +7,13 @@
 //!    (Wronski et al. 2019).
 //! 3. [`robustness`]: per-block weights that reject content the reference does not confirm
 //!    (supplement Eq. 4–6).
-//! 4. [`demosaic_merge`]: joint demosaic and merge of sub-block counts by kernel regression
-//!    (supplement Eq. 1–3), MLE flux per channel (paper Eq. 6), optional super-resolution grid,
-//!    W-saturation fallback (supplement §7).
+//!    [`merge_guide`] runs stages 1–3.
+//! 4. [`demosaic_merge`] / [`MergeAccumulator`]: joint demosaic and merge of sub-block counts
+//!    by kernel regression (supplement Eq. 1–3) over sub-pixel phase bins, MLE flux per channel
+//!    (paper Eq. 6), optional super-resolution grid, W-saturation fallback (supplement §7).
 //! 5. [`merge_burst`]: all of the above, then the RGBW combination of paper Eq. 8
-//!    ([`crate::naive::combine_rgbw`]).
+//!    ([`crate::naive::combine_rgbw`]). [`crate::burst`] runs the same functions, streaming
+//!    the sub-blocks through the accumulator.
 //!
 //! Alignment is not part of this module: every stage takes dense per-pixel flows (dy, dx),
 //! where the scene point at p in the reference is at p + flow(p) in the (sub-)block.
