@@ -686,18 +686,17 @@ fn fit_sub_block(
                     acc[21 + r] += wj * residual;
                 }
             }
-            let mut normal = [[0.0f64; 6]; 6];
-            let mut k = 0;
-            for r in 0..6 {
-                for c in r..6 {
-                    normal[r][c] = acc[k];
-                    normal[c][r] = acc[k];
-                    k += 1;
-                }
-                normal[r][r] *= 1.0 + 1e-6;
+            let mut normal = vec![vec![0.0f64; 6]; 6];
+            let upper = (0..6).flat_map(|r| (r..6).map(move |c| (r, c)));
+            for ((r, c), &v) in upper.zip(&acc) {
+                normal[r][c] = v;
+                normal[c][r] = v;
+            }
+            for (r, row) in normal.iter_mut().enumerate() {
+                row[r] *= 1.0 + 1e-6;
             }
             let rhs = &acc[21..];
-            let inv = invert(normal.iter().map(|row| row.to_vec()).collect())?;
+            let inv = invert(normal)?;
             let step: Vec<f64> = (0..6)
                 .map(|r| (0..6).map(|c| inv[r][c] * rhs[c]).sum())
                 .collect();
