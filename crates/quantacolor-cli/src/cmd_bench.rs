@@ -56,6 +56,10 @@ pub enum BenchCommand {
         /// Only the captures whose id contains this text (debugging; see the ids on stderr).
         #[arg(long, hide = true)]
         only: Option<String>,
+        /// TOML with burst (align + refine + merge) parameters to use instead of the defaults
+        /// (the `[burst]` table of report.toml, without the table header): the tuning tool.
+        #[arg(long)]
+        burst_config: Option<PathBuf>,
     },
     /// Denoising: PSNR/SSIM of none, plain colour BM3D and chroma-BM3D over a grid of σ gains
     /// (the tuning tool for `luma_gain` / `chroma_gain`), on built-in chart captures, or on the
@@ -90,7 +94,11 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             out,
             set,
             only,
-        } => quality(scenes, out, *set, only.as_deref(), progress),
+            burst_config,
+        } => {
+            let burst = read_burst_config(burst_config.as_deref())?;
+            quality(scenes, out, *set, only.as_deref(), &burst, progress)
+        }
         BenchCommand::Speed { frames } => speed(*frames, progress),
         BenchCommand::Denoise {
             scenes,
@@ -98,15 +106,7 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             chroma_gains,
             burst_config,
         } => {
-            let burst = match burst_config {
-                Some(path) => {
-                    let text = std::fs::read_to_string(path)
-                        .with_context(|| format!("{}: cannot read", path.display()))?;
-                    toml::from_str::<BurstConfig>(&text)
-                        .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?
-                }
-                None => BurstConfig::default(),
-            };
+            let burst = read_burst_config(burst_config.as_deref())?;
             denoise_grid(
                 scenes.as_deref(),
                 luma_gains,
@@ -469,14 +469,20 @@ fn bicubic_upsample(image: ArrayView3<f32>, scale: usize) -> Array3<f32> {
 }
 
 /// Runs every method on one capture.
-fn run_case(scenes: &Path, index: usize, case: &Case, opts: &EvalOptions) -> Result<Row> {
+fn run_case(
+    scenes: &Path,
+    index: usize,
+    case: &Case,
+    opts: &EvalOptions,
+    burst_config: &BurstConfig,
+) -> Result<Row> {
     let started = Instant::now();
     let sim = simulate_case(scenes, case).with_context(|| format!("simulating {}", case.scene))?;
     let simulated_s = started.elapsed().as_secs_f64();
     let capture = sim.to_capture()?;
     let reference = capture.reference_frame();
     let (h, w) = (capture.cfa.height(), capture.cfa.width());
-    let config = BurstConfig::default();
+    let config = burst_config.clone();
     let burst = reconstruct_burst(&capture, reference, &config, &Silent)?;
     let oracle = |t: f64| sim.motion.dense_flow(t, h, w);
     let truth =
@@ -491,7 +497,10 @@ fn run_case(scenes: &Path, index: usize, case: &Case, opts: &EvalOptions) -> Res
     )?;
     let gt = sim.ground_truth.view();
     // The merge the denoiser runs on (narrower colour kernels, see DenoiseConfig).
-    let denoised_config = ReconstructConfig::default();
+    let denoised_config = ReconstructConfig {
+        burst: burst_config.clone(),
+        ..ReconstructConfig::default()
+    };
     let for_denoising = reconstruct_burst(
         &capture,
         reference,
@@ -568,11 +577,25 @@ fn run_case(scenes: &Path, index: usize, case: &Case, opts: &EvalOptions) -> Res
     })
 }
 
+/// The burst parameters of `path` (TOML, the `[burst]` table of report.toml), or the defaults.
+fn read_burst_config(path: Option<&Path>) -> Result<BurstConfig> {
+    match path {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("{}: cannot read", path.display()))?;
+            toml::from_str::<BurstConfig>(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))
+        }
+        None => Ok(BurstConfig::default()),
+    }
+}
+
 fn quality(
     scenes: &Path,
     out: &Path,
     set: SuiteSet,
     only: Option<&str>,
+    burst_config: &BurstConfig,
     progress: &dyn Progress,
 ) -> Result<()> {
     if !scenes.is_dir() {
@@ -597,7 +620,7 @@ fn quality(
     let mut rows: Vec<Row> = Vec::new();
     progress.start("quality suite", selected.len() as u64);
     for &i in &selected {
-        rows.push(run_case(scenes, i, &cases[i], &opts)?);
+        rows.push(run_case(scenes, i, &cases[i], &opts, burst_config)?);
         progress.advance(1);
     }
     progress.finish();
