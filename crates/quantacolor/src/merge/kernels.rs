@@ -36,6 +36,15 @@ pub struct KernelConfig {
     /// Floor on every kernel std (px): narrower kernels than this underflow in f32 for samples
     /// one pixel away and leave holes.
     pub min_std: f32, // 0.25 px
+    /// At output scale s > 1 (super-resolution) the kernel stds are divided by s^exponent:
+    /// kernels sized for the 1x grid over-smooth a finer grid that frame-granular motion
+    /// samples densely (this project's heuristic; Wronski et al. 2019 size kernels on the
+    /// output grid). Measured with `bench quality` on the 2x-detail captures (2000 frames,
+    /// scale 2 against bicubic upsampling of the 1x result): exponent 0 +0.25 / +0.30 dB
+    /// (tuning / validation), 0.5 +1.18 / +1.32 dB, 1 +1.41 / +2.05 dB. 0.5 is the default:
+    /// narrower kernels trade noise for detail, and fewer frames than these have not been
+    /// measured.
+    pub output_scale_exponent: f32, // 0.5 (dimensionless)
 }
 
 impl Default for KernelConfig {
@@ -49,6 +58,22 @@ impl Default for KernelConfig {
             k_shrink: 1.0,
             max_anisotropy: 5.0,
             min_std: 0.25,
+            output_scale_exponent: 0.5,
+        }
+    }
+}
+
+impl KernelConfig {
+    /// The kernel shapes for an output grid `scale` times finer than the reference: the three
+    /// stds (`k_detail`, `k_denoise`, `min_std`, reference px) divided by
+    /// scale^`output_scale_exponent` (see there).
+    pub fn for_output_scale(&self, scale: usize) -> KernelConfig {
+        let shrink = (scale.max(1) as f32).powf(-self.output_scale_exponent);
+        KernelConfig {
+            k_detail: self.k_detail * shrink,
+            k_denoise: self.k_denoise * shrink,
+            min_std: self.min_std * shrink,
+            ..self.clone()
         }
     }
 }

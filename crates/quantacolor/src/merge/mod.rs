@@ -117,7 +117,10 @@ pub fn merge_guide(
         grey_trials,
         &config.wiener,
     )?;
-    let kernels = kernel_field(&reference, &config.kernels)?;
+    let kernels = kernel_field(
+        &reference,
+        &config.kernels.for_output_scale(config.accumulate.scale),
+    )?;
     let robustness_maps = grey_blocks
         .iter()
         .zip(block_flows)
