@@ -81,3 +81,16 @@ fn bad_kernel_config_is_an_error() {
     assert!(kernel_field(&img, &config).is_err());
     assert!(kernel_field(&Array2::zeros((0, 4)), &KernelConfig::default()).is_err());
 }
+
+#[test]
+fn kernels_shrink_on_a_finer_output_grid() {
+    let config = KernelConfig::default();
+    assert_eq!(config.for_output_scale(1), config);
+    let four = config.for_output_scale(4);
+    let shrink = 4f32.powf(-config.output_scale_exponent);
+    assert!((four.k_detail - config.k_detail * shrink).abs() < 1e-6);
+    assert!((four.k_denoise - config.k_denoise * shrink).abs() < 1e-6);
+    assert!((four.min_std - config.min_std * shrink).abs() < 1e-6);
+    assert!(four.k_denoise < config.k_denoise);
+    assert_eq!(four.max_anisotropy, config.max_anisotropy);
+}
