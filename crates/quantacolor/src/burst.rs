@@ -17,7 +17,8 @@
 //! from the packed words and splatted once; the kernel regression runs once per image.
 
 use crate::align::{
-    align, plan_sub_blocks, refine_camera_motion, AlignConfig, Alignment, FrameMotion, RefineConfig,
+    align, plan_sub_blocks, refine_camera_motion, split_for_merge, track_fast_camera_motion,
+    AlignConfig, Alignment, FrameMotion, RefineConfig, TrackConfig,
 };
 use crate::capture::Capture;
 use crate::error::Result;
@@ -40,6 +41,8 @@ pub struct BurstConfig {
     pub align: AlignConfig,
     /// Sub-blocks and their camera motion at frame granularity.
     pub refine: RefineConfig,
+    /// Fast camera motion tracked sub-block by sub-block.
+    pub track: TrackConfig,
     pub merge: MergeConfig,
 }
 
@@ -154,7 +157,19 @@ pub fn reconstruct_burst_with_motion(
         .mean()
         .unwrap_or(0.0) as f64;
     plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
-    if oracle.is_none() && config.refine.enabled {
+    let tracked = oracle.is_none()
+        && config.refine.enabled
+        && track_fast_camera_motion(
+            capture,
+            alignment.grey_method,
+            &mut motion,
+            &config.track,
+            progress,
+        )?;
+    if tracked {
+        split_for_merge(&mut motion, config.refine.max_sub_block_motion_px);
+        laps.lap("fast motion tracking");
+    } else if oracle.is_none() && config.refine.enabled {
         refine_camera_motion(
             capture,
             alignment.grey_method,

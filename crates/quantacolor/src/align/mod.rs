@@ -19,6 +19,7 @@ pub mod hot_pixels;
 pub mod motion;
 pub mod patch;
 pub mod refine;
+pub mod track;
 
 pub use blocks::{BlockConfig, BlockPlan};
 pub use grey::{grey_image, GreyChoice, GreyMethod};
@@ -28,6 +29,7 @@ pub use patch::{Norm, PatchConfig, ReferenceAligner, TileGrid};
 pub use refine::{
     plan_sub_blocks, refine_camera_motion, AffineMotion, FrameMotion, RefineConfig, RefineLevel,
 };
+pub use track::{split_for_merge, track_fast_camera_motion, TrackConfig};
 
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;

@@ -148,7 +148,7 @@ impl AffineMotion {
         })
     }
 
-    fn params(&self) -> [f64; 6] {
+    pub(super) fn params(&self) -> [f64; 6] {
         [
             self.b[0],
             self.b[1],
@@ -159,7 +159,7 @@ impl AffineMotion {
         ]
     }
 
-    fn from_params(p: [f64; 6]) -> AffineMotion {
+    pub(super) fn from_params(p: [f64; 6]) -> AffineMotion {
         AffineMotion {
             b: [p[0], p[1]],
             m: [[p[2], p[3]], [p[4], p[5]]],
@@ -168,7 +168,7 @@ impl AffineMotion {
 
     /// Largest displacement difference to `other` over the corners of a `half` = (H/2, W/2)
     /// image (px).
-    fn distance(&self, other: &AffineMotion, half: [f64; 2]) -> f64 {
+    pub(super) fn distance(&self, other: &AffineMotion, half: [f64; 2]) -> f64 {
         let mut worst = 0.0f64;
         for sy in [-1.0, 1.0] {
             for sx in [-1.0, 1.0] {
@@ -203,7 +203,7 @@ impl AffineMotion {
         }
     }
 
-    fn lerp(&self, other: &AffineMotion, a: f64) -> AffineMotion {
+    pub(super) fn lerp(&self, other: &AffineMotion, a: f64) -> AffineMotion {
         let (p, q) = (self.params(), other.params());
         AffineMotion::from_params(std::array::from_fn(|i| p[i] * (1.0 - a) + q[i] * a))
     }
@@ -391,14 +391,14 @@ impl FrameMotion {
         self.has_local = false;
     }
 
-    fn centre(&self) -> [f64; 2] {
+    pub(super) fn centre(&self) -> [f64; 2] {
         [
             (self.height as f64 - 1.0) / 2.0,
             (self.width as f64 - 1.0) / 2.0,
         ]
     }
 
-    fn half_size(&self) -> [f64; 2] {
+    pub(super) fn half_size(&self) -> [f64; 2] {
         [self.height as f64 / 2.0, self.width as f64 / 2.0]
     }
 
@@ -526,7 +526,7 @@ pub fn plan_sub_blocks(motion: &mut FrameMotion, detections_per_frame: f64, conf
 }
 
 /// Bins of one level: the grey channel's sites summed over `bin` x `bin` squares.
-struct BinLayout {
+pub(super) struct BinLayout {
     /// Site indices (row-major) of every bin.
     sites: Vec<Vec<u32>>,
     /// Mean site position of every bin, relative to the image centre.
@@ -534,7 +534,7 @@ struct BinLayout {
 }
 
 /// A smoothed reference and its gradients, interleaved per pixel for the fit's inner loop.
-struct TemplateLevel {
+pub(super) struct TemplateLevel {
     height: usize,
     width: usize,
     /// (value, ∂/∂y, ∂/∂x) of every pixel, row-major.
@@ -566,7 +566,7 @@ fn sample(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
     Some(out)
 }
 
-fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
+pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
     let value = gaussian_blur(reference, sigma);
     let (h, w) = value.dim();
     let mut samples = vec![[0.0f32; 3]; h * w];
@@ -590,7 +590,12 @@ fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
 
 /// Bins of `bin` px over the sites of `cfa` that the grey image is made of (W on a W-rich CFA,
 /// every site of a periodic CFA), hot pixels left out.
-fn bin_layout(cfa: &Cfa, method: GreyMethod, hot: Option<&Array2<bool>>, bin: usize) -> BinLayout {
+pub(super) fn bin_layout(
+    cfa: &Cfa,
+    method: GreyMethod,
+    hot: Option<&Array2<bool>>,
+    bin: usize,
+) -> BinLayout {
     let (h, w) = (cfa.height(), cfa.width());
     let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
     // Tile averages sit half a period from the pixel they are stored at.
@@ -631,7 +636,7 @@ fn bin_layout(cfa: &Cfa, method: GreyMethod, hot: Option<&Array2<bool>>, bin: us
 
 /// Gauss–Newton fit of the inverse camera map (sub-block → reference) of one sub-block with
 /// grey-site counts `counts` over `frames` frames; `None` when it does not converge.
-fn fit_sub_block(
+pub(super) fn fit_sub_block(
     counts: &Array2<u32>,
     frames: usize,
     layouts: &[BinLayout],

@@ -1,0 +1,255 @@
+//! Fast camera motion tracked sub-block by sub-block: this project's own stage, not the
+//! paper's.
+//!
+//! Under fast shake (tens of pixels over a few hundred frames) a block of 50–100 frames is a
+//! streak, tile alignment of blocks fails, and so does the refinement against block images
+//! ([`super::refine`]). Here the burst is instead tracked outward from the reference sub-block:
+//! each sub-block's affine camera motion is predicted from its neighbours' (constant velocity),
+//! fitted by the Gauss–Newton of [`super::refine`] with a wide coarse level against a template
+//! built from the sub-blocks already tracked, and then added to that template. Every fit is to
+//! the same growing template, so errors do not compound from one sub-block to the next.
+//! (Refitting every sub-block against the finished mosaic was tried and measured no better:
+//! 26.33–26.41 dB against 26.65 dB on a fast handheld capture.)
+//!
+//! Tracking runs only when the block motion says the camera moves fast (see
+//! [`TrackConfig::trigger_px`]) and only on CFAs whose grey channel is W; afterwards the merge
+//! uses sub-blocks short enough for the tracked motion ([`split_for_merge`]).
+
+use super::grey::GreyMethod;
+use super::patch::gaussian_blur;
+use super::refine::{
+    bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FrameMotion, RefineLevel,
+};
+use crate::capture::Capture;
+use crate::cfa::Channel;
+use crate::error::Result;
+use crate::progress::Progress;
+use ndarray::Array2;
+use serde::{Deserialize, Serialize};
+
+/// Settings of [`track_fast_camera_motion`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct TrackConfig {
+    /// Track when the camera motion of two consecutive blocks differs by more than this (px,
+    /// at the image corners); infinite disables tracking.
+    pub trigger_px: f64, // 4 px
+    /// Coarse-to-fine levels of each sub-block's fit (the coarse level sets the capture range
+    /// around the constant-velocity prediction).
+    pub levels: Vec<RefineLevel>,
+    /// Gauss–Newton iterations per level.
+    pub iterations: usize, // 8
+}
+
+impl Default for TrackConfig {
+    fn default() -> Self {
+        TrackConfig {
+            trigger_px: 4.0,
+            levels: vec![
+                RefineLevel {
+                    bin: 8,
+                    sigma_px: 4.0,
+                },
+                RefineLevel {
+                    bin: 4,
+                    sigma_px: 2.0,
+                },
+                RefineLevel {
+                    bin: 1,
+                    sigma_px: 0.7,
+                },
+            ],
+            iterations: 8,
+        }
+    }
+}
+
+/// Whether the block motion of `motion` moves faster than `trigger_px` between blocks.
+fn moves_fast(motion: &FrameMotion, trigger_px: f64) -> bool {
+    let half = motion.half_size();
+    let cameras: Vec<AffineMotion> = motion
+        .plan
+        .center_frames()
+        .iter()
+        .map(|&t| motion.camera_at(t))
+        .collect();
+    cameras
+        .windows(2)
+        .any(|w| w[0].distance(&w[1], half) > trigger_px)
+}
+
+/// The growing template: counts of the W sites splatted to their reference positions.
+struct Mosaic {
+    sum: Array2<f32>,
+    frames: Array2<f32>,
+    /// W sites that are not hot, row-major.
+    sites: Vec<(usize, usize)>,
+}
+
+impl Mosaic {
+    fn add(
+        &mut self,
+        counts: &Array2<u32>,
+        frames: usize,
+        camera: &AffineMotion,
+        centre: [f64; 2],
+    ) {
+        let Some(to_reference) = camera.inverse() else {
+            return;
+        };
+        let (h, w) = self.sum.dim();
+        for &(y, x) in &self.sites {
+            let d = to_reference.at([y as f64 - centre[0], x as f64 - centre[1]]);
+            let (py, px) = ((y as f64 + d[0]).round(), (x as f64 + d[1]).round());
+            if py >= 0.0 && px >= 0.0 && (py as usize) < h && (px as usize) < w {
+                self.sum[[py as usize, px as usize]] += counts[[y, x]] as f32;
+                self.frames[[py as usize, px as usize]] += frames as f32;
+            }
+        }
+    }
+
+    /// Mean bit rate per frame, normalised-convolution filled (σ 0.7 px); the global mean where
+    /// nothing landed nearby.
+    fn template(&self) -> Array2<f32> {
+        let num = gaussian_blur(&self.sum, 0.7);
+        let den = gaussian_blur(&self.frames, 0.7);
+        let total: f32 = self.sum.sum();
+        let mean = total / self.frames.sum().max(1.0);
+        let floor = 1e-3 * den.iter().copied().fold(0.0f32, f32::max);
+        ndarray::Zip::from(&num)
+            .and(&den)
+            .map_collect(|&n, &d| if d > floor { n / d } else { mean })
+    }
+}
+
+/// Tracks the camera of every sub-block of `motion` outward from the reference frame's
+/// sub-block when the block motion says the camera moves fast; returns whether it did.
+pub fn track_fast_camera_motion(
+    capture: &Capture,
+    grey_method: GreyMethod,
+    motion: &mut FrameMotion,
+    config: &TrackConfig,
+    progress: &dyn Progress,
+) -> Result<bool> {
+    if !matches!(grey_method, GreyMethod::InterpolateW) || !moves_fast(motion, config.trigger_px) {
+        return Ok(false);
+    }
+    let (h, w) = (motion.height, motion.width);
+    let centre = motion.centre();
+    let hot = capture.hot_pixels.as_ref();
+    let layouts: Vec<BinLayout> = config
+        .levels
+        .iter()
+        .map(|l| bin_layout(&capture.cfa, grey_method, hot, l.bin))
+        .collect();
+    let sites = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (y, x)))
+        .filter(|&(y, x)| {
+            capture.cfa.channel(y, x) == Channel::W && !hot.is_some_and(|m| m[[y, x]])
+        })
+        .collect();
+    let mut mosaic = Mosaic {
+        sum: Array2::zeros((h, w)),
+        frames: Array2::zeros((h, w)),
+        sites,
+    };
+    let n = motion.sub_blocks.len();
+    let reference_frame = motion.plan.reference_frame;
+    let first = motion
+        .sub_blocks
+        .iter()
+        .position(|r| r.contains(&reference_frame))
+        .unwrap_or(0);
+    let centres = motion.sub_block_centres();
+    let mut camera = vec![AffineMotion::default(); n];
+    progress.start("fast motion tracking", n as u64);
+    let counts = |k: usize| capture.frames.sum_range(motion.sub_blocks[k].clone());
+    mosaic.add(
+        &counts(first),
+        motion.sub_blocks[first].len(),
+        &camera[first],
+        centre,
+    );
+    progress.advance(1);
+    for forward in [true, false] {
+        let mut k = first;
+        let mut previous: Option<usize> = None;
+        loop {
+            let next = if forward { k + 1 } else { k.wrapping_sub(1) };
+            if next >= n {
+                break;
+            }
+            let prediction = match previous {
+                Some(p) => {
+                    let a = (centres[next] - centres[p]) / (centres[k] - centres[p]);
+                    camera[p].lerp(&camera[k], a)
+                }
+                None => camera[k],
+            };
+            let template = mosaic.template();
+            let templates: Vec<_> = config
+                .levels
+                .iter()
+                .map(|l| template_level(&template, l.sigma_px))
+                .collect();
+            let c = counts(next);
+            let frames = motion.sub_blocks[next].len();
+            camera[next] = prediction
+                .inverse()
+                .and_then(|start| {
+                    fit_sub_block(
+                        &c,
+                        frames,
+                        &layouts,
+                        &templates.iter().collect::<Vec<_>>(),
+                        start,
+                        centre,
+                        config.iterations,
+                    )
+                })
+                .and_then(|inverse| inverse.inverse())
+                .unwrap_or(prediction);
+            mosaic.add(&c, frames, &camera[next], centre);
+            progress.advance(1);
+            previous = Some(k);
+            k = next;
+        }
+    }
+    progress.finish();
+    // Zero motion at the reference frame, the convention of the flows.
+    motion.camera = camera;
+    if let Some(undo) = motion.camera_at(reference_frame as f64).inverse() {
+        for c in motion.camera.iter_mut() {
+            *c = c.after(&undo);
+        }
+    }
+    Ok(true)
+}
+
+/// Cuts every sub-block of `motion` so that its camera moves at most `max_motion_px` inside
+/// each piece (down to single frames), each piece at the camera interpolated to its centre:
+/// once the motion is known at every few frames, the merge need not blur it.
+pub fn split_for_merge(motion: &mut FrameMotion, max_motion_px: f64) {
+    let half = motion.half_size();
+    let mut sub_blocks = Vec::new();
+    let mut block_of = Vec::new();
+    let mut camera = Vec::new();
+    for (k, range) in motion.sub_blocks.iter().enumerate() {
+        let len = range.len();
+        let travel = motion
+            .camera_at(range.start as f64)
+            .distance(&motion.camera_at((range.end - 1) as f64), half);
+        let pieces = ((travel / max_motion_px.max(1e-6)).ceil() as usize).clamp(1, len.max(1));
+        for i in 0..pieces {
+            let r = range.start + i * len / pieces..range.start + (i + 1) * len / pieces;
+            if !r.is_empty() {
+                camera.push(motion.camera_at((r.start + r.end - 1) as f64 / 2.0));
+                sub_blocks.push(r);
+                block_of.push(motion.block_of[k]);
+            }
+        }
+    }
+    motion.sub_blocks = sub_blocks;
+    motion.block_of = block_of;
+    motion.camera = camera;
+}
