@@ -125,3 +125,61 @@ fn affine_motions_compose_and_invert() {
     assert!(identity.b.iter().all(|v| v.abs() < 1e-12));
     assert!(identity.m.iter().flatten().all(|v| v.abs() < 1e-12));
 }
+
+#[test]
+fn fast_shake_is_tracked_and_merged_sharply() {
+    let config = SimulationConfig {
+        frames: 512,
+        flux: FluxSpec::Mean { flux: 0.1 },
+        motion: MotionConfig::FastHandheld {
+            amplitude_px: 40.0,
+            rotation_deg: 2.0,
+            cycles: 3.0,
+        },
+        hot_fraction: 0.02,
+        seed: 23,
+        ..SimulationConfig::default()
+    };
+    let sim = simulate_with_cfa(
+        &config,
+        &Scene::from_spec("builtin:chart").unwrap(),
+        &colorspad_cfa(),
+        &Silent,
+    )
+    .unwrap();
+    let capture = sim.to_capture().unwrap();
+    let reference = capture.reference_frame();
+    let opts = EvalOptions {
+        border: 16,
+        normalize_percentile: Some(99.5),
+    };
+    let score = |b: &BurstReconstruction| {
+        evaluate(b.merged.linear.view(), sim.ground_truth.view(), &opts)
+            .unwrap()
+            .psnr_srgb
+    };
+    let tracked = reconstruct_burst(&capture, reference, &BurstConfig::default(), &Silent).unwrap();
+    let mut off = BurstConfig::default();
+    off.track.trigger_px = f64::INFINITY;
+    let untracked = reconstruct_burst(&capture, reference, &off, &Silent).unwrap();
+    let (p_tracked, p_untracked) = (score(&tracked), score(&untracked));
+    println!(
+        "fast shake: tracked {p_tracked:.2} dB ({} sub-blocks, EPE {:.2} px), without tracking \
+         {p_untracked:.2} dB (EPE {:.2} px)",
+        tracked.sub_blocks.len(),
+        median_epe(&sim, &tracked),
+        median_epe(&sim, &untracked)
+    );
+    assert!(tracked
+        .timings
+        .iter()
+        .any(|t| t.stage == "fast motion tracking"));
+    assert!(!untracked
+        .timings
+        .iter()
+        .any(|t| t.stage == "fast motion tracking"));
+    assert!(
+        p_tracked > p_untracked + 3.0,
+        "{p_tracked} vs {p_untracked}"
+    );
+}

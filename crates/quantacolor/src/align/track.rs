@@ -32,8 +32,10 @@ use serde::{Deserialize, Serialize};
 #[serde(default)]
 pub struct TrackConfig {
     /// Track when the camera motion of two consecutive blocks differs by more than this (px,
-    /// at the image corners); infinite disables tracking.
-    pub trigger_px: f64, // 4 px
+    /// at the image corners): blocks that long are streaks. Infinite disables tracking.
+    /// Measured: a 2000-frame HDR pan (5 px between blocks) tracked at 4 px lost 0.1 dB
+    /// and doubled the time; fast shake (40 px, 2°, 512 frames) estimates tens of pixels.
+    pub trigger_px: f64, // 12 px
     /// Coarse-to-fine levels of each sub-block's fit (the coarse level sets the capture range
     /// around the constant-velocity prediction).
     pub levels: Vec<RefineLevel>,
@@ -44,7 +46,7 @@ pub struct TrackConfig {
 impl Default for TrackConfig {
     fn default() -> Self {
         TrackConfig {
-            trigger_px: 4.0,
+            trigger_px: 12.0,
             levels: vec![
                 RefineLevel {
                     bin: 8,
