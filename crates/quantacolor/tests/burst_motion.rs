@@ -127,7 +127,7 @@ fn affine_motions_compose_and_invert() {
 }
 
 #[test]
-fn fast_shake_is_tracked_and_merged_sharply() {
+fn fast_shake_is_tracked_and_merged_at_single_frames() {
     let config = SimulationConfig {
         frames: 512,
         flux: FluxSpec::Mean { flux: 0.1 },
