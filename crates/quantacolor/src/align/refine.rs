@@ -767,12 +767,12 @@ fn smooth_in_time(
 /// other blocks and smooths it in time; see the module documentation.
 ///
 /// The template of the sub-blocks of block k is the mean of every *other* block's grey image
-/// (`grey_blocks`, mean bit rate per frame) warped to the reference by `block_flows`: a
-/// template that holds the sub-block's own photon noise pulls the fit toward that noise
+/// (`grey_blocks`, mean bit rate per frame) warped to the reference by the current block
+/// motion ([`FrameMotion::block_flow`]): a template that holds the sub-block's own photon noise pulls the fit toward that noise
 /// (measured: 0.3–0.4 px errors on the reference block of a low-texture static capture with
 /// the Wiener reference as template, 0.02 px on the others). The coarse level uses the mean of
-/// all blocks. Sub-blocks are summed from the packed frames; the capture's hot pixels are left out of
-/// the bins.
+/// all blocks. Sub-blocks are summed from the packed frames; the capture's hot pixels are left
+/// out of the bins.
 pub fn refine_camera_motion(
     capture: &Capture,
     grey_method: GreyMethod,
@@ -845,10 +845,11 @@ fn refine_pass(
     progress: &dyn Progress,
 ) -> Result<()> {
     let n_blocks = grey_blocks.len();
-    let block_flows: Vec<Array3<f32>> = (0..n_blocks).map(|b| motion.block_flow(b)).collect();
     let centre = motion.centre();
     let half = motion.half_size();
-    let warped = |b: usize| warp_to_reference(&grey_blocks[b], &block_flows[b]);
+    // Each block's grey image on the reference grid, made when needed rather than kept: the
+    // blocks' dense flows would grow with the number of frames.
+    let warped = |b: usize| warp_to_reference(&grey_blocks[b], &motion.block_flow(b));
     let mut total = Array2::<f32>::zeros(grey_blocks[0].dim());
     for b in 0..n_blocks {
         total += &warped(b)?;
