@@ -4,17 +4,15 @@
 //! `cargo test --release -p quantacolor --test burst_diagnose -- --ignored --nocapture`
 //! (QC_CASES="scene:motion:frames:flux;..." overrides the captures; scenes from ../shared/data).
 
+mod burst_support;
+
+use burst_support::median_epe;
 use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, BurstConfig};
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
 use std::time::Instant;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 #[test]
 #[ignore]
@@ -72,22 +70,7 @@ fn diagnose_frame_motion() {
                 .unwrap()
                 .psnr_srgb
         };
-        let epe = |b: &quantacolor::burst::BurstReconstruction| {
-            let mut errs = Vec::new();
-            for k in 0..16 {
-                let t = (k as f64 + 0.5) / 16.0 * config.frames as f64;
-                let est = b.merge_flow(t);
-                let tru = sim.motion.dense_flow(t, h, w);
-                for y in (16..h - 16).step_by(4) {
-                    for x in (16..w - 16).step_by(4) {
-                        let dy = (est[[y, x, 0]] - tru[[y, x, 0]]) as f64;
-                        let dx = (est[[y, x, 1]] - tru[[y, x, 1]]) as f64;
-                        errs.push((dy * dy + dx * dx).sqrt());
-                    }
-                }
-            }
-            median(errs)
-        };
+        let epe = |b: &quantacolor::burst::BurstReconstruction| median_epe(&sim, b);
         let mut variants: Vec<(String, BurstConfig)> =
             vec![("refined".into(), BurstConfig::default())];
         let mut off = BurstConfig::default();
