@@ -61,23 +61,38 @@ pub enum BenchCommand {
         #[arg(long)]
         burst_config: Option<PathBuf>,
     },
-    /// Denoising: PSNR/SSIM of none, plain colour BM3D and chroma-BM3D over a grid of σ gains
-    /// (the tuning tool for `luma_gain` / `chroma_gain`), on built-in chart captures, or on the
-    /// quality suite's tuning set with --scenes.
+    /// Denoising: PSNR/SSIM of chroma-BM3D over a grid of σ gains and of the flat-area kernel
+    /// of the merge it runs on (the tuning tool for `luma_gain`, `chroma_gain` and
+    /// `merge_k_denoise`), against the default merge without denoising (end to end), on built-in
+    /// chart captures, or on a set of the quality suite with --scenes.
     Denoise {
         /// Folder with the quality suite's scenes (default: built-in chart captures only).
         #[arg(long)]
         scenes: Option<PathBuf>,
-        /// Luma σ gains to try (comma-separated).
-        #[arg(long, value_delimiter = ',', default_value = "1")]
+        /// Which set of the quality suite (with --scenes).
+        #[arg(long, value_enum, default_value_t = SuiteSet::Tuning)]
+        set: SuiteSet,
+        /// Only the captures whose id contains this text.
+        #[arg(long)]
+        only: Option<String>,
+        /// Luma σ gains to try (comma-separated; default: the configured one).
+        #[arg(long, value_delimiter = ',')]
         luma_gains: Vec<f32>,
-        /// Chroma σ gains to try (comma-separated).
-        #[arg(long, value_delimiter = ',', default_value = "1")]
+        /// Chroma σ gains to try (comma-separated; default: the configured one).
+        #[arg(long, value_delimiter = ',')]
         chroma_gains: Vec<f32>,
+        /// Flat-area kernel stds (px) of the denoiser's merge to try (comma-separated;
+        /// default: the configured one).
+        #[arg(long, value_delimiter = ',')]
+        merge_k_denoise: Vec<f32>,
         /// TOML with burst (align + merge) parameters to use instead of the defaults (the
         /// `[burst]` table of report.toml, without the table header).
         #[arg(long)]
         burst_config: Option<PathBuf>,
+        /// TOML with denoising parameters to start from (the `[denoise]` table of report.toml,
+        /// without the table header).
+        #[arg(long)]
+        denoise_config: Option<PathBuf>,
     },
     /// Speed: align + merge of a simulated 10,000-frame capture, against the naive sum of the
     /// same frames in the same process.
@@ -102,18 +117,30 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
         BenchCommand::Speed { frames } => speed(*frames, progress),
         BenchCommand::Denoise {
             scenes,
+            set,
+            only,
             luma_gains,
             chroma_gains,
+            merge_k_denoise,
             burst_config,
+            denoise_config,
         } => {
             let burst = read_burst_config(burst_config.as_deref())?;
-            denoise_grid(
-                scenes.as_deref(),
-                luma_gains,
-                chroma_gains,
-                &burst,
-                progress,
-            )
+            let denoise = read_toml_config::<DenoiseConfig>(denoise_config.as_deref())?;
+            let grid = DenoiseGrid {
+                luma_gains: or_default(luma_gains, denoise.luma_gain),
+                chroma_gains: or_default(chroma_gains, denoise.chroma_gain),
+                merge_k_denoise: if merge_k_denoise.is_empty() {
+                    vec![denoise.merge_k_denoise]
+                } else {
+                    merge_k_denoise.iter().map(|&k| Some(k)).collect()
+                },
+            };
+            let captures = match scenes {
+                None => chart_captures()?,
+                Some(dir) => suite_captures(dir, *set, only.as_deref())?,
+            };
+            denoise_grid(&captures, &grid, &burst, &denoise, progress)
         }
     }
 }
@@ -579,14 +606,27 @@ fn run_case(
 
 /// The burst parameters of `path` (TOML, the `[burst]` table of report.toml), or the defaults.
 fn read_burst_config(path: Option<&Path>) -> Result<BurstConfig> {
+    read_toml_config(path)
+}
+
+/// A configuration table read from the TOML file `path`, or the defaults without one.
+fn read_toml_config<T: serde::de::DeserializeOwned + Default>(path: Option<&Path>) -> Result<T> {
     match path {
         Some(path) => {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("{}: cannot read", path.display()))?;
-            toml::from_str::<BurstConfig>(&text)
+            toml::from_str::<T>(&text)
                 .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))
         }
-        None => Ok(BurstConfig::default()),
+        None => Ok(T::default()),
+    }
+}
+
+fn or_default(values: &[f32], default: f32) -> Vec<f32> {
+    if values.is_empty() {
+        vec![default]
+    } else {
+        values.to_vec()
     }
 }
 
@@ -960,82 +1000,136 @@ fn chart_captures() -> Result<Vec<(String, SimulatedCapture)>> {
     Ok(out)
 }
 
+/// The settings `bench denoise` tries.
+struct DenoiseGrid {
+    luma_gains: Vec<f32>,
+    chroma_gains: Vec<f32>,
+    merge_k_denoise: Vec<Option<f32>>,
+}
+
+/// The suite's captures of `set` (those whose id contains `only`), simulated.
+fn suite_captures(
+    dir: &Path,
+    set: SuiteSet,
+    only: Option<&str>,
+) -> Result<Vec<(String, SimulatedCapture)>> {
+    let captures: Vec<(String, SimulatedCapture)> = suite()
+        .iter()
+        .filter(|case| set == SuiteSet::All || case.set == set)
+        .filter(|case| only.map_or(true, |o| case.id().contains(o)))
+        .map(|case| {
+            let sim =
+                simulate_case(dir, case).with_context(|| format!("simulating {}", case.scene))?;
+            Ok((case.label(), sim))
+        })
+        .collect::<Result<_>>()?;
+    if captures.is_empty() {
+        bail!("no capture of the suite matches");
+    }
+    Ok(captures)
+}
+
 fn denoise_grid(
-    scenes: Option<&Path>,
-    luma_gains: &[f32],
-    chroma_gains: &[f32],
+    captures: &[(String, SimulatedCapture)],
+    grid: &DenoiseGrid,
     burst_config: &BurstConfig,
+    denoise: &DenoiseConfig,
     progress: &dyn Progress,
 ) -> Result<()> {
-    let captures: Vec<(String, SimulatedCapture)> = match scenes {
-        None => chart_captures()?,
-        Some(dir) => suite()
-            .iter()
-            .filter(|case| case.set == SuiteSet::Tuning)
-            .map(|case| {
-                let sim = simulate_case(dir, case)
-                    .with_context(|| format!("simulating {}", case.scene))?;
-                Ok((case.label(), sim))
-            })
-            .collect::<Result<_>>()?,
-    };
     let opts = EvalOptions {
         border: 16,
         normalize_percentile: Some(99.5),
     };
-    // (method, luma gain, chroma gain) -> per-capture scores
-    let mut settings: Vec<(DenoiseMethod, f32, f32)> = vec![(DenoiseMethod::None, 1.0, 1.0)];
-    for &g in luma_gains {
-        settings.push((DenoiseMethod::Bm3d, g, 1.0));
-        for &c in chroma_gains {
-            settings.push((DenoiseMethod::ChromaBm3d, g, c));
+    // (merge k_denoise, luma gain, chroma gain); per capture: (scores, gain over end to end).
+    let mut settings: Vec<(Option<f32>, f32, f32)> = Vec::new();
+    for &k in &grid.merge_k_denoise {
+        for &g in &grid.luma_gains {
+            for &c in &grid.chroma_gains {
+                settings.push((k, g, c));
+            }
         }
     }
     let mut scores: Vec<Vec<Scores>> = vec![Vec::new(); settings.len()];
+    let mut baseline: Vec<Scores> = Vec::new();
     progress.start("denoising grid", captures.len() as u64);
-    for (name, sim) in &captures {
+    for (name, sim) in captures {
         let capture = sim.to_capture()?;
         let reference = capture.reference_frame();
-        let burst = reconstruct_burst(&capture, reference, burst_config, &Silent)?;
-        let input = denoise_input(&capture, Some(&burst), capture.frames.frame_count());
         let gt = sim.ground_truth.view();
-        for (k, &(method, luma_gain, chroma_gain)) in settings.iter().enumerate() {
-            let config = DenoiseConfig {
-                method,
-                luma_gain,
-                chroma_gain,
-                ..DenoiseConfig::default()
+        // End to end: the default merge without denoising.
+        let plain = reconstruct_burst(&capture, reference, burst_config, &Silent)?;
+        let base = evaluate(plain.merged.linear.view(), gt, &opts)?;
+        eprintln!(
+            "{name}: no denoising {:.2} dB / {:.4}",
+            base.psnr_srgb, base.ssim_srgb
+        );
+        baseline.push(base);
+        for &k in &grid.merge_k_denoise {
+            let config = ReconstructConfig {
+                burst: burst_config.clone(),
+                denoise: DenoiseConfig {
+                    merge_k_denoise: k,
+                    ..denoise.clone()
+                },
+                ..ReconstructConfig::default()
             };
-            let start = Instant::now();
-            let (out, report) = denoise_linear(burst.merged.linear.view(), &input, &config)?;
-            let s = evaluate(out.view(), gt, &opts)?;
-            eprintln!(
-                "{name}: {method} luma×{luma_gain} chroma×{chroma_gain}: {:.2} dB / {:.4} ({:.2} s, σ {:?})",
-                s.psnr_srgb,
-                s.ssim_srgb,
-                start.elapsed().as_secs_f64(),
-                report.map(|r| r.sigmas)
-            );
-            scores[k].push(s);
+            let burst =
+                reconstruct_burst(&capture, reference, &burst_config_for(&config), &Silent)?;
+            let input = denoise_input(&capture, Some(&burst), capture.frames.frame_count());
+            for (i, &(_, luma_gain, chroma_gain)) in
+                settings.iter().enumerate().filter(|(_, s)| s.0 == k)
+            {
+                let config = DenoiseConfig {
+                    luma_gain,
+                    chroma_gain,
+                    ..config.denoise.clone()
+                };
+                let start = Instant::now();
+                let (out, report) = denoise_linear(burst.merged.linear.view(), &input, &config)?;
+                let s = evaluate(out.view(), gt, &opts)?;
+                eprintln!(
+                    "{name}: merge k_denoise {k:?}, luma ×{luma_gain} chroma ×{chroma_gain}: \
+                     {:.2} dB / {:.4} ({:+.2} dB; {:.2} s, σ {:?})",
+                    s.psnr_srgb,
+                    s.ssim_srgb,
+                    s.psnr_srgb - base.psnr_srgb,
+                    start.elapsed().as_secs_f64(),
+                    report.map(|r| r.sigmas)
+                );
+                scores[i].push(s);
+            }
         }
         progress.advance(1);
     }
     progress.finish();
-    println!(
-        "{:<12} {:>6} {:>7} {:>10} {:>10}",
-        "method", "luma", "chroma", "mean PSNR", "mean SSIM"
-    );
     let n = captures.len() as f64;
-    for (k, (method, g, c)) in settings.iter().enumerate() {
+    let base_psnr = baseline.iter().map(|s| s.psnr_srgb).sum::<f64>() / n;
+    let base_ssim = baseline.iter().map(|s| s.ssim_srgb).sum::<f64>() / n;
+    println!(
+        "{} captures; no denoising (default merge): {base_psnr:.2} dB / {base_ssim:.4}",
+        captures.len()
+    );
+    println!(
+        "{:>9} {:>6} {:>7} {:>10} {:>10} {:>10} {:>10}",
+        "merge k", "luma", "chroma", "mean PSNR", "mean SSIM", "mean gain", "min gain"
+    );
+    for (k, (merge_k, g, c)) in settings.iter().enumerate() {
         let psnr = scores[k].iter().map(|s| s.psnr_srgb).sum::<f64>() / n;
         let ssim = scores[k].iter().map(|s| s.ssim_srgb).sum::<f64>() / n;
+        let min_gain = scores[k]
+            .iter()
+            .zip(&baseline)
+            .map(|(s, b)| s.psnr_srgb - b.psnr_srgb)
+            .fold(f64::INFINITY, f64::min);
         println!(
-            "{:<12} {:>6} {:>7} {:>10.2} {:>10.4}",
-            method.to_string(),
+            "{:>9} {:>6} {:>7} {:>10.2} {:>10.4} {:>+10.2} {:>+10.2}",
+            merge_k.map_or("merge".into(), |k| k.to_string()),
             g,
             c,
             psnr,
-            ssim
+            ssim,
+            psnr - base_psnr,
+            min_gain
         );
     }
     Ok(())

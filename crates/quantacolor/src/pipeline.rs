@@ -103,6 +103,9 @@ pub fn burst_config_for(config: &ReconstructConfig) -> BurstConfig {
         if let Some(e) = config.denoise.merge_spacing_exponent {
             burst.merge.accumulate.spacing_exponent = e;
         }
+        if let Some(k) = config.denoise.merge_k_denoise {
+            burst.merge.kernels.k_denoise = k;
+        }
     }
     burst
 }

@@ -80,6 +80,12 @@ pub struct DenoiseConfig {
     /// `None` keeps the merge's own value.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub merge_spacing_exponent: Option<f32>,
+    /// Isotropic kernel std of flat areas (`merge::KernelConfig::k_denoise`, px) of the merge
+    /// when this denoiser runs: BM3D removes the noise that wide flat-area kernels would
+    /// average away, without their blur (this project's tuning, `bench denoise`).
+    /// `None` keeps the merge's own value.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub merge_k_denoise: Option<f32>,
     pub bm3d: Bm3dConfig,
 }
 
@@ -92,6 +98,7 @@ impl Default for DenoiseConfig {
             luma_gain: 1.0,
             chroma_gain: 4.0,
             merge_spacing_exponent: Some(0.5),
+            merge_k_denoise: None,
             bm3d: Bm3dConfig::default(),
         }
     }
@@ -422,9 +429,8 @@ fn anscombe_trials(noise: &MergeNoise) -> f64 {
     of_channel(3).or_else(|| of_channel(1)).unwrap_or(1.0)
 }
 
-/// σ of the three transformed channels from the binomial model, by the delta method per pixel
-/// (Var λ_c = p_c / ((1 − p_c)·N_c) for the MLE of Eq. 6, through Eq. 8, the Anscombe transform
-/// and the colour matrix); the square root of the median variance over pixels.
+/// σ of the three transformed channels from the binomial model: the square root of the median
+/// over pixels of [`model_variance_map`].
 fn model_sigmas(
     linear: &ArrayView3<f32>,
     noise: &MergeNoise,
@@ -433,70 +439,118 @@ fn model_sigmas(
     dark: f64,
     w_weights: [f64; 3],
 ) -> [f32; 3] {
+    let variances = model_variance_map(linear, noise, anscombe, transform, dark, w_weights);
+    [0, 1, 2].map(|i| {
+        let mut v: Vec<f32> = variances
+            .index_axis(Axis(0), i)
+            .iter()
+            .copied()
+            .filter(|v| v.is_finite())
+            .collect();
+        if v.is_empty() {
+            return 0.0;
+        }
+        upper_median(&mut v, f32::total_cmp).sqrt()
+    })
+}
+
+/// Per-pixel noise variance (3, H, W) of the three transformed channels from the binomial model,
+/// by the delta method (Var λ_c = p_c / ((1 − p_c)·N_c) for the MLE of Eq. 6, through Eq. 8,
+/// the Anscombe transform and the colour matrix); NaN where the model is undefined.
+pub fn model_variance_map(
+    linear: &ArrayView3<f32>,
+    noise: &MergeNoise,
+    anscombe: &BinomialAnscombe,
+    transform: &ColorTransform,
+    dark: f64,
+    w_weights: [f64; 3],
+) -> Array3<f32> {
     let (h, w, _) = linear.dim();
     let has_w = noise
         .flux
         .index_axis(Axis(0), 3)
         .iter()
         .any(|v| v.is_finite());
-    let variances: Vec<[f64; 3]> = (0..h)
+    let mut out = Array3::<f32>::from_elem((3, h, w), f32::NAN);
+    let rows: Vec<Vec<[f32; 3]>> = (0..h)
         .into_par_iter()
-        .flat_map_iter(|y| {
-            (0..w).filter_map(move |x| {
-                let lam = [0, 1, 2, 3].map(|c| noise.flux[[c, y, x]] as f64);
-                let n = [0, 1, 2, 3].map(|c| noise.effective_frames[[c, y, x]] as f64);
-                let channels = if has_w { 4 } else { 3 };
-                if (0..channels).any(|c| !lam[c].is_finite() || n[c].is_nan() || n[c] <= 0.0) {
-                    return None;
-                }
-                let var_lam = [0, 1, 2, 3].map(|c| {
-                    if c >= channels {
-                        return 0.0;
-                    }
-                    let p = bit_rate(lam[c], dark).min(1.0 - 0.5 / n[c]);
-                    p / ((1.0 - p) * n[c])
-                });
-                // ∂out_c/∂λ_k of Eq. 8, out_c = λ_c·λ_W / L with L = Σ w_k·λ_k.
-                let mut jac = [[0.0f64; 4]; 3];
-                let lum: f64 = (0..3).map(|k| w_weights[k] * lam[k]).sum();
-                if has_w && lum > 1e-9 {
-                    for c in 0..3 {
-                        for k in 0..3 {
-                            let delta = if c == k { lam[3] / lum } else { 0.0 };
-                            jac[c][k] = delta - lam[c] * lam[3] * w_weights[k] / (lum * lum);
-                        }
-                        jac[c][3] = lam[c] / lum;
-                    }
-                } else {
-                    for (c, row) in jac.iter_mut().enumerate() {
-                        row[c] = 1.0;
-                    }
-                }
-                // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
-                let da = [0, 1, 2].map(|c| {
-                    let out = linear[[y, x, c]] as f64;
-                    let p = bit_rate(out, dark);
-                    anscombe.derivative_rate(p) * (-(out + dark).max(0.0)).exp()
-                });
-                // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.
-                let mut var = [0.0; 3];
-                for (i, row) in transform.forward.iter().enumerate() {
-                    for k in 0..4 {
-                        let d: f64 = (0..3).map(|c| row[c] * da[c] * jac[c][k]).sum();
-                        var[i] += d * d * var_lam[k];
-                    }
-                }
-                Some(var)
-            })
+        .map(|y| {
+            (0..w)
+                .map(|x| {
+                    pixel_variance(
+                        linear, noise, anscombe, transform, dark, w_weights, has_w, y, x,
+                    )
+                    .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
+                })
+                .collect()
         })
         .collect();
-    [0, 1, 2].map(|i| {
-        let mut v: Vec<f64> = variances.iter().map(|var| var[i]).collect();
-        if v.is_empty() {
+    for (y, row) in rows.iter().enumerate() {
+        for (x, v) in row.iter().enumerate() {
+            for ch in 0..3 {
+                out[[ch, y, x]] = v[ch];
+            }
+        }
+    }
+    out
+}
+
+#[allow(clippy::too_many_arguments)]
+fn pixel_variance(
+    linear: &ArrayView3<f32>,
+    noise: &MergeNoise,
+    anscombe: &BinomialAnscombe,
+    transform: &ColorTransform,
+    dark: f64,
+    w_weights: [f64; 3],
+    has_w: bool,
+    y: usize,
+    x: usize,
+) -> Option<[f64; 3]> {
+    let lam = [0, 1, 2, 3].map(|c| noise.flux[[c, y, x]] as f64);
+    let n = [0, 1, 2, 3].map(|c| noise.effective_frames[[c, y, x]] as f64);
+    let channels = if has_w { 4 } else { 3 };
+    if (0..channels).any(|c| !lam[c].is_finite() || n[c].is_nan() || n[c] <= 0.0) {
+        return None;
+    }
+    let var_lam = [0, 1, 2, 3].map(|c| {
+        if c >= channels {
             return 0.0;
         }
-        upper_median(&mut v, f64::total_cmp).sqrt() as f32
-    })
+        let p = bit_rate(lam[c], dark).min(1.0 - 0.5 / n[c]);
+        p / ((1.0 - p) * n[c])
+    });
+    // ∂out_c/∂λ_k of Eq. 8, out_c = λ_c·λ_W / L with L = Σ w_k·λ_k.
+    let mut jac = [[0.0f64; 4]; 3];
+    let lum: f64 = (0..3).map(|k| w_weights[k] * lam[k]).sum();
+    if has_w && lum > 1e-9 {
+        for c in 0..3 {
+            for k in 0..3 {
+                let delta = if c == k { lam[3] / lum } else { 0.0 };
+                jac[c][k] = delta - lam[c] * lam[3] * w_weights[k] / (lum * lum);
+            }
+            jac[c][3] = lam[c] / lum;
+        }
+    } else {
+        for (c, row) in jac.iter_mut().enumerate() {
+            row[c] = 1.0;
+        }
+    }
+    // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
+    let da = [0, 1, 2].map(|c| {
+        let out = linear[[y, x, c]] as f64;
+        let p = bit_rate(out, dark);
+        anscombe.derivative_rate(p) * (-(out + dark).max(0.0)).exp()
+    });
+    // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.
+    let mut var = [0.0; 3];
+    for (i, row) in transform.forward.iter().enumerate() {
+        for k in 0..4 {
+            let d: f64 = (0..3).map(|c| row[c] * da[c] * jac[c][k]).sum();
+            var[i] += d * d * var_lam[k];
+        }
+    }
+    Some(var)
 }
 
 /// Noise σ of a plane from the median absolute finest diagonal Haar coefficient / 0.6745
