@@ -85,6 +85,12 @@ pub enum BenchCommand {
         /// default: the configured one).
         #[arg(long, value_delimiter = ',')]
         merge_k_denoise: Vec<f32>,
+        /// Numbers of coarse chroma scales to try (comma-separated; default: the configured).
+        #[arg(long, value_delimiter = ',')]
+        chroma_scales: Vec<usize>,
+        /// Coarse σ factors to try (comma-separated; default: the configured one).
+        #[arg(long, value_delimiter = ',')]
+        coarse_sigma_factors: Vec<f32>,
         /// TOML with burst (align + merge) parameters to use instead of the defaults (the
         /// `[burst]` table of report.toml, without the table header).
         #[arg(long)]
@@ -122,6 +128,8 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             luma_gains,
             chroma_gains,
             merge_k_denoise,
+            chroma_scales,
+            coarse_sigma_factors,
             burst_config,
             denoise_config,
         } => {
@@ -135,6 +143,12 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
                 } else {
                     merge_k_denoise.iter().map(|&k| Some(k)).collect()
                 },
+                chroma_scales: if chroma_scales.is_empty() {
+                    vec![denoise.chroma_scales]
+                } else {
+                    chroma_scales.clone()
+                },
+                coarse_sigma_factors: or_default(coarse_sigma_factors, denoise.coarse_sigma_factor),
             };
             let captures = match scenes {
                 None => chart_captures()?,
@@ -1005,6 +1019,18 @@ struct DenoiseGrid {
     luma_gains: Vec<f32>,
     chroma_gains: Vec<f32>,
     merge_k_denoise: Vec<Option<f32>>,
+    chroma_scales: Vec<usize>,
+    coarse_sigma_factors: Vec<f32>,
+}
+
+/// One setting of the grid.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct DenoiseSetting {
+    merge_k_denoise: Option<f32>,
+    luma_gain: f32,
+    chroma_gain: f32,
+    chroma_scales: usize,
+    coarse_sigma_factor: f32,
 }
 
 /// The suite's captures of `set` (those whose id contains `only`), simulated.
@@ -1040,12 +1066,24 @@ fn denoise_grid(
         border: 16,
         normalize_percentile: Some(99.5),
     };
-    // (merge k_denoise, luma gain, chroma gain); per capture: (scores, gain over end to end).
-    let mut settings: Vec<(Option<f32>, f32, f32)> = Vec::new();
-    for &k in &grid.merge_k_denoise {
-        for &g in &grid.luma_gains {
-            for &c in &grid.chroma_gains {
-                settings.push((k, g, c));
+    let mut settings: Vec<DenoiseSetting> = Vec::new();
+    for &merge_k_denoise in &grid.merge_k_denoise {
+        for &luma_gain in &grid.luma_gains {
+            for &chroma_gain in &grid.chroma_gains {
+                for &chroma_scales in &grid.chroma_scales {
+                    for &coarse_sigma_factor in &grid.coarse_sigma_factors {
+                        settings.push(DenoiseSetting {
+                            merge_k_denoise,
+                            luma_gain,
+                            chroma_gain,
+                            chroma_scales,
+                            coarse_sigma_factor,
+                        });
+                        if chroma_scales == 0 {
+                            break;
+                        }
+                    }
+                }
             }
         }
     }
@@ -1076,20 +1114,23 @@ fn denoise_grid(
             let burst =
                 reconstruct_burst(&capture, reference, &burst_config_for(&config), &Silent)?;
             let input = denoise_input(&capture, Some(&burst), capture.frames.frame_count());
-            for (i, &(_, luma_gain, chroma_gain)) in
-                settings.iter().enumerate().filter(|(_, s)| s.0 == k)
+            for (i, setting) in settings
+                .iter()
+                .enumerate()
+                .filter(|(_, s)| s.merge_k_denoise == k)
             {
                 let config = DenoiseConfig {
-                    luma_gain,
-                    chroma_gain,
+                    luma_gain: setting.luma_gain,
+                    chroma_gain: setting.chroma_gain,
+                    chroma_scales: setting.chroma_scales,
+                    coarse_sigma_factor: setting.coarse_sigma_factor,
                     ..config.denoise.clone()
                 };
                 let start = Instant::now();
                 let (out, report) = denoise_linear(burst.merged.linear.view(), &input, &config)?;
                 let s = evaluate(out.view(), gt, &opts)?;
                 eprintln!(
-                    "{name}: merge k_denoise {k:?}, luma ×{luma_gain} chroma ×{chroma_gain}: \
-                     {:.2} dB / {:.4} ({:+.2} dB; {:.2} s, σ {:?})",
+                    "{name}: {setting:?}: {:.2} dB / {:.4} ({:+.2} dB; {:.2} s, σ {:?})",
                     s.psnr_srgb,
                     s.ssim_srgb,
                     s.psnr_srgb - base.psnr_srgb,
@@ -1110,10 +1151,18 @@ fn denoise_grid(
         captures.len()
     );
     println!(
-        "{:>9} {:>6} {:>7} {:>10} {:>10} {:>10} {:>10}",
-        "merge k", "luma", "chroma", "mean PSNR", "mean SSIM", "mean gain", "min gain"
+        "{:>9} {:>6} {:>7} {:>7} {:>7} {:>10} {:>10} {:>10} {:>10}",
+        "merge k",
+        "luma",
+        "chroma",
+        "scales",
+        "coarse",
+        "mean PSNR",
+        "mean SSIM",
+        "mean gain",
+        "min gain"
     );
-    for (k, (merge_k, g, c)) in settings.iter().enumerate() {
+    for (k, setting) in settings.iter().enumerate() {
         let psnr = scores[k].iter().map(|s| s.psnr_srgb).sum::<f64>() / n;
         let ssim = scores[k].iter().map(|s| s.ssim_srgb).sum::<f64>() / n;
         let min_gain = scores[k]
@@ -1122,10 +1171,14 @@ fn denoise_grid(
             .map(|(s, b)| s.psnr_srgb - b.psnr_srgb)
             .fold(f64::INFINITY, f64::min);
         println!(
-            "{:>9} {:>6} {:>7} {:>10.2} {:>10.4} {:>+10.2} {:>+10.2}",
-            merge_k.map_or("merge".into(), |k| k.to_string()),
-            g,
-            c,
+            "{:>9} {:>6} {:>7} {:>7} {:>7} {:>10.2} {:>10.4} {:>+10.2} {:>+10.2}",
+            setting
+                .merge_k_denoise
+                .map_or("merge".into(), |k| k.to_string()),
+            setting.luma_gain,
+            setting.chroma_gain,
+            setting.chroma_scales,
+            setting.coarse_sigma_factor,
             psnr,
             ssim,
             psnr - base_psnr,

@@ -227,7 +227,7 @@ fn tile_cost(
 
 /// Bilinear sample of `img` at `(y, x)` with clamping.
 #[inline]
-fn bilinear(img: &Array2<f32>, y: f32, x: f32) -> f32 {
+pub(crate) fn bilinear(img: &Array2<f32>, y: f32, x: f32) -> f32 {
     let (h, w) = img.dim();
     let y = y.clamp(0.0, (h - 1) as f32);
     let x = x.clamp(0.0, (w - 1) as f32);

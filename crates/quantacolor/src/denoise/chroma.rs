@@ -14,9 +14,10 @@
 //! three channels (the RMS noise of the stabilised R, G, B).
 
 use super::anscombe::BinomialAnscombe;
-use super::bm3d::{bm3d_multichannel, Bm3dConfig};
+use super::bm3d::{bm3d_multichannel_varying, Bm3dConfig};
+use crate::align::patch::{bilinear, box_downsample};
 use crate::error::{Error, Result};
-use ndarray::{Array3, ArrayView3, Axis, Zip};
+use ndarray::{Array2, Array3, ArrayView3, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -86,6 +87,18 @@ pub struct DenoiseConfig {
     /// `None` keeps the merge's own value.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub merge_k_denoise: Option<f32>,
+    /// Coarse scales at which chroma is denoised again (0: off; 1: 1/2; 2: 1/2 and 1/4): the
+    /// merge's chroma noise is coarse-grained, more than 8×8 blocks see. See
+    /// [`bm3d_multiscale`] (this project's heuristic).
+    pub chroma_scales: usize,
+    /// σ at a coarser scale as a multiple of the σ one scale finer: 0.5 for white noise (a 2×2
+    /// mean), up to 1 for noise correlated over more than 2 px.
+    pub coarse_sigma_factor: f32,
+    /// Filter each BM3D group with the σ of its own pixels from the merge's per-pixel noise
+    /// model ([`model_variance_map`]) instead of one σ per channel: the merge's effective
+    /// frames vary over the image (robustness, kernel widths, brightness through Eq. 8), so the
+    /// stabilised noise is not uniform. Ignored without a merge noise model.
+    pub sigma_map: bool,
     pub bm3d: Bm3dConfig,
 }
 
@@ -99,6 +112,9 @@ impl Default for DenoiseConfig {
             chroma_gain: 4.0,
             merge_spacing_exponent: Some(0.5),
             merge_k_denoise: None,
+            chroma_scales: 0,
+            coarse_sigma_factor: 0.7,
+            sigma_map: false,
             bm3d: Bm3dConfig::default(),
         }
     }
@@ -248,8 +264,10 @@ pub fn denoise_linear(
         mut planes,
         sigmas: modelled,
         source,
+        relative_variance,
         ..
     } = stabilise(linear, input, transform)?;
+    let relative_variance = relative_variance.filter(|_| config.sigma_map);
     let dark = input.dark_per_frame;
     let mut sigmas = match config.method {
         // Plain colour BM3D: one σ, the RMS over the channels (orthonormal transform).
@@ -289,7 +307,19 @@ pub fn denoise_linear(
     let scale = if hi > lo { 255.0 / (hi - lo) } else { 1.0 };
     planes.mapv_inplace(|v| v * scale);
     let scaled_sigmas: Vec<f32> = sigmas.iter().map(|s| s * scale).collect();
-    let mut denoised = bm3d_multichannel(planes.view(), &scaled_sigmas, &config.bm3d)?;
+    let scaled_sigmas: [f32; 3] = [scaled_sigmas[0], scaled_sigmas[1], scaled_sigmas[2]];
+    let chroma_scales = match config.method {
+        DenoiseMethod::ChromaBm3d => config.chroma_scales,
+        _ => 0,
+    };
+    let mut denoised = bm3d_multiscale(
+        planes.view(),
+        scaled_sigmas,
+        relative_variance.as_ref().map(|v| v.view()),
+        chroma_scales,
+        config.coarse_sigma_factor,
+        &config.bm3d,
+    )?;
     denoised.mapv_inplace(|v| v / scale);
 
     // Back: inverse colour transform, exact unbiased inverse Anscombe, flux.
@@ -319,6 +349,62 @@ pub fn denoise_linear(
     ))
 }
 
+/// BM3D of (Y, Cb, Cr) planes with grouping on Y, and the low frequencies of Cb and Cr taken
+/// from BM3D at `scales` coarser scales (this project's heuristic, after the multiscale
+/// scheme of Lebrun, Colom & Morel, "Multiscale image blind denoising", IEEE TIP 2015): the
+/// merge's colour kernels span several of the sparse colour sites, so chroma noise is
+/// correlated over more pixels than BM3D's 8×8 blocks see. At each scale the planes are
+/// averaged over 2×2 cells, denoised with σ × `coarse_sigma_factor` (recursively), and
+/// fine = fine + up(coarse_denoised − down(fine)) for the chroma planes, with `down` the 2×2
+/// mean and `up` bilinear interpolation between cell centres. Y keeps its full-scale result.
+pub fn bm3d_multiscale(
+    planes: ArrayView3<f32>,
+    sigmas: [f32; 3],
+    relative_variance: Option<ArrayView3<f32>>,
+    scales: usize,
+    coarse_sigma_factor: f32,
+    config: &Bm3dConfig,
+) -> Result<Array3<f32>> {
+    let mut fine = bm3d_multichannel_varying(planes, &sigmas, relative_variance, config)?;
+    let (_, h, w) = planes.dim();
+    let min_side = 4 * config.block_size;
+    if scales == 0 || h / 2 < min_side || w / 2 < min_side {
+        return Ok(fine);
+    }
+    if !(coarse_sigma_factor.is_finite() && coarse_sigma_factor > 0.0) {
+        return Err(Error::invalid(format!(
+            "coarse_sigma_factor must be positive, got {coarse_sigma_factor}"
+        )));
+    }
+    let down = |p: ndarray::ArrayView2<f32>| box_downsample(&p.to_owned(), 2);
+    let down3 = |a: ArrayView3<f32>| {
+        let coarse: Vec<Array2<f32>> = a.outer_iter().map(down).collect();
+        let views: Vec<_> = coarse.iter().map(|p| p.view()).collect();
+        ndarray::stack(Axis(0), &views).expect("planes of one shape")
+    };
+    let coarse = down3(planes);
+    let coarse_variance = relative_variance.map(down3);
+    let coarse_denoised = bm3d_multiscale(
+        coarse.view(),
+        sigmas.map(|s| s * coarse_sigma_factor),
+        coarse_variance.as_ref().map(|v| v.view()),
+        scales - 1,
+        coarse_sigma_factor,
+        config,
+    )?;
+    for ch in 1..3 {
+        let correction =
+            coarse_denoised.index_axis(Axis(0), ch).to_owned() - down(fine.index_axis(Axis(0), ch));
+        let mut plane = fine.index_axis_mut(Axis(0), ch);
+        Zip::indexed(&mut plane).for_each(|(y, x), v| {
+            // Fine pixel centres in coarse cell coordinates.
+            let (cy, cx) = ((y as f32 + 0.5) / 2.0 - 0.5, (x as f32 + 0.5) / 2.0 - 0.5);
+            *v += bilinear(&correction, cy, cx);
+        });
+    }
+    Ok(fine)
+}
+
 /// A linear image in the stabilised, colour-transformed domain, with its noise σs.
 #[derive(Debug, Clone)]
 pub struct Stabilised {
@@ -329,6 +415,9 @@ pub struct Stabilised {
     /// Noise σ of each plane (binomial model, or estimated from the planes without one).
     pub sigmas: [f32; 3],
     pub source: SigmaSource,
+    /// (3, H, W) per-pixel noise variance of the binomial model relative to `sigmas`² (clamped
+    /// to [1/16, 25]; 1 where the model is undefined); `None` without a model.
+    pub relative_variance: Option<Array3<f32>>,
 }
 
 /// Stabilises a linear image (H, W, 3): each colour channel's flux to its bit rate
@@ -369,21 +458,23 @@ pub fn stabilise(
             }
         }
     }
-    let (sigmas, source) = match input.noise {
-        Some(noise) => (
-            model_sigmas(
+    let (sigmas, source, relative_variance) = match input.noise {
+        Some(noise) => {
+            let variance = model_variance_map(
                 &linear,
                 &noise,
                 &anscombe,
                 &transform,
                 dark,
                 input.w_weights,
-            ),
-            SigmaSource::BinomialModel,
-        ),
+            );
+            let sigmas = median_sigmas(&variance);
+            let relative = relative_variance(variance, sigmas);
+            (sigmas, SigmaSource::BinomialModel, Some(relative))
+        }
         None => {
             let est = [0, 1, 2].map(|ch| mad_sigma(planes.index_axis(Axis(0), ch)));
-            (est, SigmaSource::Estimated)
+            (est, SigmaSource::Estimated, None)
         }
     };
     Ok(Stabilised {
@@ -392,6 +483,7 @@ pub fn stabilise(
         planes,
         sigmas,
         source,
+        relative_variance,
     })
 }
 
@@ -429,17 +521,9 @@ fn anscombe_trials(noise: &MergeNoise) -> f64 {
     of_channel(3).or_else(|| of_channel(1)).unwrap_or(1.0)
 }
 
-/// σ of the three transformed channels from the binomial model: the square root of the median
-/// over pixels of [`model_variance_map`].
-fn model_sigmas(
-    linear: &ArrayView3<f32>,
-    noise: &MergeNoise,
-    anscombe: &BinomialAnscombe,
-    transform: &ColorTransform,
-    dark: f64,
-    w_weights: [f64; 3],
-) -> [f32; 3] {
-    let variances = model_variance_map(linear, noise, anscombe, transform, dark, w_weights);
+/// σ of the three transformed channels: the square root of the median over pixels of a
+/// variance map ([`model_variance_map`]).
+fn median_sigmas(variances: &Array3<f32>) -> [f32; 3] {
     [0, 1, 2].map(|i| {
         let mut v: Vec<f32> = variances
             .index_axis(Axis(0), i)
@@ -452,6 +536,22 @@ fn model_sigmas(
         }
         upper_median(&mut v, f32::total_cmp).sqrt()
     })
+}
+
+/// `variance / sigma²` per channel, clamped to [1/16, 25] (σ within a factor 4 below and 5
+/// above the channel's σ), 1 where undefined.
+fn relative_variance(mut variance: Array3<f32>, sigmas: [f32; 3]) -> Array3<f32> {
+    for (ch, mut plane) in variance.outer_iter_mut().enumerate() {
+        let s2 = sigmas[ch] * sigmas[ch];
+        plane.mapv_inplace(|v| {
+            if v.is_finite() && s2 > 0.0 {
+                (v / s2).clamp(1.0 / 16.0, 25.0)
+            } else {
+                1.0
+            }
+        });
+    }
+    variance
 }
 
 /// Per-pixel noise variance (3, H, W) of the three transformed channels from the binomial model,
