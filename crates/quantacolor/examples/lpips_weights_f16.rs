@@ -22,14 +22,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         eprintln!("usage: lpips_weights_f16 IN_F32.npz OUT_F16.npz");
         std::process::exit(2);
     };
-    let mut reader =
-        NpzReader::new(File::open(input).map_err(|e| format!("{input}: {e}"))?)
-            .map_err(|e| format!("{input}: {e}"))?;
+    let mut reader = NpzReader::new(File::open(input).map_err(|e| format!("{input}: {e}"))?)
+        .map_err(|e| format!("{input}: {e}"))?;
     let tmp = format!("{output}.tmp");
     let mut writer = NpzWriter::new(BufWriter::new(File::create(&tmp)?));
     let mut worst = 0.0f32;
     for name in reader.names()? {
-        let a: ArrayD<f32> = reader.by_name(&name).map_err(|e| format!("{input}: {name}: {e}"))?;
+        let a: ArrayD<f32> = reader
+            .by_name(&name)
+            .map_err(|e| format!("{input}: {name}: {e}"))?;
         let bits = a.mapv(|v| half::f16::from_f32(v).to_bits());
         for (&v, &b) in a.iter().zip(bits.iter()) {
             let err = (half::f16::from_bits(b).to_f32() - v).abs() / v.abs().max(1e-30);
@@ -38,7 +39,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         writer.add_array(name.as_str(), &bits)?;
         println!("{name}: {:?}", a.shape());
     }
-    writer.finish()?.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+    writer
+        .finish()?
+        .into_inner()
+        .map_err(|e| e.into_error())?
+        .sync_all()?;
     std::fs::rename(&tmp, output)?;
     println!("wrote {output}; worst relative rounding error of normal values {worst:.2e}");
     Ok(())

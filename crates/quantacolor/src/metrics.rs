@@ -18,7 +18,9 @@ pub mod lpips;
 
 pub use lpips::{lpips, Lpips, LPIPS_MIN_SIZE};
 
-use ndarray::{s, Array3, ArrayView, ArrayView2, ArrayView3, ArrayViewD, Axis, Dimension, Ix2, Ix3};
+use ndarray::{
+    s, Array3, ArrayView, ArrayView2, ArrayView3, ArrayViewD, Axis, Dimension, Ix2, Ix3,
+};
 use rayon::prelude::*;
 
 use crate::display::srgb::linear_to_srgb;

@@ -146,12 +146,17 @@ fn evaluate_lpips_scores_the_protocol_images() {
     let pos = 0.995 * (v.len() - 1) as f64;
     let lo = pos.floor() as usize;
     let q = f64::from(v[lo]) + (pos - lo as f64) * f64::from(v[lo + 1] - v[lo]);
-    let enc = |a: &Array3<f32>| a.mapv(|x| linear_to_srgb((f64::from(x) / q).clamp(0.0, 1.0) as f32));
+    let enc =
+        |a: &Array3<f32>| a.mapv(|x| linear_to_srgb((f64::from(x) / q).clamp(0.0, 1.0) as f32));
     let want = lpips(enc(&e).view(), enc(&t).view()).unwrap();
     assert!((got - want).abs() < 1e-9, "{got} vs {want}");
     // Exposure-invariant like the other scores.
-    let scaled = evaluate_lpips(est.mapv(|x| x * 7.0).view(), truth.mapv(|x| x * 7.0).view(), &opts)
-        .unwrap();
+    let scaled = evaluate_lpips(
+        est.mapv(|x| x * 7.0).view(),
+        truth.mapv(|x| x * 7.0).view(),
+        &opts,
+    )
+    .unwrap();
     assert!((scaled - got).abs() < 1e-4, "{scaled} vs {got}");
     assert_eq!(
         evaluate_lpips(truth.view(), truth.view(), &opts).unwrap(),
@@ -203,6 +208,9 @@ fn embedded_f16_weights_agree_with_the_published_f32_weights() {
         let f16_value = embedded.distance(x.view(), y.view()).unwrap();
         println!("{a} vs {b}: float32 {f32_value:.5}, binary16 {f16_value:.5}, reference {want}");
         assert!((f32_value - want).abs() < 1e-3);
-        assert!((f16_value - f32_value).abs() < 3e-4, "{f16_value} vs {f32_value}");
+        assert!(
+            (f16_value - f32_value).abs() < 3e-4,
+            "{f16_value} vs {f32_value}"
+        );
     }
 }

@@ -191,10 +191,7 @@ impl Lpips {
         }
         check_image(a, "estimate")?;
         check_image(b, "truth")?;
-        let (fa, fb) = rayon::join(
-            || self.features_unchecked(a),
-            || self.features_unchecked(b),
-        );
+        let (fa, fb) = rayon::join(|| self.features_unchecked(a), || self.features_unchecked(b));
         Ok(fa
             .iter()
             .zip(&fb)
