@@ -9,7 +9,7 @@ use quantacolor::burst::{
 };
 use quantacolor::cfa::{self, colorspad_cfa, Pattern};
 use quantacolor::denoise::chroma::{denoise_linear, DenoiseConfig, DenoiseMethod};
-use quantacolor::metrics::{evaluate, EvalOptions, Scores};
+use quantacolor::metrics::{evaluate, evaluate_lpips, EvalOptions, Scores};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
 use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
 use quantacolor::progress::{Progress, Silent};
@@ -405,6 +405,8 @@ struct SuperResolution {
 struct Row {
     case: usize,
     scores: [Scores; 7],
+    /// LPIPS (AlexNet v0.1) of each column, on the same sRGB images as `scores`.
+    lpips: [f64; 7],
     /// Median alignment end-point error, px.
     epe: f64,
     /// Median true motion, px (at the same pixels and frames).
@@ -549,23 +551,29 @@ fn run_case(
         &Silent,
     )?;
     let input = denoise_input(&capture, Some(&for_denoising), case.frames);
-    let denoised = |method| -> Result<Scores> {
+    // PSNR / SSIM and LPIPS of one reconstruction, under the same protocol.
+    let score = |image: ArrayView3<f32>| -> Result<(Scores, f64)> {
+        Ok((evaluate(image, gt, opts)?, evaluate_lpips(image, gt, opts)?))
+    };
+    let denoised = |method| -> Result<(Scores, f64)> {
         let config = DenoiseConfig {
             method,
             ..denoised_config.denoise.clone()
         };
         let (out, _) = denoise_linear(for_denoising.merged.linear.view(), &input, &config)?;
-        Ok(evaluate(out.view(), gt, opts)?)
+        score(out.view())
     };
-    let scores = [
-        evaluate(burst.merged.linear.view(), gt, opts)?,
-        evaluate(truth.merged.linear.view(), gt, opts)?,
-        evaluate(long.linear.view(), gt, opts)?,
-        evaluate(short.linear.view(), gt, opts)?,
-        evaluate(for_denoising.merged.linear.view(), gt, opts)?,
+    let scored = [
+        score(burst.merged.linear.view())?,
+        score(truth.merged.linear.view())?,
+        score(long.linear.view())?,
+        score(short.linear.view())?,
+        score(for_denoising.merged.linear.view())?,
         denoised(DenoiseMethod::Bm3d)?,
         denoised(DenoiseMethod::ChromaBm3d)?,
     ];
+    let scores = scored.map(|(s, _)| s);
+    let lpips = scored.map(|(_, l)| l);
     let (epe, motion_px) = median_epe(&burst, &sim.motion, case.frames, opts.border);
     let sr = match &sim.ground_truth_hr {
         None => None,
@@ -596,10 +604,11 @@ fn run_case(
     };
     let seconds = started.elapsed().as_secs_f64();
     eprintln!(
-        "{}: {seconds:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB, true motion {:.2} dB, \
-         EPE {epe:.3} px (motion {motion_px:.2} px){}",
+        "{}: {seconds:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB (LPIPS {:.3}), true \
+         motion {:.2} dB, EPE {epe:.3} px (motion {motion_px:.2} px){}",
         case.id(),
         scores[BURST].psnr_srgb,
+        lpips[BURST],
         scores[TRUE_MOTION].psnr_srgb,
         sr.as_ref()
             .map(|r| format!(
@@ -611,6 +620,7 @@ fn run_case(
     Ok(Row {
         case: index,
         scores,
+        lpips,
         epe,
         motion_px,
         sr,
@@ -737,7 +747,8 @@ fn report(
     writeln!(
         md,
         "Scores: 16-pixel border excluded, both images scaled so the ground truth's 99.5th \
-         percentile is 1, clipped, sRGB-encoded; PSNR (dB) / SSIM. Naive short uses 1/16 of the \
+         percentile is 1, clipped, sRGB-encoded; PSNR (dB) / SSIM / LPIPS (AlexNet v0.1, the \
+         paper's Table 2 metric; lower is better). Naive short uses 1/16 of the \
          frames. Only the BM3D columns are denoised (paper §4.3): plain colour BM3D (one σ) and \
          chroma-BM3D, both with σ from the merge's noise model, on the merge the denoiser runs \
          on (colour kernels with spacing exponent 0.5 instead of 1, the column before them). \
@@ -790,7 +801,8 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
         let cells: Vec<String> = row
             .scores
             .iter()
-            .map(|s| format!("{:.2} / {:.3}", s.psnr_srgb, s.ssim_srgb))
+            .zip(&row.lpips)
+            .map(|(s, l)| format!("{:.2} / {:.3} / {l:.3}", s.psnr_srgb, s.ssim_srgb))
             .collect();
         writeln!(
             md,
@@ -802,11 +814,12 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
             row.seconds
         )?;
     }
-    let means: Vec<(f64, f64)> = (0..METHODS.len())
+    let means: Vec<(f64, f64, f64)> = (0..METHODS.len())
         .map(|k| {
             (
                 mean_of(rows, |r| r.scores[k].psnr_srgb),
                 mean_of(rows, |r| r.scores[k].ssim_srgb),
+                mean_of(rows, |r| r.lpips[k]),
             )
         })
         .collect();
@@ -816,7 +829,7 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
         "| **mean** | {} | | | |",
         means
             .iter()
-            .map(|m| format!("**{:.2} / {:.3}**", m.0, m.1))
+            .map(|m| format!("**{:.2} / {:.3} / {:.3}**", m.0, m.1, m.2))
             .collect::<Vec<_>>()
             .join(" | ")
     )?;
@@ -928,9 +941,32 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
     writeln!(
         md,
         "- chroma-BM3D − plain colour BM3D: SSIM {:+.4} on average, higher on {chroma_ssim_wins} \
-         of {n} captures (target: higher); PSNR {:+.2} dB\n",
+         of {n} captures (target: higher); PSNR {:+.2} dB",
         means[CHROMA].1 - means[BM3D].1,
         means[CHROMA].0 - means[BM3D].0
+    )?;
+    writeln!(
+        md,
+        "- mean LPIPS (lower is better): {}",
+        METHODS
+            .iter()
+            .zip(&means)
+            .map(|(name, m)| format!("{name} {:.3}", m.2))
+            .collect::<Vec<_>>()
+            .join("; ")
+    )?;
+    let lpips_wins = rows
+        .iter()
+        .filter(|r| r.lpips[CHROMA] < r.lpips[BURST])
+        .count();
+    writeln!(
+        md,
+        "- chroma-BM3D (default) − burst without denoising: LPIPS {:+.3} on average, lower on \
+         {lpips_wins} of {n} captures (target: every capture); mean SSIM {:.3} (target >= 0.85; \
+         paper 0.788), mean LPIPS {:.3} (target <= 0.25; paper 0.267)\n",
+        means[CHROMA].2 - means[BURST].2,
+        means[CHROMA].1,
+        means[CHROMA].2
     )?;
     Ok(())
 }

@@ -1,9 +1,11 @@
-//! `quantacolor eval`: PSNR and SSIM of an estimate against ground truth.
+//! `quantacolor eval`: PSNR, SSIM and LPIPS of an estimate against ground truth (paper §6,
+//! Table 2). LPIPS (AlexNet v0.1, weights built into the library) scores the same sRGB images
+//! as `psnr_srgb` / `ssim_srgb` (`metrics::evaluate_lpips`).
 
 use anyhow::Result;
 use clap::Args;
 use quantacolor::capture::io;
-use quantacolor::metrics::{evaluate, EvalOptions};
+use quantacolor::metrics::{evaluate, evaluate_lpips, EvalOptions, LPIPS_MIN_SIZE};
 use std::path::PathBuf;
 
 #[derive(Debug, Args)]
@@ -18,6 +20,9 @@ pub struct EvalArgs {
     /// Scale both images so this percentile of the ground truth is 1 (default 99.5; 0 = none).
     #[arg(long, default_value_t = 99.5)]
     pub normalize_percentile: f64,
+    /// Skip LPIPS (the slowest score, ~0.2 s per 496x254 pair on 2 cores).
+    #[arg(long)]
+    pub no_lpips: bool,
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
@@ -33,5 +38,19 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     println!("ssim_linear = {:.4}", s.ssim_linear);
     println!("psnr_srgb = {:.3}", s.psnr_srgb);
     println!("ssim_srgb = {:.4}", s.ssim_srgb);
+    if !args.no_lpips {
+        let (h, w, c) = estimate.dim();
+        let side = h.min(w).saturating_sub(2 * args.border);
+        if c == 3 && side >= LPIPS_MIN_SIZE {
+            let l = evaluate_lpips(estimate.view(), truth.view(), &opts)?;
+            println!("lpips_srgb = {l:.4}");
+        } else {
+            eprintln!(
+                "note: no LPIPS: it needs RGB images of at least {LPIPS_MIN_SIZE}x{LPIPS_MIN_SIZE} \
+                 pixels after the border crop (got {h}x{w}x{c}, border {})",
+                args.border
+            );
+        }
+    }
     Ok(())
 }

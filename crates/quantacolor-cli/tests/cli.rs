@@ -97,6 +97,16 @@ fn simulate_reconstruct_eval_round_trip_is_deterministic() {
             psnr > 10.0 && psnr < 60.0,
             "{name}: implausible PSNR {psnr}"
         );
+        let lpips: f64 = text
+            .lines()
+            .find_map(|l| l.strip_prefix("lpips_srgb = "))
+            .expect("lpips line")
+            .parse()
+            .unwrap();
+        assert!(
+            lpips > 0.0 && lpips < 1.0,
+            "{name}: implausible LPIPS {lpips}"
+        );
     }
     assert_eq!(
         frames_before,

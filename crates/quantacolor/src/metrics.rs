@@ -1,6 +1,8 @@
 //! Image quality metrics used in the paper's evaluation (§6, Fig. 8–10, Table 2): PSNR and SSIM,
 //! computed exactly as scikit-image computes them, plus an [`evaluate`] helper that applies the
 //! paper-style protocol (border crop, exposure normalisation, clipping, linear and sRGB scores).
+//! The table's third metric, LPIPS (AlexNet, v0.1), lives in [`lpips`](mod@lpips);
+//! [`evaluate_lpips`] applies it to the same sRGB images the protocol scores.
 //!
 //! [`ssim`] reproduces `skimage.metrics.structural_similarity` with its defaults and
 //! `data_range` given: a 7×7 uniform window (`scipy.ndimage.uniform_filter`, `mode='reflect'`,
@@ -12,7 +14,13 @@
 //! float32 rounding for float32 input. [`psnr`] is `peak_signal_noise_ratio`:
 //! `10·log10(data_range² / MSE)`, `+∞` for identical images.
 
-use ndarray::{s, ArrayView, ArrayView2, ArrayView3, ArrayViewD, Axis, Dimension, Ix2, Ix3};
+pub mod lpips;
+
+pub use lpips::{lpips, Lpips, LPIPS_MIN_SIZE};
+
+use ndarray::{
+    s, Array3, ArrayView, ArrayView2, ArrayView3, ArrayViewD, Axis, Dimension, Ix2, Ix3,
+};
 use rayon::prelude::*;
 
 use crate::display::srgb::linear_to_srgb;
@@ -322,6 +330,46 @@ pub fn evaluate(
     truth: ArrayView3<f32>,
     opts: &EvalOptions,
 ) -> Result<Scores> {
+    let (est_lin, tru_lin) = protocol_linear(estimate, truth, opts)?;
+    let (est_srgb, tru_srgb) = (encode_srgb(&est_lin), encode_srgb(&tru_lin));
+    Ok(Scores {
+        psnr_linear: psnr(est_lin.view(), tru_lin.view(), 1.0)?,
+        ssim_linear: ssim_color(est_lin.view(), tru_lin.view(), 1.0)?,
+        psnr_srgb: psnr(est_srgb.view(), tru_srgb.view(), 1.0)?,
+        ssim_srgb: ssim_color(est_srgb.view(), tru_srgb.view(), 1.0)?,
+    })
+}
+
+/// LPIPS (AlexNet v0.1, [`lpips()`]; paper Table 2) of a linear colour reconstruction against
+/// the ground truth under the same protocol as [`evaluate`]: border crop, optional percentile
+/// normalisation, clipping to [0, 1], then sRGB encoding (`display::srgb::linear_to_srgb`) —
+/// LPIPS is defined on display-referred sRGB images, so it scores exactly the images whose
+/// `psnr_srgb` / `ssim_srgb` [`evaluate`] reports. Kept apart from [`evaluate`] because a
+/// network pass costs far more than PSNR and SSIM (about 0.1–0.3 s per 496x254 pair).
+///
+/// Errors as [`evaluate`], and on images smaller than [`LPIPS_MIN_SIZE`] after the crop or
+/// with other than 3 channels.
+pub fn evaluate_lpips(
+    estimate: ArrayView3<f32>,
+    truth: ArrayView3<f32>,
+    opts: &EvalOptions,
+) -> Result<f64> {
+    let (est_lin, tru_lin) = protocol_linear(estimate, truth, opts)?;
+    lpips(encode_srgb(&est_lin).view(), encode_srgb(&tru_lin).view())
+}
+
+/// sRGB encoding of clipped linear values, the display-referred images of the sRGB scores.
+fn encode_srgb(linear: &Array3<f32>) -> Array3<f32> {
+    linear.map(|&v| linear_to_srgb(v))
+}
+
+/// The evaluation protocol's linear images (see [`evaluate`]): cropped by `opts.border`,
+/// scaled by the truth's `opts.normalize_percentile`, clipped to [0, 1].
+fn protocol_linear(
+    estimate: ArrayView3<f32>,
+    truth: ArrayView3<f32>,
+    opts: &EvalOptions,
+) -> Result<(Array3<f32>, Array3<f32>)> {
     check_same_shape(estimate.shape(), truth.shape())?;
     let (h, w, _) = estimate.dim();
     let b = opts.border;
@@ -357,16 +405,7 @@ pub fn evaluate(
         }
     };
     let prepare = |v: &f32| (f64::from(*v) * scale).clamp(0.0, 1.0) as f32;
-    let est_lin = est.map(prepare);
-    let tru_lin = tru.map(prepare);
-    let est_srgb = est_lin.map(|&v| linear_to_srgb(v));
-    let tru_srgb = tru_lin.map(|&v| linear_to_srgb(v));
-    Ok(Scores {
-        psnr_linear: psnr(est_lin.view(), tru_lin.view(), 1.0)?,
-        ssim_linear: ssim_color(est_lin.view(), tru_lin.view(), 1.0)?,
-        psnr_srgb: psnr(est_srgb.view(), tru_srgb.view(), 1.0)?,
-        ssim_srgb: ssim_color(est_srgb.view(), tru_srgb.view(), 1.0)?,
-    })
+    Ok((est.map(prepare), tru.map(prepare)))
 }
 
 #[cfg(test)]
