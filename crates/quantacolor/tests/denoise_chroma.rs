@@ -182,3 +182,67 @@ fn chroma_bm3d_improves_the_merge_and_beats_plain_colour_bm3d() {
     assert!(chroma.ssim_srgb > none.ssim_srgb + 0.1);
     assert!(chroma.ssim_srgb > plain.ssim_srgb + 0.05);
 }
+
+/// An HDR capture of a smooth colour texture (so that the merge's error is noise, not blur),
+/// a dim half at ~0.02 and a bright half at ~0.4 W detections per frame (20× the light): with the default configuration (per-pixel σ map, multi-scale chroma) denoising must
+/// reduce the error against the truth in the dim and the bright half alike (relative RMS error
+/// of each half, so the bright half does not dominate).
+#[test]
+fn denoising_reduces_the_error_in_dim_and_bright_regions_of_an_hdr_capture() {
+    use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
+    let (h, w) = (96, 128);
+    let texture = |y: usize, x: usize, c: usize| {
+        let (yf, xf) = (y as f32, x as f32);
+        0.3 + 0.15 * ((yf / 19.0 + c as f32).sin() * (xf / 23.0 - c as f32).cos())
+    };
+    let scene = Scene::from_linear(
+        Array3::from_shape_fn((h, w, 3), |(y, x, c)| {
+            texture(y, x, c) * if x < w / 2 { 1.0 } else { 20.0 }
+        }),
+        "hdr halves",
+    )
+    .unwrap();
+    let config = SimulationConfig {
+        height: h,
+        width: w,
+        frames: 512,
+        flux: FluxSpec::Mean { flux: 0.2 },
+        hot_fraction: 0.0,
+        seed: 31,
+        ..SimulationConfig::default()
+    };
+    let cfa = quantacolor::cfa::generate(&quantacolor::cfa::Pattern::Colorspad, h, w, 0).unwrap();
+    let sim = simulate_with_cfa(&config, &scene, &cfa, &Silent).unwrap();
+    let capture = sim.to_capture().unwrap();
+    let rc = ReconstructConfig::default();
+    let burst = reconstruct_burst(
+        &capture,
+        capture.reference_frame(),
+        &burst_config_for(&rc),
+        &Silent,
+    )
+    .unwrap();
+    let input = denoise_input(&capture, Some(&burst), config.frames);
+    let (denoised, _) = denoise_linear(burst.merged.linear.view(), &input, &rc.denoise).unwrap();
+    let gt = &sim.ground_truth;
+    let relative_rms = |img: &Array3<f32>, x0: usize, x1: usize| {
+        let region = s![12..h - 12, x0..x1, ..];
+        let (e, t) = img
+            .slice(region)
+            .iter()
+            .zip(gt.slice(region).iter())
+            .fold((0.0f64, 0.0f64), |(e, t), (&a, &b)| {
+                (e + ((a - b) as f64).powi(2), t + (b as f64).powi(2))
+            });
+        (e / t).sqrt()
+    };
+    for (name, x0, x1) in [("dim", 12, w / 2 - 12), ("bright", w / 2 + 12, w - 12)] {
+        let before = relative_rms(&burst.merged.linear, x0, x1);
+        let after = relative_rms(&denoised, x0, x1);
+        println!("{name} half: relative RMS error {before:.4} → {after:.4}");
+        assert!(
+            after < 0.85 * before,
+            "{name} half: denoising {before:.4} → {after:.4}"
+        );
+    }
+}

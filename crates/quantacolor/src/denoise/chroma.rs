@@ -108,13 +108,13 @@ impl Default for DenoiseConfig {
             method: DenoiseMethod::ChromaBm3d,
             sigma_y: None,
             sigma_c: None,
-            luma_gain: 1.0,
-            chroma_gain: 4.0,
+            luma_gain: 1.5,
+            chroma_gain: 3.0,
             merge_spacing_exponent: Some(0.5),
-            merge_k_denoise: None,
-            chroma_scales: 0,
+            merge_k_denoise: Some(0.7),
+            chroma_scales: 1,
             coarse_sigma_factor: 0.7,
-            sigma_map: false,
+            sigma_map: true,
             bm3d: Bm3dConfig::default(),
         }
     }
