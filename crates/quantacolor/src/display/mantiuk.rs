@@ -16,7 +16,10 @@
 //! 5. the output `x'` is the least-squares fit of its pyramid contrasts to the targets (§4),
 //!    `min Σ_k Σ_i p^k_i (G^k_i(x') − Ĝ^k_i)²`, weighted by `p = T'(|G|) = 1/ΔG`, so errors
 //!    count in JNDs; solved matrix-free with conjugate gradients;
-//! 6. display mapping: `10^x'` stretched so that its 0.1st and 99.5th percentiles map to 0 and 1;
+//! 6. display mapping: `x'` mapped linearly so that its 0.1st and 99.9th percentiles span the
+//!    display's 2.3 decades (`L' = 10^(2.3 (x' − x'_99.9) / (x'_99.9 − x'_0.1))`, clamped at 1);
+//!    this is the measured behaviour of the reference `pfstmo_mantiuk06` (pfstools 2.2), found
+//!    as a black box with synthetic inputs in tests/mantiuk_crosscheck.rs;
 //! 7. colour restored as `C' = (C/L)^s · L'` with saturation factor `s` (default 0.8).
 //!
 //! Scoped-down choices (documented, not from the paper): the pyramid uses 2x2 box averaging
@@ -434,17 +437,22 @@ pub fn process_log_luminance(x: ArrayView2<f32>, config: &Mantiuk06Config) -> Co
     }
 }
 
-/// Percentiles of processed log luminance mapped to display black and white (step 6).
-pub const DISPLAY_PERCENTILES: (f64, f64) = (0.1, 99.5);
+/// Percentiles of processed log luminance that span the display range (step 6).
+pub const DISPLAY_PERCENTILES: (f64, f64) = (0.1, 99.9);
+/// Display dynamic range in decades (step 6): 10^2.3 ≈ 1:200, a typical display's contrast.
+pub const DISPLAY_DECADES: f64 = 2.3;
 
-/// Maps processed log10 luminance to display luminance in [0, 1] (step 6).
+/// Maps processed log10 luminance to display luminance (step 6): linearly in the log domain, the
+/// [`DISPLAY_PERCENTILES`] of `log_luminance` to `10^−DISPLAY_DECADES` and 1, clamped to
+/// [0, 1]. A flat image maps to 1/2.
 pub fn display_luminance(log_luminance: ArrayView2<f32>) -> Array2<f32> {
-    let lo = percentile(log_luminance.iter().copied(), DISPLAY_PERCENTILES.0).unwrap_or(0.0);
-    let hi = percentile(log_luminance.iter().copied(), DISPLAY_PERCENTILES.1).unwrap_or(0.0);
-    let (a, b) = (10f64.powf(lo as f64), 10f64.powf(hi as f64));
+    let lo = percentile(log_luminance.iter().copied(), DISPLAY_PERCENTILES.0).unwrap_or(0.0) as f64;
+    let hi = percentile(log_luminance.iter().copied(), DISPLAY_PERCENTILES.1).unwrap_or(0.0) as f64;
     log_luminance.mapv(|v| {
-        if b > a {
-            ((10f64.powf(v as f64) - a) / (b - a)).clamp(0.0, 1.0) as f32
+        if hi > lo {
+            10f64
+                .powf(DISPLAY_DECADES * (v as f64 - hi) / (hi - lo))
+                .clamp(0.0, 1.0) as f32
         } else {
             0.5
         }
