@@ -108,7 +108,12 @@ fn read_pfm(bytes: &[u8]) -> Array3<f32> {
     let data = &bytes[pos..];
     assert_eq!(data.len(), w * h * 12, "PFM data size");
     let get = |i: usize| {
-        let b = [data[4 * i], data[4 * i + 1], data[4 * i + 2], data[4 * i + 3]];
+        let b = [
+            data[4 * i],
+            data[4 * i + 1],
+            data[4 * i + 2],
+            data[4 * i + 3],
+        ];
         if scale < 0.0 {
             f32::from_le_bytes(b)
         } else {
@@ -179,8 +184,8 @@ fn mean_grad(x: &Array2<f32>) -> f32 {
     let mut n = 0usize;
     for y in 0..h - 1 {
         for xx in 0..w - 1 {
-            acc += ((x[[y, xx + 1]] - x[[y, xx]]).abs() + (x[[y + 1, xx]] - x[[y, xx]]).abs())
-                as f64;
+            acc +=
+                ((x[[y, xx + 1]] - x[[y, xx]]).abs() + (x[[y + 1, xx]] - x[[y, xx]]).abs()) as f64;
             n += 2;
         }
     }
@@ -276,7 +281,12 @@ fn reconstruction(scene: &Path) -> Option<Array3<f32>> {
     };
     let cfa = generate(&Pattern::Colorspad, 254, 496, 0).ok()?;
     let sim = simulate_with_cfa(&config, &scene, &cfa, &Silent).ok()?;
-    let rec = reconstruct(&sim.to_capture().ok()?, &ReconstructConfig::default(), &Silent).ok()?;
+    let rec = reconstruct(
+        &sim.to_capture().ok()?,
+        &ReconstructConfig::default(),
+        &Silent,
+    )
+    .ok()?;
     Some(rec.linear)
 }
 
@@ -289,7 +299,9 @@ fn mantiuk06_matches_pfstmo_mantiuk06() {
     }
     let work = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mantiuk-crosscheck");
     std::fs::create_dir_all(&work).unwrap();
-    let out_dir = std::env::var("MANTIUK_CROSSCHECK_OUT").ok().map(PathBuf::from);
+    let out_dir = std::env::var("MANTIUK_CROSSCHECK_OUT")
+        .ok()
+        .map(PathBuf::from);
     let ours_op = ToneMap::Mantiuk06(Mantiuk06Config::default());
     let mut worst = f64::INFINITY;
     println!(
@@ -338,30 +350,152 @@ fn probe() {
             line += &format!("{:.3e}->{:.4} ", lin[[h / 2, x]], lum[[h / 2, x]]);
         }
         println!("{line}");
-        println!("   min {:.4e} max {:.4e} p1 {:.4e} p99 {:.4e}", lum.iter().copied().fold(f32::INFINITY, f32::min), lum.iter().copied().fold(0.0, f32::max), percentile(lum.iter().copied(), 1.0), percentile(lum.iter().copied(), 99.0));
+        println!(
+            "   min {:.4e} max {:.4e} p1 {:.4e} p99 {:.4e}",
+            lum.iter().copied().fold(f32::INFINITY, f32::min),
+            lum.iter().copied().fold(0.0, f32::max),
+            percentile(lum.iter().copied(), 1.0),
+            percentile(lum.iter().copied(), 99.0)
+        );
     };
-    let grey = |f: &dyn Fn(usize, usize) -> f32, h, w| Array3::from_shape_fn((h, w, 3), |(y, x, _)| f(y, x));
-
+    let grey = |f: &dyn Fn(usize, usize) -> f32, h, w| {
+        Array3::from_shape_fn((h, w, 3), |(y, x, _)| f(y, x))
+    };
 
     for q in [0.0005f32, 0.001, 0.002, 0.005, 0.01, 0.02] {
         // fraction q of bright pixels (1000) in the first rows, rest 1 | 10.
         let (h, w) = (100usize, 200usize);
         let nb = (q * (h * w) as f32).round() as usize;
-        let img = grey(&move |y, x| if y * w + x < nb { 1000.0 } else if x < w / 2 { 1.0 } else { 10.0 }, h, w);
+        let img = grey(
+            &move |y, x| {
+                if y * w + x < nb {
+                    1000.0
+                } else if x < w / 2 {
+                    1.0
+                } else {
+                    10.0
+                }
+            },
+            h,
+            w,
+        );
         let out = run_pfstools(img.view(), &["-f", "1"], &work);
         let lum = luminance(out.view());
-        println!("bright q={q}: 1000->{:.4} 1->{:.4} 10->{:.4}", lum[[0, 0]], lum[[h / 2, 10]], lum[[h / 2, w - 10]]);
-        let img = grey(&move |y, x| if y * w + x < nb { 0.001 } else if x < w / 2 { 1.0 } else { 10.0 }, h, w);
+        println!(
+            "bright q={q}: 1000->{:.4} 1->{:.4} 10->{:.4}",
+            lum[[0, 0]],
+            lum[[h / 2, 10]],
+            lum[[h / 2, w - 10]]
+        );
+        let img = grey(
+            &move |y, x| {
+                if y * w + x < nb {
+                    0.001
+                } else if x < w / 2 {
+                    1.0
+                } else {
+                    10.0
+                }
+            },
+            h,
+            w,
+        );
         let out = run_pfstools(img.view(), &["-f", "1"], &work);
         let lum = luminance(out.view());
-        println!("dark q={q}: 0.001->{:.4} 1->{:.4} 10->{:.4}", lum[[0, 0]], lum[[h / 2, 10]], lum[[h / 2, w - 10]]);
+        println!(
+            "dark q={q}: 0.001->{:.4} 1->{:.4} 10->{:.4}",
+            lum[[0, 0]],
+            lum[[h / 2, 10]],
+            lum[[h / 2, w - 10]]
+        );
     }
     // colour
-    let col = Array3::from_shape_fn((32, 64, 3), |(_, x, c)| { let b = if x < 32 { 1.0 } else { 10.0 }; b * [0.5f32, 1.0, 0.25][c] });
+    let col = Array3::from_shape_fn((32, 64, 3), |(_, x, c)| {
+        let b = if x < 32 { 1.0 } else { 10.0 };
+        b * [0.5f32, 1.0, 0.25][c]
+    });
     let out = run_pfstools(col.view(), &[], &work);
-    println!("colour: {:?} {:?}", out.slice(s![16, 10, ..]), out.slice(s![16, 50, ..]));
+    println!(
+        "colour: {:?} {:?}",
+        out.slice(s![16, 10, ..]),
+        out.slice(s![16, 50, ..])
+    );
     let out = run_pfstools(col.view(), &["-s", "1"], &work);
-    println!("colour s1: {:?} {:?}", out.slice(s![16, 10, ..]), out.slice(s![16, 50, ..]));
+    println!(
+        "colour s1: {:?} {:?}",
+        out.slice(s![16, 10, ..]),
+        out.slice(s![16, 50, ..])
+    );
     let out = run_pfstools(col.view(), &["-s", "0"], &work);
-    println!("colour s0: {:?} {:?}", out.slice(s![16, 10, ..]), out.slice(s![16, 50, ..]));
+    println!(
+        "colour s0: {:?} {:?}",
+        out.slice(s![16, 10, ..]),
+        out.slice(s![16, 50, ..])
+    );
+}
+
+#[test]
+#[ignore]
+fn probe2() {
+    pfstools().unwrap();
+    let work = Path::new(env!("CARGO_TARGET_TMPDIR")).join("mantiuk-probe2");
+    std::fs::create_dir_all(&work).unwrap();
+    let (h, w) = (128usize, 256usize);
+    let fargs: Vec<String> = std::env::var("PROBE_ARGS")
+        .unwrap_or_default()
+        .split_whitespace()
+        .map(String::from)
+        .collect();
+    let fargs: Vec<&str> = fargs.iter().map(|s| s.as_str()).collect();
+    for big in [0.5f32, 1.0, 2.0, 4.0] {
+        for (g, period) in [
+            (0.01f32, 4usize),
+            (0.05, 4),
+            (0.2, 4),
+            (0.05, 32),
+            (0.2, 32),
+        ] {
+            let img = Array3::from_shape_fn((h, w, 3), |(y, x, _)| {
+                let step = if x < w / 2 { 0.0 } else { big };
+                let grating = if (y / (period / 2)) % 2 == 0 {
+                    g / 2.0
+                } else {
+                    -g / 2.0
+                };
+                10f32.powf(step + grating)
+            });
+            let theirs = run_pfstools(img.view(), &fargs, &work);
+            let ours = tone_map(
+                img.view(),
+                None,
+                &ToneMap::Mantiuk06(Mantiuk06Config::default()),
+            )
+            .unwrap();
+            let measure = |o: &Array3<f32>| {
+                let l = luminance(o.view()).mapv(|v| v.max(1e-6).log10());
+                let left = l.slice(s![.., w / 8..w * 3 / 8]);
+                let right = l.slice(s![.., w * 5 / 8..w * 7 / 8]);
+                let step = right.mean().unwrap() - left.mean().unwrap();
+                // grating amplitude: mean of |row(y) - row(y + period/2)| in the left half
+                let mut acc = 0.0;
+                let mut n = 0;
+                for y in 0..h - period / 2 {
+                    for x in w / 8..w * 3 / 8 {
+                        acc += (l[[y, x]] - l[[y + period / 2, x]]).abs();
+                        n += 1;
+                    }
+                }
+                let mut accr = 0.0;
+                for y in 0..h - period / 2 {
+                    for x in w * 5 / 8..w * 7 / 8 {
+                        accr += (l[[y, x]] - l[[y + period / 2, x]]).abs();
+                    }
+                }
+                (step, acc / n as f32, accr / n as f32)
+            };
+            let (so, go, gro) = measure(&ours);
+            let (st, gt, grt) = measure(&theirs);
+            println!("D={big} g={g} p={period}: ours step {so:.3} grating {go:.4}/{gro:.4} | pfs step {st:.3} grating {gt:.4}/{grt:.4}");
+        }
+    }
 }
