@@ -478,6 +478,34 @@ mod tests {
     }
 
     #[test]
+    fn display_mapping_spans_2_3_decades_between_the_percentiles() {
+        // Half 0, half 1 (log10), plus 0.2 % of pixels at 3: inside the 99.9th percentile, so
+        // 3 maps to 1 and 0 to 10^-2.3; with 0.05 % they are outliers, clamped at 1, and the
+        // range is 0..1.
+        for (frac, top) in [(0.002, 3.0f32), (0.0005, 1.0)] {
+            let (h, w) = (100, 200);
+            let n = (frac * (h * w) as f64).round() as usize;
+            let x = Array2::from_shape_fn((h, w), |(y, xx)| {
+                if y * w + xx < n {
+                    3.0
+                } else if xx < w / 2 {
+                    0.0
+                } else {
+                    1.0
+                }
+            });
+            let d = display_luminance(x.view());
+            let expect = |v: f32| 10f32.powf(2.3 * (v - top) / top).min(1.0);
+            assert!((d[[50, 10]] / expect(0.0) - 1.0).abs() < 1e-4, "{}", d[[50, 10]]);
+            assert!((d[[50, 190]] / expect(1.0) - 1.0).abs() < 1e-4, "{}", d[[50, 190]]);
+            assert_eq!(d[[0, 0]], 1.0);
+        }
+        assert!(display_luminance(Array2::zeros((3, 3)).view())
+            .iter()
+            .all(|&v| v == 0.5));
+    }
+
+    #[test]
     fn jacobi_diagonal_matches_the_operator() {
         let x = Array2::from_shape_fn((7, 9), |(y, x)| ((y * 5 + x * 3) % 7) as f32 * 0.4);
         let levels = build_levels(x.view(), &Mantiuk06Config::default());
