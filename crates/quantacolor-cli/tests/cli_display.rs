@@ -152,7 +152,8 @@ fn display_writes_a_video_stack_as_numbered_frames() {
     // Bad shapes: one error naming the file and the shape, exit 2, nothing written.
     let bad_dir = tmp.path().join("bad");
     std::fs::create_dir(&bad_dir).unwrap();
-    let bad: Vec<(&str, Box<dyn Fn(&Path)>)> = vec![
+    type Writer = Box<dyn Fn(&Path)>;
+    let bad: Vec<(&str, Writer)> = vec![
         (
             "four_channels.npy",
             Box::new(|p: &Path| {

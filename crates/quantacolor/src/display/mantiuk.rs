@@ -22,6 +22,13 @@
 //!    as a black box with synthetic inputs in tests/mantiuk_crosscheck.rs;
 //! 7. colour restored as `C' = (C/L)^s · L'` with saturation factor `s` (default 0.8).
 //!
+//! Against the reference (pfstools 2.2, tests/mantiuk_crosscheck.rs, default options): 8-bit
+//! outputs agree to 20–32 dB PSNR, SSIM 0.79–0.98 on the HDR chart, three OpenEXR photographs
+//! and simulated reconstructions of them (5–14 dB, SSIM 0.48–0.81 before step 6 followed the
+//! reference). What remains: the reference compresses large contrasts more relative to small
+//! ones (a 4-decade step against a 0.01-decade grating: grating/step 0.018 there, 0.011 here;
+//! at 0.5 decades both 0.05), so its images have slightly more local contrast and noise.
+//!
 //! Scoped-down choices (documented, not from the paper): the pyramid uses 2x2 box averaging
 //! (not a Gaussian kernel) so that its adjoint is exact and the normal equations stay symmetric
 //! for CG; the contrast-equalisation variant is not implemented; `detail_factor` scales the
@@ -496,8 +503,16 @@ mod tests {
             });
             let d = display_luminance(x.view());
             let expect = |v: f32| 10f32.powf(2.3 * (v - top) / top).min(1.0);
-            assert!((d[[50, 10]] / expect(0.0) - 1.0).abs() < 1e-4, "{}", d[[50, 10]]);
-            assert!((d[[50, 190]] / expect(1.0) - 1.0).abs() < 1e-4, "{}", d[[50, 190]]);
+            assert!(
+                (d[[50, 10]] / expect(0.0) - 1.0).abs() < 1e-4,
+                "{}",
+                d[[50, 10]]
+            );
+            assert!(
+                (d[[50, 190]] / expect(1.0) - 1.0).abs() < 1e-4,
+                "{}",
+                d[[50, 190]]
+            );
             assert_eq!(d[[0, 0]], 1.0);
         }
         assert!(display_luminance(Array2::zeros((3, 3)).view())
