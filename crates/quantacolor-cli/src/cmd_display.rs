@@ -1,12 +1,18 @@
-//! `quantacolor display`: renders a linear reconstruction (OUT/linear.npy) to an 8/16-bit sRGB
-//! PNG or a 16-bit TIFF: colour correction -> noise-aware low-light blend -> exposure -> tone
-//! map -> sRGB (paper §7, Fig. 14, Fig. 20; supplement §4 Eq. 9–10).
+//! `quantacolor display`: renders a linear reconstruction (OUT/linear.npy, (H, W, 3)) or a video
+//! stack ((N, H, W, 3), from `reconstruct --video`) to 8/16-bit sRGB PNGs or 16-bit TIFFs:
+//! colour correction -> noise-aware low-light blend -> exposure -> tone map -> sRGB (paper §7,
+//! Fig. 14, Fig. 20; supplement §4 Eq. 9–10).
 
+use crate::output::StagedDir;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
+use ndarray::{Array4, Axis};
+use ndarray_npy::ReadNpyExt;
 use quantacolor::capture::io;
+use quantacolor::capture::npy::{NpyDtype, NpyHeader};
 use quantacolor::display::{
-    write_rendered, BitDepth, ColorMatrix, GlobalConfig, Mantiuk06Config, RenderOptions, ToneMap,
+    frame_path, mesopic_params, output_is_tiff, render_stack, write_display, BitDepth, ColorMatrix,
+    GlobalConfig, Mantiuk06Config, MesopicConfig, MesopicOffset, RenderOptions, ToneMap,
 };
 use std::path::{Path, PathBuf};
 
@@ -33,18 +39,26 @@ impl ToneMapArg {
 
 #[derive(Debug, Args)]
 pub struct DisplayArgs {
-    /// Linear reconstruction, float32 (H, W, 3) .npy (e.g. OUT/linear.npy).
+    /// Linear reconstruction, float32 .npy: an image (H, W, 3) (e.g. OUT/linear.npy) or a video
+    /// stack (N, H, W, 3) (from `reconstruct --video`).
     pub linear: PathBuf,
-    /// Output image: .png (8 or 16 bit) or .tif/.tiff (16 bit); written atomically.
+    /// Output image: .png (8 or 16 bit) or .tif/.tiff (16 bit); written atomically. A video
+    /// stack is written as numbered frames beside it: OUT_0000.png, OUT_0001.png, ...
     #[arg(long)]
     pub out: PathBuf,
     /// Tone-mapping operator.
     #[arg(long, value_enum, default_value_t = ToneMapArg::Global)]
     pub tonemap: ToneMapArg,
-    /// Noise-aware low-light view with offset L0 (supplement Eq. 9): colour fades to grey below
-    /// 10^-L0 detections per frame and is gone at 10^(-2-L0).
-    #[arg(long, value_name = "L0", allow_hyphen_values = true)]
-    pub mesopic: Option<f32>,
+    /// Noise-aware low-light view (supplement Eq. 9–10): colour fades to grey where a W pixel
+    /// collected fewer than 100·10^-L0 photon detections over the capture and is gone below
+    /// 10^-L0 (photon-noise SNR 10 to 1 at L0 = 0). `auto` picks L0 from the noise measured in
+    /// the image.
+    #[arg(long, value_name = "L0|auto", allow_hyphen_values = true)]
+    pub mesopic: Option<MesopicOffset>,
+    /// Frames merged into the reconstruction, for --mesopic (default: frames_used of the
+    /// report.toml beside the input).
+    #[arg(long)]
+    pub frames: Option<f64>,
     /// Exposure scale applied before tone mapping (default: automatic).
     #[arg(long)]
     pub exposure: Option<f32>,
@@ -56,17 +70,67 @@ pub struct DisplayArgs {
     pub bits: Option<u8>,
 }
 
-/// `w_weights` from a report.toml beside `linear`, when it has them.
-fn w_weights_beside(linear: &Path) -> Option<[f64; 3]> {
-    let report = linear.with_file_name("report.toml");
-    let text = std::fs::read_to_string(report).ok()?;
-    let table: toml::Table = toml::from_str(&text).ok()?;
-    let v = table.get("w_weights")?.as_array()?;
+/// The report.toml beside `linear`, when there is one that parses.
+fn report_beside(linear: &Path) -> Option<toml::Table> {
+    let text = std::fs::read_to_string(linear.with_file_name("report.toml")).ok()?;
+    toml::from_str(&text).ok()
+}
+
+/// `w_weights` from a report.toml, when it has them.
+fn w_weights_of(report: &toml::Table) -> Option<[f64; 3]> {
+    let v = report.get("w_weights")?.as_array()?;
     let w: Vec<f64> = v
         .iter()
         .filter_map(|x| x.as_float().or(x.as_integer().map(|i| i as f64)))
         .collect();
     (w.len() == 3).then(|| [w[0], w[1], w[2]])
+}
+
+/// `frames_used` from a report.toml, when it has one.
+fn frames_of(report: &toml::Table) -> Option<f64> {
+    let v = report.get("frames_used")?;
+    v.as_integer()
+        .map(|i| i as f64)
+        .or(v.as_float())
+        .filter(|t| *t > 0.0)
+}
+
+/// Reads `path` as float32 (H, W, 3) (returned as a one-frame stack, `false`) or (N, H, W, 3)
+/// (`true`); any other shape or dtype is one error naming the file and what it holds.
+fn read_linear(path: &Path) -> Result<(Array4<f32>, bool)> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let header =
+        NpyHeader::parse(&bytes).map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
+    let shape = &header.shape;
+    let fits = matches!(shape.len(), 3 | 4)
+        && shape.last() == Some(&3)
+        && shape.iter().all(|&d| d > 0)
+        && header.dtype == NpyDtype::F32
+        && !header.fortran_order;
+    if !fits {
+        bail!(
+            "{}: expected float32 linear RGB of shape (H, W, 3) or a video stack (N, H, W, 3), found {} of shape {:?}",
+            path.display(),
+            header.descr,
+            shape
+        );
+    }
+    if shape.len() == 3 {
+        let img = io::read_npy_3d::<f32>(path)?;
+        return Ok((img.insert_axis(Axis(0)), false));
+    }
+    let needed = header.element_count().and_then(|n| n.checked_mul(4));
+    let available = bytes.len() - header.data_offset;
+    if !matches!(needed, Some(n) if n <= available) {
+        bail!(
+            "{}: file is truncated: shape {:?} needs more than the {available} data bytes it holds",
+            path.display(),
+            shape
+        );
+    }
+    let stack = Array4::<f32>::read_npy(&bytes[..])
+        .map_err(|e| anyhow::anyhow!("{}: cannot read .npy: {e}", path.display()))?;
+    Ok((stack, true))
 }
 
 pub fn run(args: &DisplayArgs) -> Result<()> {
@@ -83,28 +147,75 @@ pub fn run(args: &DisplayArgs) -> Result<()> {
         Some(16) => BitDepth::Sixteen,
         Some(b) => bail!("--bits must be 8 or 16, got {b}"),
     };
-    let linear = io::read_npy_3d::<f32>(&args.linear)?;
-    let (h, w, c) = linear.dim();
-    if c != 3 || h == 0 || w == 0 {
-        bail!(
-            "{}: expected a linear RGB image of shape (H, W, 3), found {:?}",
-            args.linear.display(),
-            linear.dim()
-        );
+    output_is_tiff(&args.out, bits)?;
+    if let Some(t) = args.frames {
+        if !(t.is_finite() && t > 0.0) {
+            bail!("--frames must be a positive number, got {t}");
+        }
     }
+    let (stack, is_video) = read_linear(&args.linear)?;
     let color_matrix = match &args.ccm {
         Some(p) => Some(ColorMatrix::read(p)?),
         None => None,
     };
+    let report = report_beside(&args.linear);
     let options = RenderOptions {
         exposure: args.exposure,
         color_matrix,
         tonemap: args.tonemap.to_tone_map(),
-        mesopic: args.mesopic,
-        w_weights: w_weights_beside(&args.linear).unwrap_or([1.0, 1.0, 1.0]),
+        mesopic: args.mesopic.map(|l0| MesopicConfig {
+            l0,
+            frames: args.frames.or(report.as_ref().and_then(frames_of)),
+        }),
+        w_weights: report
+            .as_ref()
+            .and_then(w_weights_of)
+            .unwrap_or([1.0, 1.0, 1.0]),
     };
-    write_rendered(&args.out, linear.view(), &options, bits)
-        .with_context(|| format!("rendering {}", args.linear.display()))?;
-    println!("wrote {}", args.out.display());
+    let context = || format!("rendering {}", args.linear.display());
+    if options.mesopic.is_some() {
+        let (n, h, w, _) = stack.dim();
+        let tall = stack.view().into_shape_with_order((n * h, w, 3))?;
+        if let Some(p) = mesopic_params(tall, &options).with_context(context)? {
+            match p.effective_frames {
+                Some(t_eff) => println!(
+                    "noise-aware view: L0 = {:.2} (auto: the noise is that of {t_eff:.0} frames, {:.0} merged)",
+                    p.l0, p.frames
+                ),
+                None => println!("noise-aware view: L0 = {}, {:.0} frames", p.l0, p.frames),
+            }
+        }
+    }
+    let display = render_stack(stack.view(), &options).with_context(context)?;
+    if !is_video {
+        write_display(&args.out, display.index_axis(Axis(0), 0), bits)?;
+        println!("wrote {}", args.out.display());
+        return Ok(());
+    }
+    // All frames are staged, then moved into place together: an error leaves none of them.
+    let dir = match args.out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let dir = dir.canonicalize().with_context(|| {
+        format!(
+            "{}: cannot write the frames, no directory {}",
+            args.out.display(),
+            dir.display()
+        )
+    })?;
+    let staged = StagedDir::new(&dir)?;
+    let n = display.dim().0;
+    for (i, frame) in display.axis_iter(Axis(0)).enumerate() {
+        let name = frame_path(&args.out, i);
+        let file = name.file_name().expect("frame_path keeps a file name");
+        write_display(staged.path(&file.to_string_lossy()), frame, bits)?;
+    }
+    staged.commit()?;
+    println!(
+        "wrote {n} frames: {} .. {}",
+        frame_path(&args.out, 0).display(),
+        frame_path(&args.out, n - 1).display()
+    );
     Ok(())
 }

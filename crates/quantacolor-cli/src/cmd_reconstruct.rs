@@ -8,7 +8,8 @@ use clap::Args;
 use quantacolor::capture::{io, Capture};
 use quantacolor::denoise::chroma::{DenoiseMethod, DenoiseReport};
 use quantacolor::display::{
-    auto_exposure_scale, encode_srgb8, write_rendered, BitDepth, ColorMatrix, RenderOptions,
+    auto_exposure_scale, encode_srgb8, write_rendered, BitDepth, ColorMatrix, MesopicConfig,
+    MesopicOffset, RenderOptions,
 };
 use quantacolor::pipeline::{reconstruct, Method, ReconstructConfig, Reconstruction};
 use quantacolor::progress::Progress;
@@ -69,9 +70,10 @@ pub struct ReconstructArgs {
     /// Tone mapping of preview.png (re-render later with `quantacolor display`).
     #[arg(long, value_enum, default_value_t = ToneMapArg::Global)]
     pub tonemap: ToneMapArg,
-    /// Noise-aware low-light view of preview.png with offset L0 (supplement Eq. 9–10).
-    #[arg(long, value_name = "L0", allow_hyphen_values = true)]
-    pub mesopic: Option<f32>,
+    /// Noise-aware low-light view of preview.png (supplement Eq. 9–10): offset L0 in decades
+    /// of detections, or `auto` (L0 from the measured noise); see `quantacolor display --help`.
+    #[arg(long, value_name = "L0|auto", allow_hyphen_values = true)]
+    pub mesopic: Option<MesopicOffset>,
     /// Colour matrix for preview.png from `quantacolor calibrate-color`.
     #[arg(long)]
     pub ccm: Option<PathBuf>,
@@ -110,13 +112,18 @@ pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
     if let Some(dir) = &args.dump_stages {
         dump_stages(dir, &capture, &rec)?;
     }
-    let preview = preview_options(args, &capture)?;
+    let preview = preview_options(args, &capture, rec.frames_used)?;
     write_reconstruction(&args.out, &args.capture, &capture, &config, &rec, &preview)?;
     Ok(())
 }
 
-/// Render options of preview.png from the command line.
-pub fn preview_options(args: &ReconstructArgs, capture: &Capture) -> Result<RenderOptions> {
+/// Render options of preview.png from the command line, for a reconstruction merged from
+/// `frames_used` frames.
+pub fn preview_options(
+    args: &ReconstructArgs,
+    capture: &Capture,
+    frames_used: usize,
+) -> Result<RenderOptions> {
     Ok(RenderOptions {
         exposure: None,
         color_matrix: match &args.ccm {
@@ -124,7 +131,10 @@ pub fn preview_options(args: &ReconstructArgs, capture: &Capture) -> Result<Rend
             None => None,
         },
         tonemap: args.tonemap.to_tone_map(),
-        mesopic: args.mesopic,
+        mesopic: args.mesopic.map(|l0| MesopicConfig {
+            l0,
+            frames: Some(frames_used as f64),
+        }),
         w_weights: capture.meta.w_weights,
     })
 }

@@ -51,8 +51,13 @@ fn display_writes_one_image_per_option() {
         let (r, g) = (img[[12, 30, 0]], img[[12, 30, 1]]);
         assert!(r > g && r > img[[12, 5, 0]], "{op}: {r} {g}");
     }
-    // Mesopic: the dark half becomes grey, the bright half keeps its colour.
+    // Mesopic: the dark half becomes grey, the bright half keeps its colour. Without a
+    // report.toml a fixed L0 needs --frames (exit 2 otherwise); auto measures the noise.
     let out = tmp.path().join("meso.png");
+    let failed = quantacolor(&["display", s(&lin), "--out", s(&out), "--mesopic", "0"]);
+    assert_eq!(failed.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&failed.stderr).contains("--frames"));
+    assert!(!out.exists());
     ok(&[
         "display",
         s(&lin),
@@ -62,6 +67,8 @@ fn display_writes_one_image_per_option() {
         "none",
         "--mesopic",
         "0",
+        "--frames",
+        "100", // dark half: 0.16 W detections over the capture, bright half 80
     ]);
     let (img, _) = read_rgb_image(&out).unwrap();
     let dark = [img[[5, 5, 0]], img[[5, 5, 1]], img[[5, 5, 2]]];
@@ -84,6 +91,119 @@ fn display_writes_one_image_per_option() {
     ok(&["display", s(&lin), "--out", s(&tif), "--tonemap", "global"]);
     assert!(std::fs::metadata(&tif).unwrap().len() >= 24 * 40 * 6);
     assert_eq!(read_rgb_image(&tif).unwrap().0.dim(), (24, 40, 3));
+}
+
+#[test]
+fn display_writes_a_video_stack_as_numbered_frames() {
+    let tmp = tempfile::tempdir().unwrap();
+    let frames: Vec<Array3<f32>> = (0..3)
+        .map(|i| scene().mapv(|v| v * (1.0 + i as f32)))
+        .collect();
+    let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
+    let stack = ndarray::stack(ndarray::Axis(0), &views).unwrap();
+    let video = tmp.path().join("video");
+    std::fs::create_dir(&video).unwrap();
+    let lin = video.join("linear.npy");
+    write_npy(&lin, &stack).unwrap();
+    // report.toml as `reconstruct --video` does not write one: --frames for a fixed L0.
+    let out_dir = tmp.path().join("frames");
+    std::fs::create_dir(&out_dir).unwrap();
+    let out = out_dir.join("clip.png");
+    ok(&[
+        "display",
+        s(&lin),
+        "--out",
+        s(&out),
+        "--mesopic",
+        "0",
+        "--frames",
+        "1000",
+    ]);
+    assert_eq!(
+        files_in(&out_dir),
+        ["clip_0000.png", "clip_0001.png", "clip_0002.png"]
+    );
+    // One exposure for the whole clip: later frames (more light) are brighter.
+    let mean = |i: usize| {
+        let (img, _) = read_rgb_image(out_dir.join(format!("clip_{i:04}.png"))).unwrap();
+        img.mean().unwrap()
+    };
+    assert!(mean(2) > mean(1) && mean(1) > mean(0));
+    // Same bytes again (deterministic), 16-bit TIFF frames too.
+    let first = std::fs::read(out_dir.join("clip_0001.png")).unwrap();
+    ok(&[
+        "display",
+        s(&lin),
+        "--out",
+        s(&out),
+        "--mesopic",
+        "0",
+        "--frames",
+        "1000",
+    ]);
+    assert_eq!(std::fs::read(out_dir.join("clip_0001.png")).unwrap(), first);
+    let tif_dir = tmp.path().join("tif");
+    std::fs::create_dir(&tif_dir).unwrap();
+    ok(&["display", s(&lin), "--out", s(&tif_dir.join("v.tif"))]);
+    assert_eq!(
+        files_in(&tif_dir),
+        ["v_0000.tif", "v_0001.tif", "v_0002.tif"]
+    );
+    // Bad shapes: one error naming the file and the shape, exit 2, nothing written.
+    let bad_dir = tmp.path().join("bad");
+    std::fs::create_dir(&bad_dir).unwrap();
+    type Writer = Box<dyn Fn(&Path)>;
+    let bad: Vec<(&str, Writer)> = vec![
+        (
+            "four_channels.npy",
+            Box::new(|p: &Path| {
+                write_npy(p, &ndarray::Array4::<f32>::zeros((2, 4, 4, 4))).unwrap()
+            }),
+        ),
+        (
+            "empty.npy",
+            Box::new(|p: &Path| {
+                write_npy(p, &ndarray::Array4::<f32>::zeros((0, 4, 4, 3))).unwrap()
+            }),
+        ),
+        (
+            "five_d.npy",
+            Box::new(|p: &Path| {
+                write_npy(p, &ndarray::Array5::<f32>::zeros((1, 2, 4, 4, 3))).unwrap()
+            }),
+        ),
+        (
+            "two_d.npy",
+            Box::new(|p: &Path| write_npy(p, &ndarray::Array2::<f32>::zeros((4, 3))).unwrap()),
+        ),
+        (
+            "f64.npy",
+            Box::new(|p: &Path| {
+                write_npy(p, &ndarray::Array4::<f64>::zeros((2, 4, 4, 3))).unwrap()
+            }),
+        ),
+    ];
+    for (name, make) in bad {
+        let path = tmp.path().join(name);
+        make(&path);
+        let out = quantacolor(&["display", s(&path), "--out", s(&bad_dir.join("x.png"))]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{name}: {err}");
+        assert!(
+            err.contains(name) && err.contains("(N, H, W, 3)"),
+            "{name}: {err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(files_in(&bad_dir).is_empty(), "{name}");
+    }
+    // A truncated stack is named too.
+    let trunc = tmp.path().join("trunc.npy");
+    let bytes = std::fs::read(&lin).unwrap();
+    std::fs::write(&trunc, &bytes[..bytes.len() - 100]).unwrap();
+    let out = quantacolor(&["display", s(&trunc), "--out", s(&bad_dir.join("x.png"))]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("trunc.npy"));
+    assert!(files_in(&bad_dir).is_empty());
 }
 
 #[test]
