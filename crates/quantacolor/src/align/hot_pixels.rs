@@ -344,3 +344,23 @@ pub fn detect_hot_pixels(
         });
     Ok(mask)
 }
+
+/// Gives `capture` a hot-pixel mask detected from its own frames ([`detect_hot_pixels`]) when
+/// it names none; returns how many were found, or `None` when the capture had a mask.
+pub fn self_calibrate(
+    capture: &mut crate::capture::Capture,
+    config: &HotPixelDetectConfig,
+) -> Result<Option<usize>> {
+    if capture.hot_pixels.is_some() {
+        return Ok(None);
+    }
+    let mask = detect_hot_pixels(
+        &capture.frames,
+        &capture.cfa,
+        capture.meta.w_weights,
+        config,
+    )?;
+    let n = mask.iter().filter(|&&m| m).count();
+    capture.hot_pixels = Some(mask);
+    Ok(Some(n))
+}

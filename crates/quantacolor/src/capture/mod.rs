@@ -8,7 +8,6 @@
 //! bytes.
 
 pub mod frames;
-pub mod inspect;
 pub mod io;
 pub mod npy;
 pub mod readers;

@@ -3,8 +3,8 @@
 //!
 //! Every reader is a [`FrameSource`]: it knows its frame count and size up front (from file
 //! sizes or the `.npy` header, after checking every file) and hands out one frame at a time,
-//! already packed the capture format's way, so [`convert`] streams any number of frames
-//! through one frame of memory into a [`CaptureWriter`].
+//! already packed the capture format's way, so [`crate::convert`] streams any number of
+//! frames through one frame of memory into a [`super::CaptureWriter`].
 
 pub mod files;
 pub mod layouts;
@@ -14,13 +14,8 @@ pub use files::{list_files, natural_cmp, natural_path_cmp, FileLayout, RawFileSe
 pub use layouts::{colorspad_crop, RawLayout, Spad512sOrientation};
 pub use npy_cube::open_npy;
 
-use crate::align::hot_pixels::{detect_hot_pixels, HotPixelDetectConfig};
-use crate::capture::{CaptureMeta, CaptureWriter, FrameWindow};
-use crate::cfa::colorspad::{colorspad_cfa, colorspad_hot_pixel_mask};
-use crate::cfa::{Cfa, Channel};
+use crate::cfa::Cfa;
 use crate::error::{Error, Result};
-use crate::progress::Progress;
-use ndarray::Array2;
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
@@ -248,119 +243,4 @@ pub fn open_source(
             spec.colorspad,
         )?)),
     }
-}
-
-/// Where the converted capture's hot-pixel mask comes from.
-#[derive(Debug, Clone)]
-pub enum HotPixels {
-    /// This mask (e.g. the colour SwissSPAD2's shipped inpaint mask).
-    Mask(Array2<bool>),
-    /// Detected from the converted frames ([`detect_hot_pixels`]).
-    Detect(HotPixelDetectConfig),
-    /// No mask.
-    None,
-}
-
-/// Everything [`convert`] writes besides the frames.
-#[derive(Debug, Clone)]
-pub struct ConvertOptions {
-    /// Frames to convert.
-    pub window: FrameWindow,
-    /// The capture's CFA (H, W of the frames).
-    pub cfa: Cfa,
-    /// The capture's metadata (`hot_pixels` is set by [`convert`]).
-    pub meta: CaptureMeta,
-    pub hot_pixels: HotPixels,
-    /// Tables added to `capture.toml` (e.g. `[source]`).
-    pub extra_toml: Option<toml::Table>,
-}
-
-/// What [`convert`] wrote.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ConvertSummary {
-    /// Frames written.
-    pub frames: usize,
-    /// First source frame written.
-    pub first_frame: usize,
-    pub height: usize,
-    pub width: usize,
-    /// Hot pixels in the written mask (`None` = no mask).
-    pub hot_pixels: Option<usize>,
-    /// Whether the mask was detected from the frames.
-    pub hot_pixels_detected: bool,
-}
-
-/// Streams the frames of `options.window` from `source` into a capture directory at `out`
-/// (atomically: nothing is left behind on error, an existing capture is replaced only when
-/// the new one is complete), then writes the CFA, hot-pixel mask and metadata.
-pub fn convert(
-    source: &mut dyn FrameSource,
-    out: &Path,
-    options: &ConvertOptions,
-    progress: &dyn Progress,
-) -> Result<ConvertSummary> {
-    let (h, w) = (source.height(), source.width());
-    if options.cfa.codes().dim() != (h, w) {
-        return Err(Error::invalid(format!(
-            "the CFA is {}x{} (H x W), the frames of {} are {h}x{w}",
-            options.cfa.height(),
-            options.cfa.width(),
-            source.describe()
-        )));
-    }
-    if let HotPixels::Mask(m) = &options.hot_pixels {
-        if m.dim() != (h, w) {
-            return Err(Error::invalid(format!(
-                "the hot-pixel mask is {:?}, the frames are ({h}, {w})",
-                m.dim()
-            )));
-        }
-    }
-    let range = options
-        .window
-        .resolve(source.frame_count())
-        .map_err(|e| Error::invalid(format!("{}: {e}", source.describe())))?;
-    let mut writer = CaptureWriter::create(out, range.len(), h, w)?;
-    let mut frame = vec![0u8; writer.frame_bytes()];
-    progress.start("converting", range.len() as u64);
-    for t in range.clone() {
-        source.read_frame(t, &mut frame)?;
-        writer.write_frame(&frame)?;
-        progress.advance(1);
-    }
-    progress.finish();
-    let (mask, detected) = match &options.hot_pixels {
-        HotPixels::Mask(m) => (Some(m.clone()), false),
-        HotPixels::Detect(config) => {
-            let frames = writer.frames()?;
-            let mask = detect_hot_pixels(&frames, &options.cfa, options.meta.w_weights, config)?;
-            (Some(mask), true)
-        }
-        HotPixels::None => (None, false),
-    };
-    writer.finish(
-        &options.cfa,
-        &options.meta,
-        mask.as_ref(),
-        options.extra_toml.as_ref(),
-    )?;
-    Ok(ConvertSummary {
-        frames: range.len(),
-        first_frame: range.start,
-        height: h,
-        width: w,
-        hot_pixels: mask.map(|m| m.iter().filter(|&&v| v).count()),
-        hot_pixels_detected: detected,
-    })
-}
-
-/// The colour SwissSPAD2's CFA and shipped hot-pixel mask, in the geometry of `--colorspad`.
-pub fn colorspad_calibration() -> (Cfa, Array2<bool>) {
-    (colorspad_cfa(), colorspad_hot_pixel_mask())
-}
-
-/// A CFA of W (clear) pixels only: monochrome sensors such as the SPAD512S and the grey
-/// SwissSPAD2.
-pub fn monochrome_cfa(height: usize, width: usize) -> Cfa {
-    Cfa::uniform(height, width, Channel::W)
 }

@@ -1,7 +1,7 @@
 //! A capture at a glance (`quantacolor inspect`): size, CFA, light level per channel, hot
 //! pixels and the block size alignment would choose.
 
-use super::Capture;
+use crate::capture::Capture;
 use crate::align::blocks::{BlockConfig, BlockPlan};
 use crate::align::hot_pixels::{detect_hot_pixels, HotPixelDetectConfig};
 use crate::cfa::Channel;
