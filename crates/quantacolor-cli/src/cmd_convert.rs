@@ -186,7 +186,10 @@ pub fn run_inspect(args: &InspectArgs) -> Result<()> {
             quantacolor::inspect::HotPixelOrigin::Detected => "detected from the frames",
         }
     );
-    println!("block size    {} frames (suggested)", summary.suggested_block_size);
+    println!(
+        "block size    {} frames (suggested)",
+        summary.suggested_block_size
+    );
     if let Some(path) = &args.preview {
         capture.hot_pixels = Some(mask);
         let reference = capture.reference_frame();

@@ -82,7 +82,10 @@ pub fn convert_input(
     table.insert("format".into(), format.into());
     table.insert("input".into(), input.display().to_string().into());
     table.insert("description".into(), source.describe().into());
-    table.insert("exposure_assumed".into(), request.exposure_s.is_none().into());
+    table.insert(
+        "exposure_assumed".into(),
+        request.exposure_s.is_none().into(),
+    );
     table.insert("hot_pixels".into(), origin.into());
     if request.source.colorspad {
         table.insert("colorspad".into(), true.into());

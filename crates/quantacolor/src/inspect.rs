@@ -1,9 +1,9 @@
 //! A capture at a glance (`quantacolor inspect`): size, CFA, light level per channel, hot
 //! pixels and the block size alignment would choose.
 
-use crate::capture::Capture;
 use crate::align::blocks::{BlockConfig, BlockPlan};
 use crate::align::hot_pixels::{detect_hot_pixels, HotPixelDetectConfig};
+use crate::capture::Capture;
 use crate::cfa::Channel;
 use crate::error::Result;
 use crate::model::mle_flux;

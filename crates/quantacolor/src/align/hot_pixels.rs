@@ -204,12 +204,13 @@ pub fn hot_pixel_mask(rate_map: &Array2<f32>, threshold_cps: f32) -> Array2<bool
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct HotPixelDetectConfig {
-    /// Nearest same-colour pixels a pixel is compared with (default 8: the first ring of any
-    /// regular colour lattice).
+    /// Nearest same-colour pixels a pixel is compared with (default 24: about the first three
+    /// rings of a colour's sites, so that detail at the pixel pitch (gratings, dot patterns)
+    /// has bright sites among them; with 8 the built-in chart's finest gratings were flagged).
     pub neighbours: usize,
-    /// The pixel is compared with the `rank`-th brightest of those neighbours (default 2): one
-    /// neighbour on the same thin bright line, edge or highlight is enough to keep a scene
-    /// feature from being flagged, and one hot neighbour cannot hide a hot pixel.
+    /// The pixel is compared with the `rank`-th brightest of those neighbours (default 3): a
+    /// few neighbours on the same bright line, edge, grating or highlight keep a scene feature
+    /// from being flagged, and one or two hot neighbours cannot hide a hot pixel.
     pub rank: usize,
     /// A hot pixel's flux exceeds the reference by at least this factor (default 1.5).
     pub min_ratio: f64,
@@ -221,8 +222,8 @@ pub struct HotPixelDetectConfig {
 impl Default for HotPixelDetectConfig {
     fn default() -> Self {
         HotPixelDetectConfig {
-            neighbours: 8,
-            rank: 2,
+            neighbours: 24,
+            rank: 3,
             min_ratio: 1.5,
             z: 6.0,
         }
@@ -263,13 +264,13 @@ fn nearest_where(
 /// the paper's hot pixels come from a dark calibration ([`dark_count_rate_map`]).
 ///
 /// Each pixel's flux λ̂ is the MLE of paper Eq. 6 from its count over all T frames. Its
-/// reference is the `rank`-th largest λ̂ among its `neighbours` nearest same-colour pixels;
-/// for an R, G or B pixel the reference is raised to the physical bound set by its W
-/// neighbours (a pixel behind filter c sees at most W / w_c, since W = wR·R + wG·G + wB·B),
-/// taken as the second largest W in its 3x3 neighbourhood. The pixel is hot when
-/// λ̂ > max(`min_ratio` · ref, ref + `z` · σ), σ being the binomial standard deviation of the
-/// MLE at the reference flux over T frames (firing probability floored at 2/T so that an
-/// all-dark neighbourhood does not make a handful of counts significant).
+/// reference is the `rank`-th largest λ̂ among its `neighbours` nearest same-colour pixels.
+/// The pixel is hot when λ̂ > max(`min_ratio` · ref, ref + `z` · σ), σ being the binomial
+/// standard deviation of the MLE at the reference flux over T frames (firing probability
+/// floored at 2/T so that an all-dark neighbourhood does not make a handful of counts
+/// significant). An R, G or B pixel must also exceed the physical bound set by its W
+/// neighbours: behind filter c a pixel sees at most W / w_c, since W = wR·R + wG·G + wB·B
+/// (the second largest W of its 3x3 neighbourhood is used).
 ///
 /// Scene features are protected by the rank (a bright line or edge through the pixel also
 /// lights at least two same-colour neighbours or the W neighbours) and by motion (a moving
@@ -322,23 +323,25 @@ pub fn detect_hot_pixels(
                 }
                 let mut values: Vec<f64> = same.iter().map(|&p| flux[p]).collect();
                 values.sort_unstable_by(|a, b| b.total_cmp(a));
-                let mut reference = values[config.rank - 1];
+                let reference = values[config.rank - 1].max(0.0);
+                let p = (-(-reference).exp_m1()).max(p_floor).min(1.0 - 0.5 / t);
+                let sigma = (p / ((1.0 - p) * t)).sqrt();
+                let mut threshold =
+                    (config.min_ratio * reference).max(reference + config.z * sigma);
                 if code != w_code {
                     let weight = w_weights[code as usize];
                     let mut whites: Vec<f64> = (y.saturating_sub(1)..(y + 2).min(h))
-                        .flat_map(|yy| (x.saturating_sub(1)..(x + 2).min(w)).map(move |xx| (yy, xx)))
+                        .flat_map(|yy| {
+                            (x.saturating_sub(1)..(x + 2).min(w)).map(move |xx| (yy, xx))
+                        })
                         .filter(|&p| codes[p] == w_code)
                         .map(|p| flux[p])
                         .collect();
                     whites.sort_unstable_by(|a, b| b.total_cmp(a));
                     if weight > 0.0 && whites.len() >= 2 {
-                        reference = reference.max(whites[1] / weight);
+                        threshold = threshold.max(whites[1] / weight);
                     }
                 }
-                let reference = reference.max(0.0);
-                let p = (-(-reference).exp_m1()).max(p_floor).min(1.0 - 0.5 / t);
-                let sigma = (p / ((1.0 - p) * t)).sqrt();
-                let threshold = (config.min_ratio * reference).max(reference + config.z * sigma);
                 row[x] = flux[[y, x]] > threshold;
             }
         });

@@ -167,7 +167,9 @@ impl CaptureWriter {
         if let Some(mask) = hot_pixels {
             write_member(&t, &self.dir, HOT_PIXELS_FILE, npy_writer(mask))?;
         }
-        write_member(&t, &self.dir, META_FILE, |w| w.write_all(toml_text.as_bytes()))?;
+        write_member(&t, &self.dir, META_FILE, |w| {
+            w.write_all(toml_text.as_bytes())
+        })?;
         commit_dir(self.tmp, &self.dir, self.existing)
     }
 }

@@ -84,9 +84,18 @@ mod tests {
         let w: FrameWindow = "10:20".parse().unwrap();
         assert_eq!(w.resolve(100).unwrap(), 10..20);
         assert_eq!(w.to_string(), "10:20");
-        assert_eq!(":5".parse::<FrameWindow>().unwrap().resolve(9).unwrap(), 0..5);
-        assert_eq!("7:".parse::<FrameWindow>().unwrap().resolve(9).unwrap(), 7..9);
-        assert_eq!(":".parse::<FrameWindow>().unwrap().resolve(9).unwrap(), 0..9);
+        assert_eq!(
+            ":5".parse::<FrameWindow>().unwrap().resolve(9).unwrap(),
+            0..5
+        );
+        assert_eq!(
+            "7:".parse::<FrameWindow>().unwrap().resolve(9).unwrap(),
+            7..9
+        );
+        assert_eq!(
+            ":".parse::<FrameWindow>().unwrap().resolve(9).unwrap(),
+            0..9
+        );
         for bad in ["", "5", "5:5", "6:2", "a:3", "-1:3", "1:2:3"] {
             assert!(bad.parse::<FrameWindow>().is_err(), "{bad:?}");
         }

@@ -206,7 +206,10 @@ impl RawFileSet {
         }
         reader.read_exact(buf).map_err(|e| {
             if e.kind() == std::io::ErrorKind::UnexpectedEof {
-                Error::format(&file.path, "file ended early (did it change while reading?)")
+                Error::format(
+                    &file.path,
+                    "file ended early (did it change while reading?)",
+                )
             } else {
                 Error::io(&file.path, e)
             }
@@ -228,7 +231,10 @@ fn frames_in(size: u64, layout: &FileLayout) -> std::result::Result<usize, Strin
             trailer_note(trailer),
             n as u64 * fb + trailer
         ),
-        None => format!("a whole number of {fb}-byte frames{}", trailer_note(trailer)),
+        None => format!(
+            "a whole number of {fb}-byte frames{}",
+            trailer_note(trailer)
+        ),
     };
     if size == 0 {
         return Err(format!(
@@ -238,7 +244,11 @@ fn frames_in(size: u64, layout: &FileLayout) -> std::result::Result<usize, Strin
         ));
     }
     let ok = size >= trailer + fb && (size - trailer) % fb == 0;
-    let frames = if ok { ((size - trailer) / fb) as usize } else { 0 };
+    let frames = if ok {
+        ((size - trailer) / fb) as usize
+    } else {
+        0
+    };
     match layout.frames_per_file {
         Some(n) if ok && frames == n => Ok(n),
         None if ok => Ok(frames),
@@ -264,9 +274,14 @@ mod tests {
 
     #[test]
     fn natural_order_compares_numbers_by_value() {
-        let mut v = vec!["10.bin", "2.bin", "1.bin", "a10", "a9", "a09", "b", "01.bin"];
+        let mut v = vec![
+            "10.bin", "2.bin", "1.bin", "a10", "a9", "a09", "b", "01.bin",
+        ];
         v.sort_by(|a, b| natural_cmp(a, b));
-        assert_eq!(v, ["1.bin", "01.bin", "2.bin", "10.bin", "a9", "a09", "a10", "b"]);
+        assert_eq!(
+            v,
+            ["1.bin", "01.bin", "2.bin", "10.bin", "a9", "a09", "a10", "b"]
+        );
         assert_eq!(
             natural_path_cmp(Path::new("2/9.bin"), Path::new("10/0.bin")),
             Ordering::Less

@@ -88,8 +88,7 @@ impl RawLayout {
                 match orientation {
                     Spad512sOrientation::Stored => out.copy_from_slice(raw),
                     Spad512sOrientation::FlipLr => {
-                        for (o_row, r_row) in out.chunks_exact_mut(ROW).zip(raw.chunks_exact(ROW))
-                        {
+                        for (o_row, r_row) in out.chunks_exact_mut(ROW).zip(raw.chunks_exact(ROW)) {
                             for (o, &b) in o_row.iter_mut().zip(r_row.iter().rev()) {
                                 *o = b.reverse_bits();
                             }

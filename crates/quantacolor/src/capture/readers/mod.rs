@@ -176,7 +176,11 @@ impl FrameSource for RawBinSource {
             "{} ({} .bin file{})",
             self.input.display(),
             self.files.file_count(),
-            if self.files.file_count() == 1 { "" } else { "s" }
+            if self.files.file_count() == 1 {
+                ""
+            } else {
+                "s"
+            }
         )
     }
     fn frame_count(&self) -> usize {

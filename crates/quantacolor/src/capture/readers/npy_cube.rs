@@ -114,7 +114,10 @@ impl RgbCube {
             ));
         }
         if header.fortran_order {
-            return Err(Error::format(path, "Fortran-ordered arrays are not supported"));
+            return Err(Error::format(
+                path,
+                "Fortran-ordered arrays are not supported",
+            ));
         }
         if c != 3 {
             return Err(Error::format(
