@@ -84,6 +84,11 @@ fn spad512s_file(seed: u64, t0: usize, frames: usize, trailer: usize) -> Vec<u8>
     out
 }
 
+/// Which stored pixel an output pixel (y, x) comes from.
+type PixelMap = fn(usize, usize) -> (usize, usize);
+/// Files of a fixture: (relative path, bytes).
+type Files<'a> = Vec<(&'a str, Vec<u8>)>;
+
 fn write(path: &Path, bytes: &[u8]) {
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
     std::fs::write(path, bytes).unwrap();
@@ -212,7 +217,7 @@ fn spad512s_trailer_and_orientations() {
     // Files of different frame counts are fine for the SPAD512S (it fixes none).
     write(&input.join("RAW_9.bin"), &spad512s_file(4, 0, 3, 4));
     write(&input.join("RAW_10.bin"), &spad512s_file(4, 3, 2, 4));
-    let views: [(Spad512sOrientation, fn(usize, usize) -> (usize, usize)); 3] = [
+    let views: [(Spad512sOrientation, PixelMap); 3] = [
         (Spad512sOrientation::Stored, |y, x| (y, x)),
         (Spad512sOrientation::FlipLr, |y, x| (y, 511 - x)),
         (Spad512sOrientation::Rot90, |y, x| (x, 511 - y)),
@@ -325,7 +330,7 @@ fn bad_inputs_name_the_file_and_leave_nothing_behind() {
     let tmp = tempfile::tempdir().unwrap();
     let root = tmp.path();
     let good = swissspad2_half_file(11, 0, 512);
-    let cases: Vec<(&str, Vec<(&str, Vec<u8>)>, &str)> = vec![
+    let cases: Vec<(&str, Files, &str)> = vec![
         (
             "truncated",
             vec![

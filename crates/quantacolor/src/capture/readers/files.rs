@@ -243,7 +243,7 @@ fn frames_in(size: u64, layout: &FileLayout) -> std::result::Result<usize, Strin
             describe()
         ));
     }
-    let ok = size >= trailer + fb && (size - trailer) % fb == 0;
+    let ok = size >= trailer + fb && (size - trailer).is_multiple_of(fb);
     let frames = if ok {
         ((size - trailer) / fb) as usize
     } else {
