@@ -19,8 +19,9 @@ use std::path::{Path, PathBuf};
 pub struct CaptureWriter {
     dir: PathBuf,
     existing: bool,
-    tmp: TempGuard,
+    // Declared before `tmp` so that the file is closed before the guard removes the directory.
     frames: Option<BufWriter<File>>,
+    tmp: TempGuard,
     frame_count: usize,
     height: usize,
     width: usize,
