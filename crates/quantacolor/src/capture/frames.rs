@@ -303,7 +303,7 @@ impl BinaryFrames {
         match self.layout {
             FrameLayout::Packed => {
                 out.copy_from_slice(row);
-                if !self.width.is_multiple_of(8) {
+                if self.width & 7 != 0 {
                     let last = out.len() - 1;
                     out[last] &= 0xFFu8 << (8 - self.width % 8);
                 }

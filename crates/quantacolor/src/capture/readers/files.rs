@@ -243,7 +243,10 @@ fn frames_in(size: u64, layout: &FileLayout) -> std::result::Result<usize, Strin
             describe()
         ));
     }
-    let ok = size >= trailer + fb && (size - trailer).is_multiple_of(fb);
+    let ok = size >= trailer + fb && {
+        let rem = (size - trailer) % fb; // not is_multiple_of: rust-version is 1.80
+        rem == 0
+    };
     let frames = if ok {
         ((size - trailer) / fb) as usize
     } else {

@@ -75,7 +75,7 @@ impl RawLayout {
                 for (r, stored) in raw.chunks_exact(2 * ROW).enumerate() {
                     for (z, zone) in stored.chunks_exact(ZONE).enumerate() {
                         let k = z / 2;
-                        let y = if z.is_multiple_of(2) { r } else { 511 - r };
+                        let y = if z & 1 == 0 { r } else { 511 - r };
                         let dst = &mut out[y * ROW + k * ZONE..][..ZONE];
                         for (o, &b) in dst.iter_mut().zip(zone) {
                             *o = b.reverse_bits();
