@@ -23,10 +23,20 @@ pub struct AlignArgs {
     /// Frames per temporal block (default: chosen from T and the light level, 100–1000).
     #[arg(long)]
     pub block_size: Option<usize>,
+    /// Use only frames A:B of the capture (they become frames 0..B-A).
+    #[arg(long)]
+    pub frames: Option<quantacolor::capture::FrameWindow>,
+    /// Do not detect hot pixels when the capture names no mask.
+    #[arg(long)]
+    pub no_hot_pixel_detection: bool,
 }
 
 pub fn run_align(args: &AlignArgs, progress: &dyn Progress) -> Result<()> {
-    let capture = Capture::open(&args.capture)?;
+    let capture = crate::cmd_convert::open_capture(
+        &args.capture,
+        args.frames.as_ref(),
+        !args.no_hot_pixel_detection,
+    )?;
     let reference = args
         .reference_frame
         .unwrap_or_else(|| capture.reference_frame());

@@ -77,6 +77,12 @@ pub struct ReconstructArgs {
     /// Colour matrix for preview.png from `quantacolor calibrate-color`.
     #[arg(long)]
     pub ccm: Option<PathBuf>,
+    /// Use only frames A:B of the capture (they become frames 0..B-A).
+    #[arg(long)]
+    pub frames: Option<quantacolor::capture::FrameWindow>,
+    /// Do not detect hot pixels when the capture names no mask.
+    #[arg(long)]
+    pub no_hot_pixel_detection: bool,
 }
 
 #[derive(Serialize)]
@@ -104,7 +110,11 @@ struct Report<'a> {
 
 pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
     let config = config_from_args(args)?;
-    let capture = Capture::open(&args.capture)?;
+    let capture = crate::cmd_convert::open_capture(
+        &args.capture,
+        args.frames.as_ref(),
+        !args.no_hot_pixel_detection,
+    )?;
     if args.video {
         return write_video(args, &capture, &config, progress);
     }

@@ -4,6 +4,7 @@ mod cmd_align;
 mod cmd_bench;
 mod cmd_calibrate_color;
 mod cmd_cfa;
+mod cmd_convert;
 mod cmd_demo;
 mod cmd_display;
 mod cmd_eval;
@@ -47,6 +48,11 @@ enum Command {
     Display(cmd_display::DisplayArgs),
     /// Fit a colour-correction matrix from a reconstruction of the built-in chart.
     CalibrateColor(cmd_calibrate_color::CalibrateColorArgs),
+    /// Convert a real recording (SwissSPAD2, SPAD512S .bin files, photon-cube .npy) into a
+    /// capture directory.
+    Convert(cmd_convert::ConvertArgs),
+    /// Summarise a capture: size, CFA, light level per channel, hot pixels, block size.
+    Inspect(cmd_convert::InspectArgs),
 }
 
 fn main() -> ExitCode {
@@ -63,6 +69,8 @@ fn main() -> ExitCode {
         Command::Bench(args) => cmd_bench::run(args, &progress),
         Command::Display(args) => cmd_display::run(args),
         Command::CalibrateColor(args) => cmd_calibrate_color::run(args),
+        Command::Convert(args) => cmd_convert::run_convert(args, &progress),
+        Command::Inspect(args) => cmd_convert::run_inspect(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

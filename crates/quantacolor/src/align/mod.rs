@@ -23,7 +23,10 @@ pub mod track;
 
 pub use blocks::{BlockConfig, BlockPlan};
 pub use grey::{grey_image, GreyChoice, GreyMethod};
-pub use hot_pixels::{dark_count_rate_map, hot_pixel_mask, HotPixelConfig, HotPixelCorrector};
+pub use hot_pixels::{
+    dark_count_rate_map, detect_hot_pixels, hot_pixel_mask, HotPixelConfig, HotPixelCorrector,
+    HotPixelDetectConfig,
+};
 pub use motion::{block_centre_flow, flow_at, frame_flow};
 pub use patch::{Norm, PatchConfig, ReferenceAligner, TileGrid};
 pub use refine::{

@@ -266,6 +266,59 @@ impl BinaryFrames {
         }
     }
 
+    /// Keeps only the frames in `window` (indices into this stack), which become frames
+    /// `0..window.len()`; no data is copied (a memory map stays a memory map).
+    pub fn window(self, window: Range<usize>) -> Result<BinaryFrames> {
+        if window.start >= window.end || window.end > self.frame_count {
+            return Err(Error::invalid(format!(
+                "frame window {}:{} is empty or outside the capture's {} frames",
+                window.start, window.end, self.frame_count
+            )));
+        }
+        let frame_bytes = self.height * self.row_bytes();
+        let skip = window.start * frame_bytes;
+        let keep = window.len() * frame_bytes;
+        let storage = match self.storage {
+            Storage::Owned(mut v) => {
+                v.truncate(skip + keep);
+                v.drain(..skip);
+                Storage::Owned(v)
+            }
+            Storage::Mapped { map, offset } => Storage::Mapped {
+                map,
+                offset: offset + skip,
+            },
+        };
+        Ok(BinaryFrames {
+            storage,
+            frame_count: window.len(),
+            ..self
+        })
+    }
+
+    /// Row `y` of frame `t` packed MSB first (`ceil(W/8)` bytes) into `out`, whatever the
+    /// stored layout; padding bits of the last byte are zero.
+    pub fn packed_row_into(&self, t: usize, y: usize, out: &mut [u8]) {
+        let row = self.raw_row(t, y);
+        match self.layout {
+            FrameLayout::Packed => {
+                out.copy_from_slice(row);
+                if self.width & 7 != 0 {
+                    let last = out.len() - 1;
+                    out[last] &= 0xFFu8 << (8 - self.width % 8);
+                }
+            }
+            FrameLayout::Unpacked => {
+                out.fill(0);
+                for (x, &v) in row.iter().enumerate() {
+                    if v != 0 {
+                        out[x / 8] |= 0x80 >> (x % 8);
+                    }
+                }
+            }
+        }
+    }
+
     /// One frame unpacked to 0/1, (H, W).
     pub fn frame(&self, t: usize) -> Array2<u8> {
         Array2::from_shape_fn((self.height, self.width), |(y, x)| self.bit(t, y, x) as u8)

@@ -10,8 +10,13 @@
 pub mod frames;
 pub mod io;
 pub mod npy;
+pub mod readers;
+pub mod stream;
+pub mod window;
 
 pub use frames::BinaryFrames;
+pub use stream::CaptureWriter;
+pub use window::FrameWindow;
 
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
@@ -361,6 +366,22 @@ impl Capture {
         })
     }
 
+    /// Keeps only the frames of `window`, which become frames `0..B-A` (no data is copied).
+    /// The capture's `reference_frame` is shifted with them when it lies inside the window and
+    /// dropped (the window's centre is used) otherwise.
+    pub fn window(mut self, window: &FrameWindow) -> Result<Capture> {
+        let range = window
+            .resolve(self.frames.frame_count())
+            .map_err(|e| Error::format(self.dir.join(FRAMES_FILE), e.to_string()))?;
+        self.meta.reference_frame = self
+            .meta
+            .reference_frame
+            .filter(|r| range.contains(r))
+            .map(|r| r - range.start);
+        self.frames = self.frames.window(range)?;
+        Ok(self)
+    }
+
     /// The reference frame: `meta.reference_frame` or T/2 rounded down.
     pub fn reference_frame(&self) -> usize {
         self.meta
@@ -542,6 +563,32 @@ pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<
     }
     let toml_text = meta.to_toml_string(parts.extra_toml.as_ref())?;
 
+    let existing = prepare_target(dir)?;
+
+    let tmp = TempGuard::dir(io::temp_sibling(dir)?);
+    fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
+    let t = tmp.path();
+    write_member(t, dir, FRAMES_FILE, |w| {
+        write_frames(w, parts.packed_frames)
+    })?;
+    write_member(t, dir, CFA_NPY_FILE, npy_writer(parts.cfa.codes()))?;
+    if let Some(mask) = parts.hot_pixels {
+        write_member(t, dir, HOT_PIXELS_FILE, npy_writer(mask))?;
+    }
+    if let Some(truth) = parts.ground_truth {
+        write_member(t, dir, GROUND_TRUTH_FILE, npy_writer(truth))?;
+    }
+    for (name, bytes) in &parts.extra_files {
+        write_member(t, dir, name, |w| w.write_all(bytes))?;
+    }
+    write_member(t, dir, META_FILE, |w| w.write_all(toml_text.as_bytes()))?;
+
+    commit_dir(tmp, dir, existing)
+}
+
+/// Checks that `dir` may receive a capture (absent, an empty directory, or a capture) and
+/// creates its parent; returns whether `dir` exists (and will be replaced on commit).
+pub(crate) fn prepare_target(dir: &Path) -> Result<bool> {
     let existing = match fs::symlink_metadata(dir) {
         Ok(info) if info.is_dir() => {
             let mut entries = fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
@@ -567,24 +614,13 @@ pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<
         fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
     }
 
-    let tmp = TempGuard::dir(io::temp_sibling(dir)?);
-    fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
-    let t = tmp.path();
-    write_member(t, dir, FRAMES_FILE, |w| {
-        write_frames(w, parts.packed_frames)
-    })?;
-    write_member(t, dir, CFA_NPY_FILE, npy_writer(parts.cfa.codes()))?;
-    if let Some(mask) = parts.hot_pixels {
-        write_member(t, dir, HOT_PIXELS_FILE, npy_writer(mask))?;
-    }
-    if let Some(truth) = parts.ground_truth {
-        write_member(t, dir, GROUND_TRUTH_FILE, npy_writer(truth))?;
-    }
-    for (name, bytes) in &parts.extra_files {
-        write_member(t, dir, name, |w| w.write_all(bytes))?;
-    }
-    write_member(t, dir, META_FILE, |w| w.write_all(toml_text.as_bytes()))?;
+    Ok(existing)
+}
 
+/// Moves the complete temporary capture `tmp` to `dir`, replacing an existing capture there
+/// (see [`write_capture`]).
+pub(crate) fn commit_dir(tmp: TempGuard, dir: &Path, existing: bool) -> Result<()> {
+    let t = tmp.path();
     if existing {
         // Move the old capture aside, move the new one in, then delete the old one; if the
         // second rename fails, put the old capture back.
