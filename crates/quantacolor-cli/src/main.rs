@@ -7,6 +7,7 @@ mod cmd_cfa;
 mod cmd_demo;
 mod cmd_display;
 mod cmd_eval;
+mod cmd_experiment;
 mod cmd_reconstruct;
 mod cmd_simulate;
 mod output;
@@ -47,6 +48,8 @@ enum Command {
     Display(cmd_display::DisplayArgs),
     /// Fit a colour-correction matrix from a reconstruction of the built-in chart.
     CalibrateColor(cmd_calibrate_color::CalibrateColorArgs),
+    /// The paper's experiments (dynamic-range, motion, w-fraction, cfa): CSV, plots, summary.md.
+    Experiment(cmd_experiment::ExperimentArgs),
 }
 
 fn main() -> ExitCode {
@@ -63,6 +66,7 @@ fn main() -> ExitCode {
         Command::Bench(args) => cmd_bench::run(args, &progress),
         Command::Display(args) => cmd_display::run(args),
         Command::CalibrateColor(args) => cmd_calibrate_color::run(args),
+        Command::Experiment(args) => cmd_experiment::run(args, &progress),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

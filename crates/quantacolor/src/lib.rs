@@ -16,6 +16,7 @@ pub mod cfa;
 pub mod denoise;
 pub mod display;
 pub mod error;
+pub mod experiments;
 pub mod merge;
 pub mod metrics;
 pub mod model;
