@@ -314,7 +314,13 @@ pub fn dynamic_range(frames: f64, dark: f64, snr_threshold: f64) -> Result<Dynam
 /// the Gaussian–Poisson model of a conventional sensor (paper §6.1 and §7 compare against it).
 /// Saturation is not part of the SNR; [`conventional_dynamic_range`] caps the range at the full
 /// well. Linear ratio, not dB.
-pub fn conventional_snr(lambda: f64, frames: f64, dark: f64, read_noise_e: f64, step_e: f64) -> f64 {
+pub fn conventional_snr(
+    lambda: f64,
+    frames: f64,
+    dark: f64,
+    read_noise_e: f64,
+    step_e: f64,
+) -> f64 {
     let var = lambda + dark + read_noise_e * read_noise_e + step_e * step_e / 12.0;
     if var <= 0.0 {
         return 0.0;
@@ -337,8 +343,7 @@ pub fn conventional_dynamic_range(
     snr_threshold: f64,
 ) -> Result<DynamicRange> {
     check_model_params(frames, dark)?;
-    if !(read_noise_e.is_finite() && read_noise_e >= 0.0 && step_e.is_finite() && step_e >= 0.0)
-    {
+    if !(read_noise_e.is_finite() && read_noise_e >= 0.0 && step_e.is_finite() && step_e >= 0.0) {
         return Err(Error::invalid(format!(
             "read noise {read_noise_e} e- and quantisation step {step_e} e- must be finite and >= 0"
         )));
@@ -352,7 +357,7 @@ pub fn conventional_dynamic_range(
     let floor = dark + read_noise_e * read_noise_e + step_e * step_e / 12.0;
     let min_flux = (t2 + (t2 * t2 + 4.0 * frames * t2 * floor).sqrt()) / (2.0 * frames);
     let max_flux = full_well_e - dark;
-    if !(max_flux > min_flux) {
+    if max_flux.is_nan() || max_flux <= min_flux {
         return Err(Error::invalid(format!(
             "full well {full_well_e} e- leaves no flux with SNR >= {snr_threshold} (smallest is \
              {min_flux:.4} e- per frame)"

@@ -56,7 +56,11 @@ fn assert_files(out: &ExperimentOutput, names: &[&str]) {
     let summary = out.text("summary.md").unwrap();
     assert!(!out.claims.is_empty());
     for c in &out.claims {
-        assert!(summary.contains(&c.statement), "summary lacks {:?}", c.statement);
+        assert!(
+            summary.contains(&c.statement),
+            "summary lacks {:?}",
+            c.statement
+        );
     }
 }
 
@@ -69,10 +73,19 @@ fn dynamic_range_gap_is_40_log10_3w_exactly() {
         let expected = 40.0 * (3.0 * r.w).log10();
         let gap = r.extended_db - r.best_performance_db;
         if r.w >= 1.0 / 3.0 {
-            assert!((gap - expected).abs() < 1e-9, "w {}: gap {gap} vs {expected}", r.w);
+            assert!(
+                (gap - expected).abs() < 1e-9,
+                "w {}: gap {gap} vs {expected}",
+                r.w
+            );
         } else {
             // W and colour swap roles below 1/3.
-            assert!((gap + expected).abs() < 1e-9, "w {}: gap {gap} vs {}", r.w, -expected);
+            assert!(
+                (gap + expected).abs() < 1e-9,
+                "w {}: gap {gap} vs {}",
+                r.w,
+                -expected
+            );
         }
         // Each range is the single-pixel range shifted by ±20·log10(3w) (the 1/(3w) scaling).
         let shift = 20.0 * (3.0 * r.w).log10().abs();
@@ -87,7 +100,12 @@ fn dynamic_range_gap_is_40_log10_3w_exactly() {
     let conv = dynamic_range::conventional_range().unwrap();
     assert!((conv.max_flux - (1023.0 - 1.0 / 240.0)).abs() < 1e-9);
     assert!(rows.iter().all(|r| r.conventional_db == conv.db));
-    assert!(pixel.db > conv.db + 10.0, "SPAD {} vs CMOS {}", pixel.db, conv.db);
+    assert!(
+        pixel.db > conv.db + 10.0,
+        "SPAD {} vs CMOS {}",
+        pixel.db,
+        conv.db
+    );
     assert!(dynamic_range::rgbw_ranges(&pixel, 0.0).is_err());
 }
 
@@ -96,9 +114,19 @@ fn dynamic_range_files() {
     let out = run(Experiment::DynamicRange);
     assert_files(
         &out,
-        &["dynamic_range.csv", "snr.csv", "dynamic_range.png", "snr.png", "summary.md"],
+        &[
+            "dynamic_range.csv",
+            "snr.csv",
+            "dynamic_range.png",
+            "snr.png",
+            "summary.md",
+        ],
     );
-    let rows = table(&out, "dynamic_range.csv", "w,best_performance_db,extended_db,conventional_db");
+    let rows = table(
+        &out,
+        "dynamic_range.csv",
+        "w,best_performance_db,extended_db,conventional_db",
+    );
     assert_eq!(rows.len(), dynamic_range::w_grid().len());
     for r in &rows {
         let (w, bp, ext) = (num(&r[0]), num(&r[1]), num(&r[2]));
@@ -108,7 +136,11 @@ fn dynamic_range_files() {
         }
         assert!(bp > 50.0 && ext < 150.0 && num(&r[3]) > 50.0, "{r:?}");
     }
-    let snr = table(&out, "snr.csv", "photons_per_s,snr_w_db,snr_r_db,snr_cmos_r_db");
+    let snr = table(
+        &out,
+        "snr.csv",
+        "photons_per_s,snr_w_db,snr_r_db,snr_cmos_r_db",
+    );
     assert_eq!(snr.len(), 33);
     let mut prev = 0.0;
     for r in &snr {
@@ -132,13 +164,19 @@ fn dynamic_range_files() {
 #[test]
 fn motion_files_and_determinism() {
     let out = run(Experiment::Motion);
-    assert_files(&out, &["motion.csv", "motion.png", "crops.png", "summary.md"]);
+    assert_files(
+        &out,
+        &["motion.csv", "motion.png", "crops.png", "summary.md"],
+    );
     let rows = table(&out, "motion.csv", "radius_px,psnr_burst,psnr_naive");
     let radii: Vec<f64> = rows.iter().map(|r| num(&r[0])).collect();
     assert_eq!(radii, [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
     for r in &rows {
         let (b, n) = (num(&r[1]), num(&r[2]));
-        assert!((10.0..60.0).contains(&b) && (5.0..60.0).contains(&n), "{r:?}");
+        assert!(
+            (10.0..60.0).contains(&b) && (5.0..60.0).contains(&n),
+            "{r:?}"
+        );
     }
     // Naive averaging blurs with motion; the burst method compensates it.
     let last = &rows[5];
@@ -189,7 +227,10 @@ fn cfa_files() {
 #[test]
 fn unknown_experiment_is_an_error_naming_the_choices() {
     let err = "nope".parse::<Experiment>().unwrap_err().to_string();
-    assert!(err.contains("nope") && err.contains("dynamic-range"), "{err}");
+    assert!(
+        err.contains("nope") && err.contains("dynamic-range"),
+        "{err}"
+    );
     for name in Experiment::NAMES {
         assert_eq!(name.parse::<Experiment>().unwrap().name(), name);
     }

@@ -51,7 +51,9 @@ pub fn fence_scene(height: usize, width: usize) -> Scene {
     let mut x = rng.gen_range(0..4usize);
     while x < width {
         let w = rng.gen_range(2..=4usize);
-        slat[x..(x + w).min(width)].iter_mut().for_each(|v| *v = true);
+        slat[x..(x + w).min(width)]
+            .iter_mut()
+            .for_each(|v| *v = true);
         x += w + rng.gen_range(3..=7usize);
     }
     let image = Array3::from_shape_fn((height, width, 3), |(y, x, c)| {
@@ -191,7 +193,10 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
              px over the burst, 2D circle of radius 1.5 px; burst method without denoising; sRGB \
              PSNR / SSIM after a {border}-px border crop. crops.png: truth, then regular, random, \
              blue-noise for static, horizontal, 2d (centre 64 px crops).",
-            options.scene.as_deref().unwrap_or("fence (procedural, irregular 2-4 px slats)"),
+            options
+                .scene
+                .as_deref()
+                .unwrap_or("fence (procedural, irregular 2-4 px slats)"),
             options.seed
         ),
         &claims,

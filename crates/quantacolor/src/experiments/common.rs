@@ -120,7 +120,11 @@ pub(super) fn chroma_error_deg(estimate: &Array3<f32>, truth: &Array3<f32>, bord
 
 /// Side-by-side sRGB crops (centre `size` x `size`, or the whole image if smaller) of `images`,
 /// all at the exposure that fits `truth`.
-pub(super) fn contact_sheet(truth: &Array3<f32>, images: &[&Array3<f32>], size: usize) -> Array3<u8> {
+pub(super) fn contact_sheet(
+    truth: &Array3<f32>,
+    images: &[&Array3<f32>],
+    size: usize,
+) -> Array3<u8> {
     let scale = auto_exposure_scale(truth.view());
     let crop = |a: &Array3<f32>| -> Array3<u8> {
         let (h, w, _) = a.dim();

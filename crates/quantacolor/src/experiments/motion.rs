@@ -162,7 +162,10 @@ fn claims(rows: &[MotionRow]) -> Vec<Claim> {
         .windows(2)
         .map(|w| w[1].psnr_naive - w[0].psnr_naive)
         .collect();
-    let worst_rise = naive_steps.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let worst_rise = naive_steps
+        .iter()
+        .copied()
+        .fold(f64::NEG_INFINITY, f64::max);
     let (n0, n_last) = (
         rows.first().map_or(f64::NAN, |r| r.psnr_naive),
         rows.last().map_or(f64::NAN, |r| r.psnr_naive),

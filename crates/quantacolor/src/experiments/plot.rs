@@ -158,7 +158,12 @@ pub fn render(plot: &LinePlot) -> Result<Array3<u8>> {
     draw_text(&mut img, cx.max(0) as u32, HEIGHT - 2 * GLYPH_H - 2, xl);
     draw_text(&mut img, 8, 8 + 2 * GLYPH_H, &plot.y_label);
     // legend, top right inside the plotting area
-    let longest = plot.series.iter().map(|s| text_w(&s.name)).max().unwrap_or(0);
+    let longest = plot
+        .series
+        .iter()
+        .map(|s| text_w(&s.name))
+        .max()
+        .unwrap_or(0);
     let lx = (xr.end as u32).saturating_sub(longest + 30);
     for (k, s) in plot.series.iter().enumerate() {
         let ly = yr.start as u32 + 6 + k as u32 * (GLYPH_H + 6);
@@ -171,8 +176,10 @@ pub fn render(plot: &LinePlot) -> Result<Array3<u8>> {
         draw_text(&mut img, lx + 22, ly, &s.name);
     }
     let (w, h) = img.dimensions();
-    Ok(Array3::from_shape_vec((h as usize, w as usize, 3), img.into_raw())
-        .expect("RgbImage layout is (H, W, 3)"))
+    Ok(
+        Array3::from_shape_vec((h as usize, w as usize, 3), img.into_raw())
+            .expect("RgbImage layout is (H, W, 3)"),
+    )
 }
 
 #[cfg(test)]
