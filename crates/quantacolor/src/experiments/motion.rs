@@ -118,7 +118,7 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
     let summary = summary_markdown(
         "Motion: burst vs naive under circular motion (paper Fig. 10)",
         &format!(
-            "builtin scene `{}`, {}x{} px, {} binary frames at {} W detections/pixel/frame, \
+            "scene `{}`, {}x{} px, {} binary frames at {} W detections/pixel/frame, \
              rgbw-75-bluenoise CFA, Table 1 SPAD, seed {}; one revolution of a circle of the \
              given radius over the burst; burst method and naive average of all frames, both \
              without denoising; sRGB PSNR after a {}-px border crop (paper §6 protocol). \

@@ -125,7 +125,7 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
     let summary = summary_markdown(
         "W fraction at low light (paper supplement Fig. 3)",
         &format!(
-            "builtin scene `{}`, {width}x{height} px, {frames} binary frames at {flux} W \
+            "scene `{}`, {width}x{height} px, {frames} binary frames at {flux} W \
              detections/pixel/frame (low light), handheld motion, Table 1 SPAD, seed {}; burst \
              method without denoising; sRGB PSNR / SSIM after a {border}-px border crop; \
              chroma_error is the mean angle between estimated and true RGB vectors, degrees \
