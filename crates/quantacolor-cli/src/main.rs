@@ -8,6 +8,7 @@ mod cmd_convert;
 mod cmd_demo;
 mod cmd_display;
 mod cmd_eval;
+mod cmd_experiment;
 mod cmd_reconstruct;
 mod cmd_simulate;
 mod output;
@@ -53,6 +54,8 @@ enum Command {
     Convert(cmd_convert::ConvertArgs),
     /// Summarise a capture: size, CFA, light level per channel, hot pixels, block size.
     Inspect(cmd_convert::InspectArgs),
+    /// The paper's experiments (dynamic-range, motion, w-fraction, cfa): CSV, plots, summary.md.
+    Experiment(cmd_experiment::ExperimentArgs),
 }
 
 fn main() -> ExitCode {
@@ -71,6 +74,7 @@ fn main() -> ExitCode {
         Command::CalibrateColor(args) => cmd_calibrate_color::run(args),
         Command::Convert(args) => cmd_convert::run_convert(args, &progress),
         Command::Inspect(args) => cmd_convert::run_inspect(args),
+        Command::Experiment(args) => cmd_experiment::run(args, &progress),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -339,3 +339,73 @@ fn reconstruct_denoise_and_preview_options() {
     ]);
     assert!(tmp.path().join("view.tif").exists());
 }
+
+#[test]
+fn experiment_writes_csv_plot_and_summary_and_rejects_bad_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("dr");
+    let run = ok(&[
+        "experiment",
+        "dynamic-range",
+        "--quick",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(stdout.contains("reproduced"), "{stdout}");
+    for f in [
+        "dynamic_range.csv",
+        "snr.csv",
+        "dynamic_range.png",
+        "snr.png",
+        "summary.md",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let csv = String::from_utf8(read(&out.join("dynamic_range.csv"))).unwrap();
+    assert!(csv.starts_with("w,best_performance_db,extended_db,conventional_db\n"));
+    assert!(read(&out.join("dynamic_range.png")).starts_with(b"\x89PNG\r\n\x1a\n"));
+
+    let bad = tmp.path().join("bad");
+    let err = expect_failure(
+        &[
+            "experiment",
+            "nope",
+            "--quick",
+            "--out",
+            bad.to_str().unwrap(),
+        ],
+        "nope",
+    );
+    assert!(err.contains("dynamic-range"), "{err}");
+    expect_failure(
+        &[
+            "experiment",
+            "dynamic-range",
+            "--scene",
+            "builtin:chart",
+            "--out",
+            bad.to_str().unwrap(),
+        ],
+        "--scene",
+    );
+    expect_failure(
+        &[
+            "experiment",
+            "motion",
+            "--quick",
+            "--scene",
+            "/nonexistent/scene.png",
+            "--out",
+            bad.to_str().unwrap(),
+        ],
+        "/nonexistent/scene.png",
+    );
+    assert!(!bad.exists(), "a failed experiment left output");
+    let leftovers: Vec<_> = std::fs::read_dir(tmp.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().contains("partial"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}

@@ -17,6 +17,7 @@ pub mod convert;
 pub mod denoise;
 pub mod display;
 pub mod error;
+pub mod experiments;
 pub mod inspect;
 pub mod merge;
 pub mod metrics;

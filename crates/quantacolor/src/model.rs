@@ -303,6 +303,74 @@ pub fn dynamic_range(frames: f64, dark: f64, snr_threshold: f64) -> Result<Dynam
     })
 }
 
+/// Signal-to-noise ratio of the sum of `frames` conventional (multi-bit) frames, each with mean
+/// `lambda` photoelectrons, `dark` dark electrons, Gaussian read noise `read_noise_e` (e- RMS) and
+/// uniform quantisation of `step_e` electrons per digital number:
+///
+/// ```text
+/// SNR(λ) = λ·√n / √(λ + d + σ_r² + q²/12)
+/// ```
+///
+/// the Gaussian–Poisson model of a conventional sensor (paper §6.1 and §7 compare against it).
+/// Saturation is not part of the SNR; [`conventional_dynamic_range`] caps the range at the full
+/// well. Linear ratio, not dB.
+pub fn conventional_snr(
+    lambda: f64,
+    frames: f64,
+    dark: f64,
+    read_noise_e: f64,
+    step_e: f64,
+) -> f64 {
+    let var = lambda + dark + read_noise_e * read_noise_e + step_e * step_e / 12.0;
+    if var <= 0.0 {
+        return 0.0;
+    }
+    lambda * frames.sqrt() / var.sqrt()
+}
+
+/// Dynamic range of the `frames`-frame sum of a conventional sensor ([`conventional_snr`]): the
+/// smallest λ with SNR >= `snr_threshold` (closed form, the positive root of
+/// `n·λ² = t²·(λ + d + σ_r² + q²/12)`) up to the full well, where one frame's mean signal plus
+/// dark electrons reaches `full_well_e` (`upper_limit` is then [`UpperLimit::Saturation`]).
+///
+/// Errors on invalid parameters or if the range is empty.
+pub fn conventional_dynamic_range(
+    frames: f64,
+    dark: f64,
+    read_noise_e: f64,
+    step_e: f64,
+    full_well_e: f64,
+    snr_threshold: f64,
+) -> Result<DynamicRange> {
+    check_model_params(frames, dark)?;
+    if !(read_noise_e.is_finite() && read_noise_e >= 0.0 && step_e.is_finite() && step_e >= 0.0) {
+        return Err(Error::invalid(format!(
+            "read noise {read_noise_e} e- and quantisation step {step_e} e- must be finite and >= 0"
+        )));
+    }
+    if !(snr_threshold.is_finite() && snr_threshold > 0.0) {
+        return Err(Error::invalid(format!(
+            "SNR threshold must be a positive finite ratio, got {snr_threshold}"
+        )));
+    }
+    let t2 = snr_threshold * snr_threshold;
+    let floor = dark + read_noise_e * read_noise_e + step_e * step_e / 12.0;
+    let min_flux = (t2 + (t2 * t2 + 4.0 * frames * t2 * floor).sqrt()) / (2.0 * frames);
+    let max_flux = full_well_e - dark;
+    if max_flux.is_nan() || max_flux <= min_flux {
+        return Err(Error::invalid(format!(
+            "full well {full_well_e} e- leaves no flux with SNR >= {snr_threshold} (smallest is \
+             {min_flux:.4} e- per frame)"
+        )));
+    }
+    Ok(DynamicRange {
+        min_flux,
+        max_flux,
+        upper_limit: UpperLimit::Saturation,
+        db: ratio_to_db(max_flux / min_flux),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -316,6 +384,16 @@ mod tests {
         // Accurate for tiny rates (1 − e^{−x} ≈ x − x²/2).
         let x = 1e-12;
         assert!((detection_probability(x, 0.0) - x).abs() < 1e-24);
+    }
+
+    #[test]
+    fn conventional_range_ends_at_snr_threshold_and_full_well() {
+        let (n, d, r, q) = (240.0, 1.0 / 240.0, 2.4, 1.0);
+        let dr = conventional_dynamic_range(n, d, r, q, 1023.0, 1.0).unwrap();
+        assert!((conventional_snr(dr.min_flux, n, d, r, q) - 1.0).abs() < 1e-12);
+        assert_eq!(dr.max_flux, 1023.0 - d);
+        assert!((dr.db - ratio_to_db(dr.max_flux / dr.min_flux)).abs() < 1e-12);
+        assert!(conventional_dynamic_range(n, d, r, q, 0.01, 1.0).is_err());
     }
 
     #[test]
