@@ -107,9 +107,8 @@ fn diagnose_noise_model() {
         // see what denoising does elsewhere.
         let gt = &sim.ground_truth;
         let w = capture.meta.w_weights;
-        let saturated = |y: usize, x: usize| {
-            (0..3).map(|c| w[c] * gt[[y, x, c]] as f64).sum::<f64>() > 5.0
-        };
+        let saturated =
+            |y: usize, x: usize| (0..3).map(|c| w[c] * gt[[y, x, c]] as f64).sum::<f64>() > 5.0;
         let (h, wd, _) = gt.dim();
         let mut count = 0usize;
         let mut masked = [merged.to_owned(), denoised.clone()];
