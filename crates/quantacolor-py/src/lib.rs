@@ -291,10 +291,11 @@ fn config_arg<T: serde::de::DeserializeOwned + Default>(
             type_name(obj)
         )));
     }
-    let value = to_toml("config", obj)?;
-    value
-        .try_into::<T>()
-        .map_err(|e| PyValueError::new_err(format!("config: {}", e.message())))
+    // Through TOML text, so that an error shows the key at fault.
+    let text = toml::to_string(&to_toml("config", obj)?)
+        .map_err(|e| PyValueError::new_err(format!("config: {e}")))?;
+    toml::from_str::<T>(&text)
+        .map_err(|e| PyValueError::new_err(format!("config: {}", e.to_string().trim_end())))
 }
 
 /// Reconstruction options as the library's overrides (Python spellings in errors).

@@ -116,7 +116,12 @@ def reconstruct_many(
         if own_client:
             from dask.distributed import Client, LocalCluster
 
-            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True)
+            cluster = LocalCluster(
+                n_workers=n_workers,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+            )
             client = Client(cluster)
         try:
             futures = [
