@@ -1078,7 +1078,7 @@ fn suite_captures(
     let captures: Vec<(String, SimulatedCapture)> = suite()
         .iter()
         .filter(|case| set == SuiteSet::All || case.set == set)
-        .filter(|case| only.map_or(true, |o| case.id().contains(o)))
+        .filter(|case| only.is_none_or(|o| case.id().contains(o)))
         .map(|case| {
             let sim =
                 simulate_case(dir, case).with_context(|| format!("simulating {}", case.scene))?;

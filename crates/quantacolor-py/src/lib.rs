@@ -251,7 +251,10 @@ fn to_toml(path: &str, obj: &Bound<'_, PyAny>) -> PyResult<toml::Value> {
         let mut table = toml::Table::new();
         for (k, v) in d.iter() {
             let key: String = k.extract().map_err(|_| {
-                PyTypeError::new_err(format!("{path}: keys must be strings, got {}", type_name(&k)))
+                PyTypeError::new_err(format!(
+                    "{path}: keys must be strings, got {}",
+                    type_name(&k)
+                ))
             })?;
             let value = to_toml(&format!("{path}.{key}"), &v)?;
             table.insert(key, value);
@@ -312,7 +315,9 @@ fn overrides(
     window: Option<i64>,
 ) -> PyResult<ReconstructOverrides> {
     Ok(ReconstructOverrides {
-        method: method.map(|m| parse_arg::<Method>("method", m)).transpose()?,
+        method: method
+            .map(|m| parse_arg::<Method>("method", m))
+            .transpose()?,
         denoise: denoise
             .map(|d| parse_arg::<DenoiseMethod>("denoise", d))
             .transpose()?,
@@ -338,7 +343,9 @@ fn overrides(
         max_sub_block_motion,
         window: match window {
             Some(w) if w < 1 => {
-                return Err(PyValueError::new_err(format!("window must be >= 1, got {w}")))
+                return Err(PyValueError::new_err(format!(
+                    "window must be >= 1, got {w}"
+                )))
             }
             w => index_arg("window", w)?,
         },
@@ -434,8 +441,7 @@ impl PyCapture {
     #[staticmethod]
     fn open(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
         compute(py, || {
-            let capture =
-                quantacolor::Capture::open(&path).map_err(|e| lib_err("", e))?;
+            let capture = quantacolor::Capture::open(&path).map_err(|e| lib_err("", e))?;
             let ground_truth = capture.ground_truth().map_err(|e| lib_err("", e))?;
             Ok(PyCapture {
                 inner: Arc::new(capture),
@@ -657,12 +663,19 @@ impl PyCapture {
             self.inner.frames.height(),
             self.inner.frames.width(),
             self.inner.meta.exposure_s,
-            if self.ground_truth.is_some() { "yes" } else { "no" }
+            if self.ground_truth.is_some() {
+                "yes"
+            } else {
+                "no"
+            }
         )
     }
 }
 
-fn capture_arg(arg: &str, obj: &Bound<'_, PyAny>) -> PyResult<(Arc<quantacolor::Capture>, Option<Array3<f32>>)> {
+fn capture_arg(
+    arg: &str,
+    obj: &Bound<'_, PyAny>,
+) -> PyResult<(Arc<quantacolor::Capture>, Option<Array3<f32>>)> {
     let c = obj.downcast::<PyCapture>().map_err(|_| {
         PyTypeError::new_err(format!(
             "{arg} must be a quantacolor.Capture (Capture.open, Capture.from_arrays or \
@@ -815,8 +828,8 @@ fn align<'py>(
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let (capture, _) = capture_arg("capture", capture)?;
-    let reference = index_arg("reference_frame", reference_frame)?
-        .unwrap_or_else(|| capture.reference_frame());
+    let reference =
+        index_arg("reference_frame", reference_frame)?.unwrap_or_else(|| capture.reference_frame());
     if reference >= capture.frames.frame_count() {
         return Err(PyValueError::new_err(format!(
             "reference_frame {reference} is outside the capture's {} frames",
@@ -1026,7 +1039,9 @@ fn simulate<'py>(
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<PyCapture> {
     if frames < 1 {
-        return Err(PyValueError::new_err(format!("frames must be >= 1, got {frames}")));
+        return Err(PyValueError::new_err(format!(
+            "frames must be >= 1, got {frames}"
+        )));
     }
     let (width, height) = size;
     if width < 1 || height < 1 {

@@ -27,6 +27,7 @@ pub fn synthetic(h: usize, w: usize) -> Array2<f32> {
 }
 
 /// The project's shared/data/scenes folder, when present.
+#[allow(dead_code)] // not every test binary that includes this module uses it
 pub fn scenes_dir() -> Option<PathBuf> {
     let rel = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes");
     [rel, PathBuf::from("/work/shared/data/scenes")]
