@@ -2,7 +2,6 @@
 
 import subprocess
 import threading
-import time
 import tomllib
 
 import numpy as np
@@ -138,25 +137,40 @@ def test_progress_callback(capture):
 
 
 def test_gil_released(capture):
-    """Two threads: a reconstruction in one, a pure-Python counter in the other. With the GIL
-    held during the reconstruction the counter could not advance while it runs."""
+    """Two threads: reconstructions in one, a counter in the other. With a huge switch
+    interval the GIL changes hands only when a thread lets go of it (the counter thread at each
+    `sleep(0)`), so were the GIL held during `reconstruct` the counter could not move between
+    the readings just before and just after the call (a GIL-holding C call such as
+    `sum(range(10**7))` gives exactly 0 here)."""
+    import sys
+    import time
+
+    counter = [0]
+    deltas = []
     done = threading.Event()
-    ticks_during = []
 
     def work():
-        for _ in range(3):
-            qc.reconstruct(capture, scale=2)
-        done.set()
+        try:
+            for _ in range(3):
+                before = counter[0]
+                qc.reconstruct(capture, scale=2)
+                deltas.append(counter[0] - before)
+        finally:
+            done.set()
 
-    t = threading.Thread(target=work)
-    t.start()
-    ticks = 0
-    while not done.is_set():
-        ticks += 1
-        time.sleep(0)
-    t.join()
-    ticks_during.append(ticks)
-    assert ticks_during[0] > 100
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1000.0)
+    try:
+        t = threading.Thread(target=work)
+        t.start()
+        while not done.is_set():
+            counter[0] += 1
+            time.sleep(0)
+        t.join()
+    finally:
+        sys.setswitchinterval(old)
+    assert len(deltas) == 3
+    assert all(d > 0 for d in deltas), deltas
 
 
 BAD = np.zeros((4, 8, 8), np.uint8)
