@@ -6,12 +6,13 @@ use crate::output::StagedDir;
 use anyhow::{Context, Result};
 use clap::Args;
 use quantacolor::capture::{io, Capture};
-use quantacolor::denoise::chroma::{DenoiseMethod, DenoiseReport};
+use quantacolor::denoise::chroma::DenoiseMethod;
 use quantacolor::display::{
-    auto_exposure_scale, encode_srgb8, write_rendered, BitDepth, ColorMatrix, MesopicConfig,
-    MesopicOffset, RenderOptions,
+    auto_exposure_scale, encode_srgb8, ColorMatrix, MesopicConfig, MesopicOffset, RenderOptions,
 };
-use quantacolor::pipeline::{reconstruct, Method, ReconstructConfig, Reconstruction};
+use quantacolor::pipeline::{
+    reconstruct, Method, ReconstructConfig, ReconstructOverrides, Reconstruction,
+};
 use quantacolor::progress::Progress;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -85,29 +86,6 @@ pub struct ReconstructArgs {
     pub no_hot_pixel_detection: bool,
 }
 
-#[derive(Serialize)]
-struct Report<'a> {
-    capture: String,
-    method: String,
-    reference_frame: usize,
-    frames_used: usize,
-    height: usize,
-    width: usize,
-    units: &'static str,
-    /// W = wR·R + wG·G + wB·B of the capture (read back by `quantacolor display`).
-    w_weights: [f64; 3],
-    #[serde(skip_serializing_if = "Option::is_none")]
-    sub_blocks: Option<usize>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    alignment_blocks: Option<usize>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    denoise: Option<&'a DenoiseReport>,
-    config: &'a ReconstructConfig,
-    /// How preview.png was rendered.
-    preview: &'a RenderOptions,
-    timings: &'a [quantacolor::pipeline::StageTiming],
-}
-
 pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
     let config = config_from_args(args)?;
     let capture = crate::cmd_convert::open_capture(
@@ -160,46 +138,18 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
         }
         None => ReconstructConfig::default(),
     };
-    if let Some(m) = args.method {
-        config.method = m;
+    ReconstructOverrides {
+        method: args.method,
+        reference_frame: args.reference_frame,
+        window: args.window,
+        block_size: args.block_size,
+        scale: args.scale,
+        denoise: args.denoise,
+        sigma_y: args.sigma_y,
+        sigma_c: args.sigma_c,
+        max_sub_block_motion: args.max_sub_block_motion,
     }
-    if args.reference_frame.is_some() {
-        config.reference_frame = args.reference_frame;
-    }
-    if args.window.is_some() {
-        config.naive.window = args.window;
-    }
-    if args.block_size.is_some() {
-        config.burst.align.blocks.block_size = args.block_size;
-    }
-    if let Some(scale) = args.scale {
-        if !(1..=4).contains(&scale) {
-            anyhow::bail!("--scale must be 1, 2, 3 or 4");
-        }
-        config.burst.merge.accumulate.scale = scale;
-    }
-    if let Some(d) = args.denoise {
-        config.denoise.method = d;
-    }
-    for (name, sigma) in [("--sigma-y", args.sigma_y), ("--sigma-c", args.sigma_c)] {
-        if let Some(s) = sigma {
-            if !(s.is_finite() && s >= 0.0) {
-                anyhow::bail!("{name} must be a non-negative number");
-            }
-        }
-    }
-    if args.sigma_y.is_some() {
-        config.denoise.sigma_y = args.sigma_y;
-    }
-    if args.sigma_c.is_some() {
-        config.denoise.sigma_c = args.sigma_c;
-    }
-    if let Some(m) = args.max_sub_block_motion {
-        if !(m.is_finite() && m > 0.0) {
-            anyhow::bail!("--max-sub-block-motion must be a positive number of pixels");
-        }
-        config.burst.refine.max_sub_block_motion_px = m;
-    }
+    .apply(&mut config, &|key| format!("--{}", key.replace('_', "-")))?;
     Ok(config)
 }
 
@@ -246,7 +196,8 @@ fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()
     Ok(())
 }
 
-/// Writes the reconstruction files into `out` (staged, then moved into place).
+/// Writes the reconstruction files into `out` (the library's
+/// [`quantacolor::output::write_reconstruction`], with the capture named as given).
 pub fn write_reconstruction(
     out: &Path,
     capture_dir: &Path,
@@ -255,36 +206,14 @@ pub fn write_reconstruction(
     rec: &Reconstruction,
     preview: &RenderOptions,
 ) -> Result<()> {
-    let staged = StagedDir::new(out)?;
-    io::write_npy(staged.path("linear.npy"), &rec.linear)?;
-    io::write_exr_rgb(staged.path("linear.exr"), &rec.linear)?;
-    write_rendered(
-        staged.path("preview.png"),
-        rec.linear.view(),
-        preview,
-        BitDepth::Eight,
-    )?;
-    let (height, width, _) = rec.linear.dim();
-    let report = Report {
-        capture: capture_dir.display().to_string(),
-        method: config.method.to_string(),
-        reference_frame: rec.reference_frame,
-        frames_used: rec.frames_used,
-        height,
-        width,
-        units: "mean photon detections per binary frame of an R, G or B pixel, dark counts removed",
-        w_weights: capture.meta.w_weights,
-        sub_blocks: rec.burst.as_ref().map(|b| b.sub_blocks.len()),
-        alignment_blocks: rec.burst.as_ref().map(|b| b.alignment.plan.len()),
-        denoise: rec.denoise.as_ref(),
+    quantacolor::output::write_reconstruction(
+        out,
+        &capture_dir.display().to_string(),
+        capture,
         config,
+        rec,
         preview,
-        timings: &rec.timings,
-    };
-    let text = toml::to_string_pretty(&report).context("serialising report.toml")?;
-    std::fs::write(staged.path("report.toml"), text)
-        .with_context(|| format!("{}: cannot write", staged.path("report.toml").display()))?;
-    staged.commit()?;
+    )?;
     Ok(())
 }
 
@@ -335,7 +264,7 @@ fn write_video(
         method: config.method.to_string(),
         reference_frames: references,
         preview_exposure_scale: scale.unwrap_or(1.0),
-        units: "mean photon detections per binary frame of an R, G or B pixel, dark counts removed",
+        units: quantacolor::output::LINEAR_UNITS,
         config,
     };
     std::fs::write(staged.path("video.toml"), toml::to_string_pretty(&report)?)

@@ -23,6 +23,7 @@ pub mod merge;
 pub mod metrics;
 pub mod model;
 pub mod naive;
+pub mod output;
 pub mod pipeline;
 pub mod progress;
 pub mod simulate;

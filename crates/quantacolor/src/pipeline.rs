@@ -185,3 +185,84 @@ pub fn reconstruct(
         burst,
     })
 }
+
+/// Options that override parts of a [`ReconstructConfig`]: the flags of `quantacolor
+/// reconstruct` and the keywords of the Python `reconstruct()`, validated in one place. `None`
+/// leaves the config's value.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ReconstructOverrides {
+    pub method: Option<Method>,
+    pub reference_frame: Option<usize>,
+    /// Naive method: frames centred on the reference frame.
+    pub window: Option<usize>,
+    /// Burst method: frames per temporal block for alignment.
+    pub block_size: Option<usize>,
+    /// Burst method: output grid scale, 1..=4.
+    pub scale: Option<usize>,
+    pub denoise: Option<DenoiseMethod>,
+    pub sigma_y: Option<f32>,
+    pub sigma_c: Option<f32>,
+    /// Burst method: largest camera motion inside one sub-block, px.
+    pub max_sub_block_motion: Option<f64>,
+}
+
+impl ReconstructOverrides {
+    /// Applies the overrides to `config`. Errors name the option through `name`, which maps a
+    /// field name (`"scale"`) to the caller's spelling (`--scale` on the command line).
+    pub fn apply(
+        &self,
+        config: &mut ReconstructConfig,
+        name: &dyn Fn(&str) -> String,
+    ) -> Result<()> {
+        if let Some(m) = self.method {
+            config.method = m;
+        }
+        if self.reference_frame.is_some() {
+            config.reference_frame = self.reference_frame;
+        }
+        if self.window.is_some() {
+            config.naive.window = self.window;
+        }
+        if self.block_size.is_some() {
+            config.burst.align.blocks.block_size = self.block_size;
+        }
+        if let Some(scale) = self.scale {
+            if !(1..=4).contains(&scale) {
+                return Err(Error::invalid(format!(
+                    "{} must be 1, 2, 3 or 4, got {scale}",
+                    name("scale")
+                )));
+            }
+            config.burst.merge.accumulate.scale = scale;
+        }
+        if let Some(d) = self.denoise {
+            config.denoise.method = d;
+        }
+        for (key, sigma) in [("sigma_y", self.sigma_y), ("sigma_c", self.sigma_c)] {
+            if let Some(s) = sigma {
+                if !(s.is_finite() && s >= 0.0) {
+                    return Err(Error::invalid(format!(
+                        "{} must be a non-negative number, got {s}",
+                        name(key)
+                    )));
+                }
+            }
+        }
+        if self.sigma_y.is_some() {
+            config.denoise.sigma_y = self.sigma_y;
+        }
+        if self.sigma_c.is_some() {
+            config.denoise.sigma_c = self.sigma_c;
+        }
+        if let Some(m) = self.max_sub_block_motion {
+            if !(m.is_finite() && m > 0.0) {
+                return Err(Error::invalid(format!(
+                    "{} must be a positive number of pixels, got {m}",
+                    name("max_sub_block_motion")
+                )));
+            }
+            config.burst.refine.max_sub_block_motion_px = m;
+        }
+        Ok(())
+    }
+}

@@ -330,6 +330,19 @@ pub struct Alignment {
 }
 
 impl Alignment {
+    /// The blocks and tile grid of the flow, as `flow.toml` holds them.
+    pub fn flow_meta(&self) -> FlowMeta {
+        FlowMeta {
+            block_size: self.plan.block_size,
+            block_start_frames: self.plan.start_frames(),
+            block_center_frames: self.plan.center_frames(),
+            tile_size: self.grid.tile_size,
+            tile_stride: self.grid.tile_stride,
+            tile_centers_y: self.grid.tile_centers_y.clone(),
+            tile_centers_x: self.grid.tile_centers_x.clone(),
+        }
+    }
+
     /// Flow of frame `t`, `(tiles_y, tiles_x, 2)` (see [`frame_flow`]).
     pub fn frame_flow(&self, t: usize) -> Array3<f32> {
         frame_flow(&self.flow, &self.plan, t as f64)
@@ -452,15 +465,7 @@ pub struct FlowMeta {
 pub fn write_alignment(dir: impl AsRef<Path>, alignment: &Alignment) -> Result<()> {
     let dir = dir.as_ref();
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let meta = FlowMeta {
-        block_size: alignment.plan.block_size,
-        block_start_frames: alignment.plan.start_frames(),
-        block_center_frames: alignment.plan.center_frames(),
-        tile_size: alignment.grid.tile_size,
-        tile_stride: alignment.grid.tile_stride,
-        tile_centers_y: alignment.grid.tile_centers_y.clone(),
-        tile_centers_x: alignment.grid.tile_centers_x.clone(),
-    };
+    let meta = alignment.flow_meta();
     let text = toml::to_string(&meta)
         .map_err(|e| Error::invalid(format!("cannot serialise flow metadata: {e}")))?;
     write_atomic(&dir.join("flow.npy"), |f| {

@@ -319,6 +319,22 @@ impl BinaryFrames {
         }
     }
 
+    /// All frames bit-packed, uint8 (T, H, ceil(W/8)), MSB first (a copy; `frames.npy`'s layout).
+    pub fn to_packed(&self) -> Array3<u8> {
+        let (t, h, w) = (self.frame_count, self.height, self.width);
+        match self.layout {
+            FrameLayout::Packed => {
+                let bytes = t * h * w.div_ceil(8);
+                Array3::from_shape_vec((t, h, w.div_ceil(8)), self.data()[..bytes].to_vec())
+                    .expect("stored bytes match the shape")
+            }
+            FrameLayout::Unpacked => {
+                let bits = Array3::from_shape_fn((t, h, w), |(ti, y, x)| self.bit(ti, y, x) as u8);
+                pack_bits(&bits)
+            }
+        }
+    }
+
     /// One frame unpacked to 0/1, (H, W).
     pub fn frame(&self, t: usize) -> Array2<u8> {
         Array2::from_shape_fn((self.height, self.width), |(y, x)| self.bit(t, y, x) as u8)

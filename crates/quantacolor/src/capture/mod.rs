@@ -382,6 +382,51 @@ impl Capture {
         Ok(self)
     }
 
+    /// A capture held in memory (the Python package's `Capture.from_arrays`): checks what
+    /// [`Capture::open`] checks, with errors naming the part at fault (`frames`, `cfa`,
+    /// `hot_pixels`, `reference_frame` or a metadata key). `meta.hot_pixels` is ignored: the
+    /// mask is `hot_pixels` itself.
+    pub fn from_memory(
+        frames: BinaryFrames,
+        cfa: Cfa,
+        mut meta: CaptureMeta,
+        hot_pixels: Option<Array2<bool>>,
+    ) -> Result<Capture> {
+        let (h, w) = (frames.height(), frames.width());
+        if (cfa.height(), cfa.width()) != (h, w) {
+            return Err(Error::invalid(format!(
+                "cfa has shape ({}, {}), the frames are (H, W) = ({h}, {w})",
+                cfa.height(),
+                cfa.width()
+            )));
+        }
+        meta.hot_pixels = None;
+        meta.check().map_err(Error::invalid)?;
+        let t = frames.frame_count();
+        if let Some(r) = meta.reference_frame {
+            if r >= t {
+                return Err(Error::invalid(format!(
+                    "reference_frame = {r} must be < T = {t} (the number of frames)"
+                )));
+            }
+        }
+        if let Some(mask) = &hot_pixels {
+            if mask.dim() != (h, w) {
+                return Err(Error::invalid(format!(
+                    "hot_pixels has shape {:?}, the frames are (H, W) = ({h}, {w})",
+                    mask.dim()
+                )));
+            }
+        }
+        Ok(Capture {
+            dir: PathBuf::from("<memory>"),
+            frames,
+            cfa,
+            meta,
+            hot_pixels,
+        })
+    }
+
     /// The reference frame: `meta.reference_frame` or T/2 rounded down.
     pub fn reference_frame(&self) -> usize {
         self.meta

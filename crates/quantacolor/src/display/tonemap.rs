@@ -51,6 +51,22 @@ impl Default for ToneMap {
     }
 }
 
+/// The operator named `mantiuk06`, `global` or `none`, with its published defaults (the names
+/// of `--tonemap`).
+impl std::str::FromStr for ToneMap {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "mantiuk06" => Ok(ToneMap::Mantiuk06(Mantiuk06Config::default())),
+            "global" => Ok(ToneMap::Global(GlobalConfig::default())),
+            "none" => Ok(ToneMap::None),
+            other => Err(Error::invalid(format!(
+                "unknown tone map '{other}' (available: mantiuk06, global, none)"
+            ))),
+        }
+    }
+}
+
 fn luminance(px: &[f32]) -> f32 {
     REC709_LUMA[0] * px[0] + REC709_LUMA[1] * px[1] + REC709_LUMA[2] * px[2]
 }

@@ -1,0 +1,108 @@
+"""quantacolor: colour burst photography for single-photon cameras.
+
+Python face of the Rust library (Ma et al., "Seeing Photons in Color", SIGGRAPH 2023): numpy in
+and out, keyword options with the command line's names and defaults. Every computation runs in
+the Rust core with the GIL released; ``progress=`` takes a callable ``(stage, done, total)``.
+
+>>> import quantacolor as qc
+>>> cap = qc.simulate(frames=256, size=(128, 96), seed=1)
+>>> linear = qc.reconstruct(cap)                 # float32 (H, W, 3), like the CLI's linear.npy
+>>> qc.psnr(linear, cap.ground_truth)
+>>> rgb8 = qc.display(linear, tonemap="global")  # uint8 (H, W, 3)
+
+Batch processing over a Dask cluster: :func:`quantacolor.batch.reconstruct_many`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ._native import (
+    RECONSTRUCTION_FILES,
+    Capture,
+    __version__,
+    align,
+    denoise,
+    display,
+    evaluate_images,
+    reconstruct,
+    reconstruct_dir,
+    simulate,
+)
+
+__all__ = [
+    "Capture",
+    "align",
+    "denoise",
+    "display",
+    "evaluate",
+    "psnr",
+    "reconstruct",
+    "reconstruct_dir",
+    "simulate",
+    "ssim",
+    "RECONSTRUCTION_FILES",
+    "__version__",
+]
+
+
+def evaluate(
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    border: int = 0,
+    normalize_percentile: float = 99.5,
+    lpips: bool = False,
+) -> dict[str, float]:
+    """Scores ``estimate`` against ``truth`` as ``quantacolor eval`` does (paper §6, Table 2).
+
+    Both are linear RGB (H, W, 3). ``border`` pixels are cropped from every side, both images
+    are scaled so that the truth's ``normalize_percentile`` (0 = no scaling) is 1 and clipped to
+    [0, 1]. Returns ``psnr_linear``, ``ssim_linear``, ``psnr_srgb``, ``ssim_srgb`` (dB for
+    PSNR; SSIM with scikit-image's conventions) and ``lpips_srgb`` when ``lpips=True``.
+    """
+    return evaluate_images(estimate, truth, border, normalize_percentile, lpips)
+
+
+def _pick(space: str, metric: str) -> str:
+    if space not in ("linear", "srgb"):
+        raise ValueError(f"space must be 'linear' or 'srgb', got {space!r}")
+    return f"{metric}_{space}"
+
+
+def psnr(
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    border: int = 0,
+    normalize_percentile: float = 99.5,
+    space: str = "linear",
+) -> float:
+    """PSNR (dB) of ``estimate`` against ``truth`` with the CLI's conventions (see
+    :func:`evaluate`); ``space`` is ``"linear"`` or ``"srgb"``."""
+    key = _pick(space, "psnr")
+    return evaluate(estimate, truth, border, normalize_percentile)[key]
+
+
+def ssim(
+    estimate: np.ndarray,
+    truth: np.ndarray,
+    border: int = 0,
+    normalize_percentile: float = 99.5,
+    space: str = "linear",
+) -> float:
+    """SSIM of ``estimate`` against ``truth`` with the CLI's conventions (see
+    :func:`evaluate`); ``space`` is ``"linear"`` or ``"srgb"``."""
+    key = _pick(space, "ssim")
+    return evaluate(estimate, truth, border, normalize_percentile)[key]
+
+
+def __getattr__(name: str) -> Any:
+    # `quantacolor.batch` imports dask only when used.
+    if name == "batch":
+        import importlib
+
+        return importlib.import_module(".batch", __name__)
+    raise AttributeError(f"module 'quantacolor' has no attribute {name!r}")
+
+

@@ -1,0 +1,161 @@
+"""Type stubs of the native module (Rust, pyo3). See the docstrings at run time too."""
+
+from os import PathLike
+from typing import Any, Callable, Optional, Sequence, Union
+
+import numpy as np
+import numpy.typing as npt
+
+_Path = Union[str, PathLike[str]]
+_Progress = Optional[Callable[[str, int, int], object]]
+
+__version__: str
+RECONSTRUCTION_FILES: list[str]
+
+class Capture:
+    """T binary frames, the colour filter array and the metadata (paper §3, Eq. 2–3)."""
+
+    @staticmethod
+    def open(path: _Path) -> Capture:
+        """Opens and validates a capture directory (frames.npy, cfa.npy/cfa.png,
+        capture.toml; ground_truth.npy when present)."""
+    @staticmethod
+    def from_arrays(
+        frames: npt.NDArray[Union[np.uint8, np.bool_]],
+        cfa: npt.NDArray[np.uint8],
+        exposure_s: float,
+        dark_count_rate_hz: float = 0.0,
+        w_weights: Sequence[float] = (1.0, 1.0, 1.0),
+        hot_pixels: Optional[npt.NDArray[np.bool_]] = None,
+        reference_frame: Optional[int] = None,
+        ground_truth: Optional[npt.NDArray[np.float32]] = None,
+    ) -> Capture:
+        """``frames``: uint8 (T, H, ceil(W/8)) packed MSB first, or bool/uint8 0/1 (T, H, W);
+        ``cfa``: uint8 (H, W) with 0=R 1=G 2=B 3=W."""
+    @property
+    def frames(self) -> npt.NDArray[np.uint8]:
+        """Packed frames, uint8 (T, H, ceil(W/8)) (a copy)."""
+    @property
+    def frame_count(self) -> int: ...
+    @property
+    def height(self) -> int: ...
+    @property
+    def width(self) -> int: ...
+    @property
+    def cfa(self) -> npt.NDArray[np.uint8]: ...
+    @property
+    def ground_truth(self) -> Optional[npt.NDArray[np.float32]]: ...
+    @property
+    def hot_pixels(self) -> Optional[npt.NDArray[np.bool_]]: ...
+    @property
+    def exposure_s(self) -> float: ...
+    @property
+    def dark_count_rate_hz(self) -> float: ...
+    @property
+    def w_weights(self) -> tuple[float, float, float]: ...
+    @property
+    def reference_frame(self) -> int: ...
+
+def reconstruct(
+    capture: Capture,
+    method: Optional[str] = None,
+    denoise: Optional[str] = None,
+    scale: Optional[int] = None,
+    reference_frame: Optional[int] = None,
+    config: Optional[dict[str, Any]] = None,
+    *,
+    sigma_y: Optional[float] = None,
+    sigma_c: Optional[float] = None,
+    block_size: Optional[int] = None,
+    max_sub_block_motion: Optional[float] = None,
+    window: Optional[int] = None,
+    progress: _Progress = None,
+) -> npt.NDArray[np.float32]:
+    """Linear RGB float32 (H·scale, W·scale, 3), identical to the CLI's linear.npy.
+
+    ``method``: "burst" (default) or "naive"; ``denoise``: "chroma-bm3d" (default), "bm3d" or
+    "none"; ``scale``: 1 (default) to 4; ``config``: the keys of report.toml's ``[config]``.
+    ``None`` keeps the value of ``config`` (whose defaults are the CLI's)."""
+
+def reconstruct_dir(
+    capture_dir: _Path,
+    out_dir: _Path,
+    method: Optional[str] = None,
+    denoise: Optional[str] = None,
+    scale: Optional[int] = None,
+    reference_frame: Optional[int] = None,
+    config: Optional[dict[str, Any]] = None,
+    *,
+    sigma_y: Optional[float] = None,
+    sigma_c: Optional[float] = None,
+    block_size: Optional[int] = None,
+    max_sub_block_motion: Optional[float] = None,
+    window: Optional[int] = None,
+    tonemap: str = "global",
+    mesopic: Optional[Union[float, str]] = None,
+    ccm: Optional[Union[_Path, Sequence[Sequence[float]]]] = None,
+    progress: _Progress = None,
+) -> dict[str, Any]:
+    """``quantacolor reconstruct CAPTURE_DIR --out OUT_DIR``: the same four files."""
+
+def align(
+    capture: Capture,
+    reference_frame: Optional[int] = None,
+    block_size: Optional[int] = None,
+    *,
+    progress: _Progress = None,
+) -> dict[str, Any]:
+    """``flow`` float32 (n_blocks, tiles_y, tiles_x, 2) (dy, dx) plus the keys of flow.toml
+    (block_center_frames, block_start_frames, tile_centers_y, ...)."""
+
+def denoise(
+    linear: npt.NDArray[np.floating[Any]],
+    frames: float,
+    method: str = "chroma-bm3d",
+    *,
+    sigma_y: Optional[float] = None,
+    sigma_c: Optional[float] = None,
+    w_weights: Sequence[float] = (1.0, 1.0, 1.0),
+    dark_counts_per_frame: float = 0.0,
+    config: Optional[dict[str, Any]] = None,
+) -> npt.NDArray[np.float32]:
+    """Chrominance-focused BM3D of a linear image (paper §4.3)."""
+
+def display(
+    linear: npt.NDArray[np.floating[Any]],
+    tonemap: str = "global",
+    mesopic: Optional[Union[float, str]] = None,
+    exposure: Optional[float] = None,
+    *,
+    w_weights: Sequence[float] = (1.0, 1.0, 1.0),
+    ccm: Optional[Union[_Path, Sequence[Sequence[float]]]] = None,
+    frames: Optional[float] = None,
+) -> npt.NDArray[np.uint8]:
+    """8-bit sRGB (H, W, 3) as ``quantacolor display`` renders it."""
+
+def evaluate_images(
+    estimate: npt.NDArray[np.floating[Any]],
+    truth: npt.NDArray[np.floating[Any]],
+    border: int = 0,
+    normalize_percentile: float = 99.5,
+    lpips: bool = False,
+) -> dict[str, float]: ...
+
+def simulate(
+    scene: str = "builtin:chart",
+    motion: str = "handheld",
+    frames: int = 512,
+    flux: float = 0.1,
+    cfa: str = "rgbw-75-regular",
+    sensor: str = "spad",
+    seed: int = 1,
+    size: tuple[int, int] = (496, 254),
+    *,
+    cfa_seed: int = 0,
+    hot_fraction: float = 0.02,
+    reference_frame: Optional[int] = None,
+    out: Optional[_Path] = None,
+    progress: _Progress = None,
+) -> Capture:
+    """``quantacolor simulate`` (same defaults; ``size`` is (width, height)); a Capture with
+    ground truth, also written to ``out`` when given."""

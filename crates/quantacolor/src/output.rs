@@ -1,0 +1,164 @@
+//! Output directories of a reconstruction, shared by the CLI and the Python package (so that a
+//! batch run writes exactly the files `quantacolor reconstruct` writes).
+//!
+//! [`StagedDir`] never leaves partial results: files are written into a temporary sibling
+//! directory, then renamed into place one by one once all of them are complete.
+//! [`write_reconstruction`] writes `linear.npy`, `linear.exr`, `preview.png` and `report.toml`.
+
+use crate::capture::{io, Capture};
+use crate::denoise::chroma::DenoiseReport;
+use crate::display::{write_rendered, BitDepth, RenderOptions};
+use crate::error::{Error, Result};
+use crate::pipeline::{ReconstructConfig, Reconstruction, StageTiming};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// The files of a finished reconstruction directory, in the order they are written.
+pub const RECONSTRUCTION_FILES: [&str; 4] =
+    ["linear.npy", "linear.exr", "preview.png", "report.toml"];
+
+/// Units of `linear.npy`, as `report.toml` states them.
+pub const LINEAR_UNITS: &str =
+    "mean photon detections per binary frame of an R, G or B pixel, dark counts removed";
+
+/// A staging directory for the files of one output directory.
+pub struct StagedDir {
+    target: PathBuf,
+    staging: PathBuf,
+    committed: bool,
+}
+
+impl StagedDir {
+    /// Creates a staging directory beside `target`.
+    pub fn new(target: &Path) -> Result<Self> {
+        let name = target
+            .file_name()
+            .ok_or_else(|| Error::format(target, "not a directory name"))?
+            .to_string_lossy()
+            .into_owned();
+        let parent = match target.parent() {
+            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        std::fs::create_dir_all(&parent).map_err(|e| Error::io(&parent, e))?;
+        let staging = parent.join(format!(".{name}.partial-{}", std::process::id()));
+        if staging.exists() {
+            std::fs::remove_dir_all(&staging).ok();
+        }
+        std::fs::create_dir(&staging).map_err(|e| Error::io(&staging, e))?;
+        Ok(StagedDir {
+            target: target.to_path_buf(),
+            staging,
+            committed: false,
+        })
+    }
+
+    /// Path of `file` inside the staging directory.
+    pub fn path(&self, file: &str) -> PathBuf {
+        self.staging.join(file)
+    }
+
+    /// Moves every staged file into the target directory (created if needed).
+    pub fn commit(mut self) -> Result<PathBuf> {
+        if self.target.exists() && !self.target.is_dir() {
+            return Err(Error::format(&self.target, "exists and is not a directory"));
+        }
+        std::fs::create_dir_all(&self.target).map_err(|e| Error::io(&self.target, e))?;
+        let entries = std::fs::read_dir(&self.staging).map_err(|e| Error::io(&self.staging, e))?;
+        let mut names = Vec::new();
+        for entry in entries {
+            names.push(entry.map_err(|e| Error::io(&self.staging, e))?.file_name());
+        }
+        // `report.toml` last: its presence marks a complete reconstruction directory.
+        names.sort_by_key(|n| n == "report.toml");
+        for name in names {
+            let dest = self.target.join(&name);
+            std::fs::rename(self.staging.join(&name), &dest).map_err(|e| Error::io(&dest, e))?;
+        }
+        std::fs::remove_dir_all(&self.staging).ok();
+        self.committed = true;
+        Ok(self.target.clone())
+    }
+}
+
+impl Drop for StagedDir {
+    fn drop(&mut self) {
+        if !self.committed {
+            std::fs::remove_dir_all(&self.staging).ok();
+        }
+    }
+}
+
+#[derive(Serialize)]
+struct Report<'a> {
+    capture: String,
+    method: String,
+    reference_frame: usize,
+    frames_used: usize,
+    height: usize,
+    width: usize,
+    units: &'static str,
+    /// W = wR·R + wG·G + wB·B of the capture (read back by `quantacolor display`).
+    w_weights: [f64; 3],
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sub_blocks: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    alignment_blocks: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    denoise: Option<&'a DenoiseReport>,
+    config: &'a ReconstructConfig,
+    /// How preview.png was rendered.
+    preview: &'a RenderOptions,
+    timings: &'a [StageTiming],
+}
+
+/// True when `out` holds every file [`write_reconstruction`] writes (`report.toml` is moved
+/// into place last, so an interrupted commit is not mistaken for a finished one).
+pub fn reconstruction_complete(out: &Path) -> bool {
+    RECONSTRUCTION_FILES.iter().all(|f| out.join(f).is_file())
+}
+
+/// Writes the reconstruction files into `out` (staged, then moved into place): `linear.npy`
+/// (float32 (H, W, 3)), `linear.exr`, `preview.png` rendered with `preview`, and `report.toml`
+/// (the capture as `capture_label`, the config, the denoiser's report and the stage timings).
+pub fn write_reconstruction(
+    out: &Path,
+    capture_label: &str,
+    capture: &Capture,
+    config: &ReconstructConfig,
+    rec: &Reconstruction,
+    preview: &RenderOptions,
+) -> Result<()> {
+    let staged = StagedDir::new(out)?;
+    io::write_npy(staged.path("linear.npy"), &rec.linear)?;
+    io::write_exr_rgb(staged.path("linear.exr"), &rec.linear)?;
+    write_rendered(
+        staged.path("preview.png"),
+        rec.linear.view(),
+        preview,
+        BitDepth::Eight,
+    )?;
+    let (height, width, _) = rec.linear.dim();
+    let report = Report {
+        capture: capture_label.to_string(),
+        method: config.method.to_string(),
+        reference_frame: rec.reference_frame,
+        frames_used: rec.frames_used,
+        height,
+        width,
+        units: LINEAR_UNITS,
+        w_weights: capture.meta.w_weights,
+        sub_blocks: rec.burst.as_ref().map(|b| b.sub_blocks.len()),
+        alignment_blocks: rec.burst.as_ref().map(|b| b.alignment.plan.len()),
+        denoise: rec.denoise.as_ref(),
+        config,
+        preview,
+        timings: &rec.timings,
+    };
+    let report_path = staged.path("report.toml");
+    let text = toml::to_string_pretty(&report)
+        .map_err(|e| Error::format(&report_path, format!("cannot serialise: {e}")))?;
+    std::fs::write(&report_path, text).map_err(|e| Error::io(out.join("report.toml"), e))?;
+    staged.commit()?;
+    Ok(())
+}
