@@ -35,7 +35,7 @@ enum Command {
     Simulate(cmd_simulate::SimulateArgs),
     /// Reconstruct a capture into linear.npy, linear.exr, preview.png and report.toml.
     Reconstruct(cmd_reconstruct::ReconstructArgs),
-    /// PSNR and SSIM of an estimate against ground truth (scikit-image conventions).
+    /// PSNR, SSIM (scikit-image conventions) and LPIPS of an estimate against ground truth.
     Eval(cmd_eval::EvalArgs),
     /// Align the binary frames to the reference frame; writes flow.npy and flow.toml.
     Align(cmd_align::AlignArgs),
