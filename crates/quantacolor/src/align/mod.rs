@@ -34,6 +34,7 @@ pub use refine::{
 };
 pub use track::{split_for_merge, track_fast_camera_motion, TrackConfig};
 
+use crate::capture::io::write_atomic_synced;
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
@@ -42,7 +43,6 @@ use ndarray::{s, Array2, Array3, Array4};
 use ndarray_npy::WriteNpyExt;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::io::Write;
 use std::path::Path;
 
 /// Block-level flow `(n_blocks, tiles_y, tiles_x, 2)` of `(dy, dx)` in pixels: a scene point at
@@ -468,33 +468,12 @@ pub fn write_alignment(dir: impl AsRef<Path>, alignment: &Alignment) -> Result<(
     let meta = alignment.flow_meta();
     let text = toml::to_string(&meta)
         .map_err(|e| Error::invalid(format!("cannot serialise flow metadata: {e}")))?;
-    write_atomic(&dir.join("flow.npy"), |f| {
+    write_atomic_synced(dir.join("flow.npy"), |f| {
         alignment
             .flow
             .as_standard_layout()
             .write_npy(f)
             .map_err(|e| std::io::Error::other(e.to_string()))
     })?;
-    write_atomic(&dir.join("flow.toml"), |f| f.write_all(text.as_bytes()))
-}
-
-fn write_atomic(
-    path: &Path,
-    write: impl FnOnce(&mut std::io::BufWriter<std::fs::File>) -> std::io::Result<()>,
-) -> Result<()> {
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
-    let tmp = path.with_file_name(format!(".{name}.tmp"));
-    let result = (|| {
-        let file = std::fs::File::create(&tmp)?;
-        let mut buf = std::io::BufWriter::new(file);
-        write(&mut buf)?;
-        buf.flush()?;
-        buf.get_ref().sync_all()?;
-        Ok(())
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(Error::io(path, e));
-    }
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+    write_atomic_synced(dir.join("flow.toml"), |f| f.write_all(text.as_bytes()))
 }

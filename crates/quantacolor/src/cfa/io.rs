@@ -3,13 +3,14 @@
 //! format of the real sensor's `rgbw_oh_bn_color_ss2_corrected.png` (paper §6, colour SPAD).
 
 use super::Cfa;
+use crate::capture::io::write_atomic_synced;
 use crate::error::{Error, Result};
 use image::{Rgb, RgbImage};
 use ndarray::Array2;
 use ndarray_npy::{ReadNpyExt, WriteNpyExt};
 use std::fs::File;
-use std::io::{BufWriter, Write};
-use std::path::{Path, PathBuf};
+
+use std::path::Path;
 
 /// The colour a PNG uses for each channel, indexed by [`super::Channel::index`].
 const CHANNEL_RGB: [[u8; 3]; 4] = [[255, 0, 0], [0, 255, 0], [0, 0, 255], [255, 255, 255]];
@@ -90,7 +91,7 @@ pub fn load(path: impl AsRef<Path>) -> Result<Cfa> {
 pub fn save(cfa: &Cfa, path: impl AsRef<Path>) -> Result<()> {
     let path = path.as_ref();
     match extension(path).as_deref() {
-        Some("npy") => write_atomic(path, |w| {
+        Some("npy") => write_atomic_synced(path, |w| {
             cfa.codes()
                 .write_npy(w)
                 .map_err(|e| std::io::Error::other(e.to_string()))
@@ -111,46 +112,16 @@ where
     C: std::ops::Deref<Target = [u8]>,
 {
     let path = path.as_ref();
-    write_atomic(path, |w| {
-        img.write_to(w, image::ImageFormat::Png)
-            .map_err(|e| std::io::Error::other(e.to_string()))
-    })
+    // The PNG encoder needs a seekable writer: encode in memory, then write atomically.
+    let mut png = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut png, image::ImageFormat::Png)
+        .map_err(|e| Error::io(path, std::io::Error::other(e.to_string())))?;
+    write_atomic_synced(path, |w| w.write_all(png.get_ref()))
 }
 
 /// Writes a text file atomically.
 pub fn save_text(text: &str, path: impl AsRef<Path>) -> Result<()> {
-    write_atomic(path.as_ref(), |w| w.write_all(text.as_bytes()))
-}
-
-/// Runs `write` on a buffered temporary file next to `path` (same directory, so the rename
-/// cannot cross file systems), flushes and syncs it, then renames it onto `path`. On failure the
-/// temporary file is removed and the error names `path`.
-pub fn write_atomic(
-    path: &Path,
-    write: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
-) -> Result<()> {
-    let tmp = temp_path(path);
-    let result = (|| {
-        let file = File::create(&tmp)?;
-        let mut w = BufWriter::new(file);
-        write(&mut w)?;
-        let file = w.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    result.map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::io(path, e)
-    })
-}
-
-/// `dir/.name.tmp-PID` for `dir/name`.
-fn temp_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
-    path.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
+    write_atomic_synced(path.as_ref(), |w| w.write_all(text.as_bytes()))
 }
 
 fn extension(path: &Path) -> Option<String> {
