@@ -7,7 +7,6 @@ use crate::output::StagedDir;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use ndarray::{Array4, Axis};
-use ndarray_npy::ReadNpyExt;
 use quantacolor::capture::io;
 use quantacolor::capture::npy::{NpyDtype, NpyHeader};
 use quantacolor::display::{
@@ -119,18 +118,7 @@ fn read_linear(path: &Path) -> Result<(Array4<f32>, bool)> {
         let img = io::read_npy_3d::<f32>(path)?;
         return Ok((img.insert_axis(Axis(0)), false));
     }
-    let needed = header.element_count().and_then(|n| n.checked_mul(4));
-    let available = bytes.len() - header.data_offset;
-    if !matches!(needed, Some(n) if n <= available) {
-        bail!(
-            "{}: file is truncated: shape {:?} needs more than the {available} data bytes it holds",
-            path.display(),
-            shape
-        );
-    }
-    let stack = Array4::<f32>::read_npy(&bytes[..])
-        .map_err(|e| anyhow::anyhow!("{}: cannot read .npy: {e}", path.display()))?;
-    Ok((stack, true))
+    Ok((io::read_npy_4d::<f32>(path)?, true))
 }
 
 pub fn run(args: &DisplayArgs) -> Result<()> {

@@ -220,6 +220,11 @@ pub fn read_npy_3d<T: ReadableElement>(path: impl AsRef<Path>) -> Result<Array3<
     read_npy_typed::<T, Ix3>(path.as_ref())
 }
 
+/// Reads a 4-D `.npy` of element type `T` (e.g. a video stack (N, H, W, 3)).
+pub fn read_npy_4d<T: ReadableElement>(path: impl AsRef<Path>) -> Result<ndarray::Array4<T>> {
+    read_npy_typed::<T, ndarray::Ix4>(path.as_ref())
+}
+
 /// The (H, W) of an (H, W, 3) image array, or an error naming `path`.
 fn rgb_dims<T>(path: &Path, image: &Array3<T>) -> Result<(u32, u32)> {
     let (h, w, c) = image.dim();
