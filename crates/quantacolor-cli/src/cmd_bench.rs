@@ -692,9 +692,7 @@ fn quality(
     eprintln!("quality suite: {} captures in {total_s:.0} s", rows.len());
 
     let md = report(&cases, &rows, set, only, total_s)?;
-    let tmp = out.with_extension("md.tmp");
-    std::fs::write(&tmp, &md).with_context(|| format!("{}: cannot write", tmp.display()))?;
-    std::fs::rename(&tmp, out).with_context(|| format!("{}: cannot write", out.display()))?;
+    quantacolor::capture::io::write_atomic_synced(out, |w| w.write_all(md.as_bytes()))?;
     print!("{md}");
     Ok(())
 }
