@@ -3,7 +3,7 @@
 
 use anyhow::Result;
 use clap::{Args, ValueEnum};
-use quantacolor::align::hot_pixels::{self_calibrate, HotPixelDetectConfig};
+use quantacolor::align::hot_pixels::HotPixelDetectConfig;
 use quantacolor::capture::readers::{RawFormat, SourceSpec, Spad512sOptions, Spad512sOrientation};
 use quantacolor::capture::{io, Capture, FrameWindow};
 use quantacolor::convert::{convert_input, ConvertRequest, HotPixelChoice};
@@ -133,17 +133,10 @@ pub fn run_convert(args: &ConvertArgs, progress: &dyn Progress) -> Result<()> {
     Ok(())
 }
 
-/// Opens a capture for `reconstruct` and `align`: the `--frames` window, then, when the
-/// capture names no hot-pixel mask and `detect` is set, a self-calibrated one.
+/// Opens a capture for `reconstruct`, `align` and `inspect` (the library's
+/// [`quantacolor::convert::open_capture`]).
 pub fn open_capture(dir: &Path, frames: Option<&FrameWindow>, detect: bool) -> Result<Capture> {
-    let mut capture = Capture::open(dir)?;
-    if let Some(window) = frames {
-        capture = capture.window(window)?;
-    }
-    if detect {
-        self_calibrate(&mut capture, &HotPixelDetectConfig::default())?;
-    }
-    Ok(capture)
+    Ok(quantacolor::convert::open_capture(dir, frames, detect)?)
 }
 
 #[derive(Debug, Args)]

@@ -460,11 +460,14 @@ struct PyCapture {
 impl PyCapture {
     /// Opens and validates the capture directory `path` (frames.npy memory-mapped, cfa.npy or
     /// cfa.png, capture.toml; docs/capture-format.md). A `ground_truth.npy` beside them is read
-    /// too.
+    /// too. Without a hot-pixel mask in the capture, one is detected from its frames (as
+    /// `quantacolor reconstruct` does) unless `detect_hot_pixels=False`.
     #[staticmethod]
-    fn open(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
+    #[pyo3(signature = (path, *, detect_hot_pixels=true))]
+    fn open(py: Python<'_>, path: PathBuf, detect_hot_pixels: bool) -> PyResult<Self> {
         compute(py, || {
-            let capture = quantacolor::Capture::open(&path).map_err(|e| lib_err("", e))?;
+            let capture = quantacolor::convert::open_capture(&path, None, detect_hot_pixels)
+                .map_err(|e| lib_err("", e))?;
             let ground_truth = capture.ground_truth().map_err(|e| lib_err("", e))?;
             Ok(PyCapture {
                 inner: Arc::new(capture),
@@ -802,7 +805,8 @@ fn reconstruct_dir<'py>(
     let mesopic = mesopic_arg(mesopic)?;
     let sink = PyProgress::new(progress)?;
     let result = compute(py, || {
-        let capture = quantacolor::Capture::open(&capture_dir).map_err(|e| lib_err("", e))?;
+        let capture = quantacolor::convert::open_capture(&capture_dir, None, true)
+            .map_err(|e| lib_err("", e))?;
         let rec = quantacolor::pipeline::reconstruct(&capture, &cfg, &sink)
             .map_err(|e| lib_err("", e))?;
         let preview = RenderOptions {

@@ -45,6 +45,22 @@ def test_reconstruct_equals_cli_linear_npy(cli, tmp_path, capture_dirs, capture,
     assert np.array_equal(got, expected)
 
 
+def test_capture_without_mask_gets_the_cli_hot_pixel_detection(cli, tmp_path):
+    # A capture without a hot-pixel mask (512 frames: enough for the detector to find the
+    # simulated hot pixels): Python opens it as the CLI does, detection included.
+    cap = tmp_path / "nomask"
+    run_cli(cli, "simulate", "--frames", 512, "--size", "64x64", "--seed", 1, "--out", cap)
+    (cap / "hot_pixels.npy").unlink()
+    meta = (cap / "capture.toml").read_text()
+    (cap / "capture.toml").write_text(
+        "\n".join(l for l in meta.splitlines() if not l.startswith("hot_pixels")) + "\n")
+    run_cli(cli, "reconstruct", cap, "--out", tmp_path / "rec", "--denoise", "none")
+    expected = np.load(tmp_path / "rec" / "linear.npy")
+    assert np.array_equal(qc.reconstruct(qc.Capture.open(cap), denoise="none"), expected)
+    plain = qc.reconstruct(qc.Capture.open(cap, detect_hot_pixels=False), denoise="none")
+    assert not np.array_equal(plain, expected), "the detector found no hot pixel"
+
+
 def test_reconstruct_dir_byte_identical_to_cli(cli, tmp_path, capture_dirs):
     cap = capture_dirs[1]
     run_cli(cli, "reconstruct", cap, "--out", tmp_path / "cli", "--tonemap", "mantiuk06")

@@ -2,9 +2,9 @@
 //! [`FrameSource`] from [`crate::capture::readers`] streamed into a
 //! [`CaptureWriter`], with the CFA, hot-pixel mask and metadata the capture needs.
 
-use crate::align::hot_pixels::{detect_hot_pixels, HotPixelDetectConfig};
+use crate::align::hot_pixels::{detect_hot_pixels, self_calibrate, HotPixelDetectConfig};
 use crate::capture::readers::{open_source, FrameSource, RawFormat, SourceSpec};
-use crate::capture::{CaptureMeta, CaptureWriter, FrameWindow};
+use crate::capture::{Capture, CaptureMeta, CaptureWriter, FrameWindow};
 use crate::cfa::colorspad::{colorspad_cfa, colorspad_hot_pixel_mask};
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
@@ -218,4 +218,22 @@ pub fn convert(
         hot_pixels: mask.map(|m| m.iter().filter(|&&v| v).count()),
         hot_pixels_detected: detected,
     })
+}
+
+/// Opens a capture the way `reconstruct` and `align` read it: the frame window `frames`, then,
+/// when the capture names no hot-pixel mask and `detect_hot_pixels` is set, a mask detected from
+/// its own frames ([`self_calibrate`]).
+pub fn open_capture(
+    dir: &Path,
+    frames: Option<&FrameWindow>,
+    detect_hot_pixels: bool,
+) -> Result<Capture> {
+    let mut capture = Capture::open(dir)?;
+    if let Some(window) = frames {
+        capture = capture.window(window)?;
+    }
+    if detect_hot_pixels {
+        self_calibrate(&mut capture, &HotPixelDetectConfig::default())?;
+    }
+    Ok(capture)
 }

@@ -16,9 +16,10 @@ class Capture:
     """T binary frames, the colour filter array and the metadata (paper §3, Eq. 2–3)."""
 
     @staticmethod
-    def open(path: _Path) -> Capture:
+    def open(path: _Path, *, detect_hot_pixels: bool = True) -> Capture:
         """Opens and validates a capture directory (frames.npy, cfa.npy/cfa.png,
-        capture.toml; ground_truth.npy when present)."""
+        capture.toml; ground_truth.npy when present). Without a hot-pixel mask in the capture,
+        one is detected from its frames, as ``quantacolor reconstruct`` does."""
     @staticmethod
     def from_arrays(
         frames: npt.NDArray[Union[np.uint8, np.bool_]],
