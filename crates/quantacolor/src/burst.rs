@@ -17,8 +17,9 @@
 //! from the packed words and splatted once; the kernel regression runs once per image.
 
 use crate::align::{
-    align, plan_sub_blocks, refine_camera_motion, split_for_merge, track_fast_camera_motion,
-    AlignConfig, Alignment, FrameMotion, RefineConfig, TrackConfig,
+    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, split_for_merge,
+    track_fast_camera_motion, AlignConfig, Alignment, FrameMotion, RefineConfig, TrackConfig,
+    TrajectoryConfig,
 };
 use crate::capture::Capture;
 use crate::error::Result;
@@ -43,6 +44,8 @@ pub struct BurstConfig {
     pub refine: RefineConfig,
     /// Fast camera motion tracked sub-block by sub-block.
     pub track: TrackConfig,
+    /// The tracked camera trajectory fitted to every photon at single-frame resolution.
+    pub trajectory: TrajectoryConfig,
     pub merge: MergeConfig,
 }
 
@@ -157,6 +160,9 @@ pub fn reconstruct_burst_with_motion(
         .mean()
         .unwrap_or(0.0) as f64;
     plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
+    if let Some(oracle) = oracle {
+        split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px);
+    }
     let tracked = oracle.is_none()
         && config.refine.enabled
         && track_fast_camera_motion(
@@ -167,8 +173,21 @@ pub fn reconstruct_burst_with_motion(
             progress,
         )?;
     if tracked {
-        split_for_merge(&mut motion, config.refine.max_sub_block_motion_px);
+        // Block alignment under fast motion matched streaks: its local residual is not motion.
+        motion.drop_local_motion();
         laps.lap("fast motion tracking");
+        if fit_photon_trajectory(
+            capture,
+            alignment.grey_method,
+            &mut motion,
+            &config.trajectory,
+            config.refine.max_sub_block_motion_px,
+            progress,
+        )? {
+            laps.lap("photon trajectory");
+        } else {
+            split_for_merge(&mut motion, config.refine.max_sub_block_motion_px);
+        }
     } else if oracle.is_none() && config.refine.enabled {
         refine_camera_motion(
             capture,
@@ -199,6 +218,50 @@ pub fn reconstruct_burst_with_motion(
         merged,
         timings: laps.timings,
     })
+}
+
+/// Cuts every sub-block of `motion` so that the `oracle`'s motion travels at most
+/// `max_motion_px` inside each piece (largest over the image corners and centre, start to end;
+/// down to single frames): a merge driven by the true motion must not blur fast motion either,
+/// or it is no upper bound.
+fn split_at_oracle_motion(motion: &mut FrameMotion, oracle: MotionOracle<'_>, max_motion_px: f64) {
+    let travel = |range: &Range<usize>| -> f64 {
+        let (a, b) = (oracle(range.start as f64), oracle((range.end - 1) as f64));
+        let (h, w, _) = a.dim();
+        [
+            (0, 0),
+            (0, w - 1),
+            (h - 1, 0),
+            (h - 1, w - 1),
+            (h / 2, w / 2),
+        ]
+        .iter()
+        .map(|&(y, x)| {
+            let dy = (a[[y, x, 0]] - b[[y, x, 0]]) as f64;
+            let dx = (a[[y, x, 1]] - b[[y, x, 1]]) as f64;
+            dy.hypot(dx)
+        })
+        .fold(0.0, f64::max)
+    };
+    let mut sub_blocks = Vec::new();
+    let mut block_of = Vec::new();
+    let mut camera = Vec::new();
+    for (k, range) in motion.sub_blocks.iter().enumerate() {
+        let len = range.len();
+        let pieces =
+            ((travel(range) / max_motion_px.max(1e-6)).ceil() as usize).clamp(1, len.max(1));
+        for i in 0..pieces {
+            let r = range.start + i * len / pieces..range.start + (i + 1) * len / pieces;
+            if !r.is_empty() {
+                sub_blocks.push(r);
+                block_of.push(motion.block_of[k]);
+                camera.push(motion.camera[k]);
+            }
+        }
+    }
+    motion.sub_blocks = sub_blocks;
+    motion.block_of = block_of;
+    motion.camera = camera;
 }
 
 /// Joint demosaic-merge of every sub-block of `motion` at its own flow (or the `oracle`'s at

@@ -20,6 +20,7 @@ pub mod motion;
 pub mod patch;
 pub mod refine;
 pub mod track;
+pub mod trajectory;
 
 pub use blocks::{BlockConfig, BlockPlan};
 pub use grey::{grey_image, GreyChoice, GreyMethod};
@@ -33,6 +34,7 @@ pub use refine::{
     plan_sub_blocks, refine_camera_motion, AffineMotion, FrameMotion, RefineConfig, RefineLevel,
 };
 pub use track::{split_for_merge, track_fast_camera_motion, TrackConfig};
+pub use trajectory::{fit_photon_trajectory, TrajectoryConfig};
 
 use crate::capture::io::write_atomic_synced;
 use crate::capture::BinaryFrames;

@@ -543,7 +543,7 @@ pub(super) struct TemplateLevel {
 
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
 #[inline]
-fn sample(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
+pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
     let (h, w) = (level.height, level.width);
     if !(y >= 0.0 && x >= 0.0 && y <= (h - 1) as f64 && x <= (w - 1) as f64) {
         return None;
@@ -667,7 +667,7 @@ pub(super) fn fit_sub_block(
                     continue;
                 }
                 let d = motion.at(*rel);
-                let Some([t, gy, gx]) = sample(
+                let Some([t, gy, gx]) = sample_template(
                     template,
                     rel[0] + centre[0] + d[0],
                     rel[1] + centre[1] + d[1],
