@@ -24,7 +24,7 @@ use crate::align::{
 use crate::capture::Capture;
 use crate::error::Result;
 use crate::merge::{
-    merge_guide, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst, SubBlock,
+    merge_guide, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst, SubBlock, SubBlockMotion,
     SubBlockRobustness,
 };
 use crate::pipeline::StageTiming;
@@ -291,9 +291,10 @@ fn merge_sub_blocks(
                 SubBlock {
                     counts: capture.frames.sum_range(range.clone()),
                     frames: range.len() as u32,
-                    flow: match oracle {
-                        Some(oracle) => oracle(centre),
-                        None => motion.sub_block_flow(k),
+                    flow: match (oracle, motion.sub_block_reference_map(k)) {
+                        (Some(oracle), _) => SubBlockMotion::Dense(oracle(centre)),
+                        (None, Some((matrix, offset))) => SubBlockMotion::Affine { matrix, offset },
+                        (None, None) => SubBlockMotion::Dense(motion.sub_block_flow(k)),
                     },
                     robustness: SubBlockRobustness::Block(motion.block_of[k]),
                 }

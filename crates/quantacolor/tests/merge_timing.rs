@@ -27,7 +27,8 @@ fn merge_timing_496x254_100_sub_blocks() {
                     } else {
                         dx - ripple
                     }
-                }),
+                })
+                .into(),
                 robustness: SubBlockRobustness::Block(k / 10),
             }
         })
@@ -35,7 +36,9 @@ fn merge_timing_496x254_100_sub_blocks() {
     let grey: Vec<Array2<f32>> = (0..10)
         .map(|k| grey_from_counts(&subs[k * 10].counts, frames, &cfa).unwrap())
         .collect();
-    let flows: Vec<Array3<f32>> = (0..10).map(|k| subs[k * 10].flow.clone()).collect();
+    let flows: Vec<Array3<f32>> = (0..10)
+        .map(|k| subs[k * 10].flow.dense().unwrap().clone())
+        .collect();
     let config = MergeConfig::default();
     let t0 = Instant::now();
     let reference = reference_image(&grey, &flows, 5, frames as f32, &config.wiener).unwrap();

@@ -465,6 +465,23 @@ impl FrameMotion {
         self.dense(&self.camera[k], (r.start + r.end - 1) as f64 / 2.0)
     }
 
+    /// Sub-block `k`'s map from sensor site q to reference position p = matrix·q + offset
+    /// ((y, x) order), when the camera explains all motion (no local residual): the merge then
+    /// needs no dense flow.
+    pub fn sub_block_reference_map(&self, k: usize) -> Option<([[f64; 2]; 2], [f64; 2])> {
+        if self.has_local {
+            return None;
+        }
+        let e = self.camera[k].inverse()?;
+        let c = self.centre();
+        let matrix = [[1.0 + e.m[0][0], e.m[0][1]], [e.m[1][0], 1.0 + e.m[1][1]]];
+        let offset = [
+            e.b[0] - e.m[0][0] * c[0] - e.m[0][1] * c[1],
+            e.b[1] - e.m[1][0] * c[0] - e.m[1][1] * c[1],
+        ];
+        Some((matrix, offset))
+    }
+
     /// Dense (H, W, 2) flow at (fractional) frame `t`.
     pub fn flow_at_frame(&self, t: f64) -> Array3<f32> {
         self.dense(&self.camera_at(t), t)

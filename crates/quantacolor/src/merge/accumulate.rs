@@ -35,9 +35,55 @@ pub struct SubBlock {
     pub counts: Array2<u32>,
     /// Binary frames summed into `counts`.
     pub frames: u32,
-    /// (H, W, 2) dense flow (dy, dx): the scene point at p in the reference is at p + flow(p).
-    pub flow: Array3<f32>,
+    /// Where each site's scene point sits in the reference.
+    pub flow: SubBlockMotion,
     pub robustness: SubBlockRobustness,
+}
+
+/// The motion of a sub-block, as the merge needs it: the reference position of every site.
+#[derive(Debug, Clone)]
+pub enum SubBlockMotion {
+    /// (H, W, 2) dense flow (dy, dx): the scene point at p in the reference is at p + flow(p);
+    /// inverted per site by fixed-point iteration ([`reference_position`]).
+    Dense(Array3<f32>),
+    /// A global affine map from sensor site q to reference position p = `matrix`·q + `offset`
+    /// ((y, x) order): a camera motion with no local motion, inverted once for all sites.
+    Affine {
+        matrix: [[f64; 2]; 2],
+        offset: [f64; 2],
+    },
+}
+
+impl From<Array3<f32>> for SubBlockMotion {
+    fn from(flow: Array3<f32>) -> Self {
+        SubBlockMotion::Dense(flow)
+    }
+}
+
+impl SubBlockMotion {
+    /// The dense flow, if this motion is one.
+    pub fn dense(&self) -> Option<&Array3<f32>> {
+        match self {
+            SubBlockMotion::Dense(flow) => Some(flow),
+            SubBlockMotion::Affine { .. } => None,
+        }
+    }
+
+    /// Checks a dense flow's shape and values, or an affine map's values.
+    fn check(&self, h: usize, w: usize, what: &str) -> Result<()> {
+        match self {
+            SubBlockMotion::Dense(flow) => super::warp::check_flow(flow, h, w, what),
+            SubBlockMotion::Affine { matrix, offset } => {
+                if matrix.iter().flatten().chain(offset).all(|v| v.is_finite()) {
+                    Ok(())
+                } else {
+                    Err(Error::invalid(format!(
+                        "{what}: affine motion has non-finite values"
+                    )))
+                }
+            }
+        }
+    }
 }
 
 /// Parameters of the joint demosaic-merge (supplement §1.3, §7).
@@ -243,8 +289,26 @@ impl<'a> MergeAccumulator<'a> {
         for sub in sub_blocks {
             let counts = sub.counts.as_standard_layout();
             let counts = counts.as_slice().expect("standard layout");
-            let flow = sub.flow.as_standard_layout();
-            let flow = flow.as_slice().expect("standard layout");
+            let dense = match &sub.flow {
+                SubBlockMotion::Dense(flow) => Some(flow.as_standard_layout()),
+                SubBlockMotion::Affine { .. } => None,
+            };
+            let dense = dense
+                .as_ref()
+                .map(|f| f.as_slice().expect("standard layout"));
+            let position = |q: [f32; 2]| -> [f32; 2] {
+                match (&sub.flow, dense) {
+                    (SubBlockMotion::Affine { matrix, offset }, _) => {
+                        let (y, x) = (q[0] as f64, q[1] as f64);
+                        [
+                            (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
+                            (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
+                        ]
+                    }
+                    (_, Some(flow)) => reference_position(flow, h, w, q),
+                    (_, None) => unreachable!("a dense flow has its slice"),
+                }
+            };
             let own = match &sub.robustness {
                 SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
                 _ => None,
@@ -264,7 +328,7 @@ impl<'a> MergeAccumulator<'a> {
                         if excluded.is_some_and(|e| e[i]) {
                             return (u32::MAX, 0.0);
                         }
-                        let p = reference_position(flow, h, w, [y as f32, x as f32]);
+                        let p = position([y as f32, x as f32]);
                         let r = robust.map_or(1.0, |m| {
                             let ry = (p[0].round().max(0.0) as usize).min(h - 1);
                             let rx = (p[1].round().max(0.0) as usize).min(w - 1);
@@ -505,7 +569,7 @@ fn validate(
                 b.frames
             )));
         }
-        super::warp::check_flow(&b.flow, h, w, &format!("merge: sub-block {k}"))?;
+        b.flow.check(h, w, &format!("merge: sub-block {k}"))?;
         match &b.robustness {
             SubBlockRobustness::Full => {}
             SubBlockRobustness::Block(i) if *i >= block_robustness.len() => {

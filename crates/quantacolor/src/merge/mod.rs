@@ -26,7 +26,7 @@ pub mod warp;
 
 pub use accumulate::{
     demosaic_merge, reference_position, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock,
-    SubBlockRobustness,
+    SubBlockMotion, SubBlockRobustness,
 };
 pub use kernels::{kernel_field, KernelConfig, KernelField};
 pub use reference::{reference_image, WienerConfig};

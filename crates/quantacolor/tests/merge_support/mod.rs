@@ -3,8 +3,8 @@
 
 use ndarray::{Array2, Array3};
 use quantacolor::cfa::{Cfa, Channel};
-use quantacolor::merge::SubBlock;
 use quantacolor::merge::SubBlockRobustness;
+use quantacolor::merge::{SubBlock, SubBlockMotion};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Binomial, Distribution};
@@ -86,6 +86,18 @@ impl Motion {
         let (ry, rx) = (y - self.dy - cy, x - self.dx - cx);
         (cy + c * ry - s * rx, cx + s * ry + c * rx)
     }
+    /// The same motion as the merge's affine form: reference position = matrix·q + offset.
+    pub fn reference_map(&self, h: usize, w: usize) -> SubBlockMotion {
+        let (cy, cx) = ((h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0);
+        let (s, c) = self.theta.sin_cos();
+        SubBlockMotion::Affine {
+            matrix: [[c, -s], [s, c]],
+            offset: [
+                cy - c * (self.dy + cy) + s * (self.dx + cx),
+                cx - s * (self.dy + cy) - c * (self.dx + cx),
+            ],
+        }
+    }
     /// Dense (H, W, 2) flow.
     pub fn flow(&self, h: usize, w: usize) -> Array3<f32> {
         Array3::from_shape_fn((h, w, 2), |(y, x, i)| {
@@ -111,7 +123,7 @@ pub fn sub_blocks(
         .map(|(k, m)| SubBlock {
             counts: simulate_counts(scene, cfa, frames, dark, |y, x| m.inverse(h, w, y, x), rng),
             frames,
-            flow: m.flow(h, w),
+            flow: m.flow(h, w).into(),
             robustness: SubBlockRobustness::Block(k),
         })
         .collect()
