@@ -61,11 +61,14 @@ mod tests {
                 .filter(|&(y, x)| out[[y, x, 0]] > 128)
                 .count()
         };
+        // Text of line k covers rows 14 + 12k .. 24 + 12k (4 px margin, 10 px glyphs).
+        let line = |k: usize| (14 + k * LINE, 24 + k * LINE);
+        let ((a0, a1), (b0, b1)) = (line(0), line(1));
         // "A" under the first panel on the first line, nothing under the second there.
-        assert!(ink(0, 40, 10, 10 + LINE) > 10);
-        assert_eq!(ink(42, 82, 10, 10 + LINE), 0);
+        assert!(ink(0, 40, a0, a1) > 10);
+        assert_eq!(ink(42, 82, a0, a1), 0);
         // "1" under the second panel on the second line only.
-        assert!(ink(42, 82, 10 + LINE, 10 + 2 * LINE) > 5);
-        assert_eq!(ink(0, 40, 10 + LINE, 10 + 2 * LINE), 0);
+        assert!(ink(42, 82, b0, b1) > 5);
+        assert_eq!(ink(0, 40, b0, b1), 0);
     }
 }

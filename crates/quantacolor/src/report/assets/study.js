@@ -37,7 +37,8 @@
       const img = document.createElement("img");
       img.src = src;
       img.alt = "image " + (i + 1);
-      img.style.maxWidth = "calc((100vw - " + (40 + 18 * n) + "px) / " + n + ")";
+      // Side by side across the window, scaled up or down alike (pixelated when enlarged).
+      img.style.width = "calc((100vw - " + (40 + 18 * n) + "px) / " + n + ")";
       const cap = document.createElement("figcaption");
       cap.textContent = String(i + 1);
       fig.append(img, cap);
