@@ -407,9 +407,9 @@ pub fn write_report_files(
     }
     let mut details = String::new();
     for r in results {
-        let _ = write!(
+        let _ = writeln!(
             details,
-            "<details><summary>{}: report.toml</summary><pre>{}</pre></details>\n",
+            "<details><summary>{}: report.toml</summary><pre>{}</pre></details>",
             html_escape(&r.label),
             html_escape(&r.report_text)
         );
