@@ -7,7 +7,7 @@
 (function () {
   const data = window.QC_DATA;
   const R = window.QCRender;
-  // Zoom levels the wheel steps through, screen pixels per image pixel (integers from 1 up:
+  // Zoom levels the wheel steps through, screen pixels per image pixel (at the integer ones
   // every image pixel is a square of whole screen pixels).
   const ZOOM_LEVELS = [0.125, 0.25, 0.5, 0.75, 1, 1.5, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64];
   const $ = (id) => document.getElementById(id);
