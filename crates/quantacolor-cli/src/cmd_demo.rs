@@ -1,6 +1,6 @@
 //! `quantacolor demo`: simulate the built-in chart under handheld motion, reconstruct it with
-//! the burst method and the naive long/short baselines (paper Table 2), write `demo/`, print
-//! PSNR/SSIM.
+//! the burst method and the naive long/short baselines (paper Table 2), write `demo/` (with the
+//! comparison page `index.html` of `quantacolor report`), print PSNR/SSIM.
 
 use crate::cmd_reconstruct::write_reconstruction;
 use crate::output::StagedDir;
@@ -9,10 +9,11 @@ use clap::Args;
 use ndarray::Array3;
 use quantacolor::capture::{io, Capture};
 use quantacolor::denoise::chroma::DenoiseMethod;
-use quantacolor::display::{auto_exposure_scale, encode_srgb8, hstack, RenderOptions};
+use quantacolor::display::{auto_exposure_scale, encode_srgb8, RenderOptions};
 use quantacolor::metrics::{evaluate, EvalOptions, Scores};
 use quantacolor::pipeline::{reconstruct, Method, ReconstructConfig};
 use quantacolor::progress::Progress;
+use quantacolor::report::{labelled_hstack, write_report_files, ReportConfig, ResultDir};
 use quantacolor::simulate::{self, FluxSpec, MotionConfig, Scene, SimulationConfig};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -73,6 +74,8 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
     let scale = auto_exposure_scale(truth.view());
     let mut rows = Vec::new();
     let mut images: Vec<Array3<u8>> = vec![encode_srgb8(truth.view(), scale)];
+    let mut labels: Vec<Vec<String>> = vec![vec!["ground truth".into()]];
+    let score_label = |s: &Scores| format!("PSNR {:.2} SSIM {:.3}", s.psnr_srgb, s.ssim_srgb);
     for (name, method, window) in runs {
         let mut rc = ReconstructConfig {
             method,
@@ -104,15 +107,18 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
                 .filter(|t| t.stage == "denoise")
                 .map(|t| t.seconds)
                 .sum();
+            let scores = evaluate(merged.view(), truth.view(), &opts)?;
+            labels.push(vec![format!("{name} (no denoise)"), score_label(&scores)]);
             rows.push(Row {
                 method: format!("{name}-before-denoise"),
                 frames_used: rec.frames_used,
                 seconds: seconds - denoise_seconds,
-                scores: evaluate(merged.view(), truth.view(), &opts)?,
+                scores,
             });
             images.push(encode_srgb8(merged.view(), scale));
         }
         let scores = evaluate(rec.linear.view(), truth.view(), &opts)?;
+        labels.push(vec![name.to_string(), score_label(&scores)]);
         rows.push(Row {
             method: name.to_string(),
             frames_used: rec.frames_used,
@@ -124,7 +130,21 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
 
     let staged = StagedDir::new(&args.out)?;
     let views: Vec<_> = images.iter().map(|i| i.view()).collect();
-    io::write_png_rgb8(staged.path("comparison.png"), &hstack(&views, 4, 255))?;
+    io::write_png_rgb8(
+        staged.path("comparison.png"),
+        &labelled_hstack(&views, &labels, 4, 255),
+    )?;
+    // The comparison page over the three results (report::write_report_files).
+    let results = runs
+        .iter()
+        .map(|(name, _, _)| ResultDir::open(&args.out.join(name)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let page = ReportConfig {
+        title: "quantacolor demo: builtin:chart, handheld".into(),
+        border: SCORE_BORDER,
+        ..ReportConfig::default()
+    };
+    write_report_files(staged.dir(), &results, Some(truth.view()), &page, progress)?;
     io::write_npy(staged.path("ground_truth.npy"), &truth)?;
     #[derive(Serialize)]
     struct Table<'a> {
@@ -133,7 +153,7 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
         methods: &'a [Row],
     }
     let table = Table {
-        layout: "comparison.png: ground truth | burst without denoising | burst (chroma-bm3d) | naive long | naive short (1/16 of the frames), same exposure",
+        layout: "comparison.png: ground truth | burst without denoising | burst (chroma-bm3d) | naive long | naive short (1/16 of the frames), same exposure, method and sRGB PSNR/SSIM under each; index.html: the comparison page (quantacolor report)",
         scoring: "16-pixel border excluded, normalized so the ground truth's 99.5th percentile is 1, clipped to [0, 1]",
         methods: &rows,
     };
@@ -157,5 +177,6 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
         );
     }
     println!("wrote {}", args.out.join("comparison.png").display());
+    println!("wrote {}", args.out.join("index.html").display());
     Ok(())
 }

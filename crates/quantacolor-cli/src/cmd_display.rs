@@ -13,6 +13,7 @@ use quantacolor::display::{
     frame_path, mesopic_params, output_is_tiff, render_stack, write_display, BitDepth, ColorMatrix,
     GlobalConfig, Mantiuk06Config, MesopicConfig, MesopicOffset, RenderOptions, ToneMap,
 };
+use quantacolor::output::{report_frames, report_w_weights};
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -75,25 +76,6 @@ fn report_beside(linear: &Path) -> Option<toml::Table> {
     toml::from_str(&text).ok()
 }
 
-/// `w_weights` from a report.toml, when it has them.
-fn w_weights_of(report: &toml::Table) -> Option<[f64; 3]> {
-    let v = report.get("w_weights")?.as_array()?;
-    let w: Vec<f64> = v
-        .iter()
-        .filter_map(|x| x.as_float().or(x.as_integer().map(|i| i as f64)))
-        .collect();
-    (w.len() == 3).then(|| [w[0], w[1], w[2]])
-}
-
-/// `frames_used` from a report.toml, when it has one.
-fn frames_of(report: &toml::Table) -> Option<f64> {
-    let v = report.get("frames_used")?;
-    v.as_integer()
-        .map(|i| i as f64)
-        .or(v.as_float())
-        .filter(|t| *t > 0.0)
-}
-
 /// Reads `path` as float32 (H, W, 3) (returned as a one-frame stack, `false`) or (N, H, W, 3)
 /// (`true`); any other shape or dtype is one error naming the file and what it holds.
 fn read_linear(path: &Path) -> Result<(Array4<f32>, bool)> {
@@ -153,11 +135,11 @@ pub fn run(args: &DisplayArgs) -> Result<()> {
         tonemap: args.tonemap.to_tone_map(),
         mesopic: args.mesopic.map(|l0| MesopicConfig {
             l0,
-            frames: args.frames.or(report.as_ref().and_then(frames_of)),
+            frames: args.frames.or(report.as_ref().and_then(report_frames)),
         }),
         w_weights: report
             .as_ref()
-            .and_then(w_weights_of)
+            .and_then(report_w_weights)
             .unwrap_or([1.0, 1.0, 1.0]),
     };
     let context = || format!("rendering {}", args.linear.display());

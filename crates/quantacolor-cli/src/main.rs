@@ -10,6 +10,7 @@ mod cmd_display;
 mod cmd_eval;
 mod cmd_experiment;
 mod cmd_reconstruct;
+mod cmd_report;
 mod cmd_simulate;
 mod output;
 mod progress;
@@ -56,6 +57,9 @@ enum Command {
     Inspect(cmd_convert::InspectArgs),
     /// The paper's experiments (dynamic-range, motion, w-fraction, cfa): CSV, plots, summary.md.
     Experiment(cmd_experiment::ExperimentArgs),
+    /// A static comparison page over reconstruction folders (exposure, tone map, low-light view,
+    /// synchronised zoom; PSNR/SSIM), the user-study page (--study) and its tally (--tally).
+    Report(cmd_report::ReportArgs),
 }
 
 fn main() -> ExitCode {
@@ -75,6 +79,7 @@ fn main() -> ExitCode {
         Command::Convert(args) => cmd_convert::run_convert(args, &progress),
         Command::Inspect(args) => cmd_convert::run_inspect(args),
         Command::Experiment(args) => cmd_experiment::run(args, &progress),
+        Command::Report(args) => cmd_report::run(args, &progress),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -26,6 +26,7 @@ pub mod naive;
 pub mod output;
 pub mod pipeline;
 pub mod progress;
+pub mod report;
 pub mod simulate;
 
 pub use capture::Capture;

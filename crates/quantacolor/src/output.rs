@@ -53,6 +53,11 @@ impl StagedDir {
         })
     }
 
+    /// The staging directory itself.
+    pub fn dir(&self) -> &Path {
+        &self.staging
+    }
+
     /// Path of `file` inside the staging directory.
     pub fn path(&self, file: &str) -> PathBuf {
         self.staging.join(file)
@@ -161,4 +166,23 @@ pub fn write_reconstruction(
     std::fs::write(&report_path, text).map_err(|e| Error::io(out.join("report.toml"), e))?;
     staged.commit()?;
     Ok(())
+}
+
+/// `w_weights` of a parsed `report.toml` (W = wR·R + wG·G + wB·B), when it has them.
+pub fn report_w_weights(report: &toml::Table) -> Option<[f64; 3]> {
+    let v = report.get("w_weights")?.as_array()?;
+    let w: Vec<f64> = v
+        .iter()
+        .filter_map(|x| x.as_float().or(x.as_integer().map(|i| i as f64)))
+        .collect();
+    (w.len() == 3).then(|| [w[0], w[1], w[2]])
+}
+
+/// `frames_used` of a parsed `report.toml`, when it has a positive one.
+pub fn report_frames(report: &toml::Table) -> Option<f64> {
+    let v = report.get("frames_used")?;
+    v.as_integer()
+        .map(|i| i as f64)
+        .or(v.as_float())
+        .filter(|t| *t > 0.0)
 }

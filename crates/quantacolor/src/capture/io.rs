@@ -244,23 +244,36 @@ fn interleaved<T: Copy>(image: &Array3<T>) -> Vec<T> {
     image.iter().copied().collect()
 }
 
-/// Encodes `image` as `format` in memory, then writes it atomically.
-fn write_encoded(path: &Path, image: DynamicImage, format: ImageFormat) -> Result<()> {
+/// Encodes `image` as `format` in memory (errors name `path`).
+fn encode(path: &Path, image: DynamicImage, format: ImageFormat) -> Result<Vec<u8>> {
     let mut encoded = Cursor::new(Vec::new());
     image
         .write_to(&mut encoded, format)
         .map_err(|e| Error::format(path, format!("cannot encode {format:?}: {e}")))?;
-    let bytes = encoded.into_inner();
+    Ok(encoded.into_inner())
+}
+
+/// Encodes `image` as `format` in memory, then writes it atomically.
+fn write_encoded(path: &Path, image: DynamicImage, format: ImageFormat) -> Result<()> {
+    let bytes = encode(path, image, format)?;
     write_atomic(path, |w| w.write_all(&bytes))
+}
+
+/// The bytes of an 8-bit sRGB PNG of (H, W, 3) samples (what [`write_png_rgb8`] writes).
+pub fn encode_png_rgb8(image: &Array3<u8>) -> Result<Vec<u8>> {
+    let path = Path::new("<in-memory PNG>");
+    let (w, h) = rgb_dims(path, image)?;
+    let buf =
+        ImageBuffer::<Rgb<u8>, _>::from_raw(w, h, interleaved(image)).expect("length matches dims");
+    encode(path, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
 }
 
 /// Writes an 8-bit sRGB PNG from (H, W, 3) samples.
 pub fn write_png_rgb8(path: impl AsRef<Path>, image: &Array3<u8>) -> Result<()> {
     let path = path.as_ref();
-    let (w, h) = rgb_dims(path, image)?;
-    let buf =
-        ImageBuffer::<Rgb<u8>, _>::from_raw(w, h, interleaved(image)).expect("length matches dims");
-    write_encoded(path, DynamicImage::ImageRgb8(buf), ImageFormat::Png)
+    rgb_dims(path, image)?;
+    let bytes = encode_png_rgb8(image)?;
+    write_atomic(path, |w| w.write_all(&bytes))
 }
 
 /// Writes a 16-bit PNG from (H, W, 3) samples.
