@@ -111,6 +111,33 @@ pub fn tone_map(
     })
 }
 
+/// Exposure of the global operator: `key` over the log-average luminance (Reinhard Eq. 1; δ
+/// avoids log 0); 1 for a black image.
+fn key_exposure(lum: &[f32], key: f32) -> f64 {
+    let max = lum.iter().copied().fold(0.0f32, f32::max) as f64;
+    let delta = 1e-6 * max.max(f64::MIN_POSITIVE);
+    let mean_log =
+        lum.iter().map(|&l| (l as f64 + delta).ln()).sum::<f64>() / lum.len().max(1) as f64;
+    let avg = mean_log.exp();
+    if avg > 0.0 {
+        key as f64 / avg
+    } else {
+        1.0
+    }
+}
+
+/// The exposure [`ToneMap::Global`] with `cfg` would choose for `linear` (H, W, 3): to render
+/// several images (e.g. reconstructions and their ground truth) at one exposure.
+pub fn global_exposure(linear: ArrayView3<f32>, cfg: &GlobalConfig) -> f32 {
+    let img = sanitise(linear);
+    let lum: Vec<f32> = img
+        .lanes(Axis(2))
+        .into_iter()
+        .map(|p| luminance(&[p[0], p[1], p[2]]))
+        .collect();
+    key_exposure(&lum, cfg.key) as f32
+}
+
 fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Result<Array3<f32>> {
     if !(cfg.key.is_finite() && cfg.key > 0.0 && (0.0..=100.0).contains(&cfg.white_percentile)) {
         return Err(Error::invalid(
@@ -124,19 +151,7 @@ fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Re
         .collect();
     let scale = match exposure {
         Some(e) => e as f64,
-        None => {
-            // Log-average luminance (Reinhard Eq. 1) over lit pixels; δ avoids log 0.
-            let max = lum.iter().copied().fold(0.0f32, f32::max) as f64;
-            let delta = 1e-6 * max.max(f64::MIN_POSITIVE);
-            let mean_log =
-                lum.iter().map(|&l| (l as f64 + delta).ln()).sum::<f64>() / lum.len().max(1) as f64;
-            let avg = mean_log.exp();
-            if avg > 0.0 {
-                cfg.key as f64 / avg
-            } else {
-                1.0
-            }
-        }
+        None => key_exposure(&lum, cfg.key),
     };
     let white = percentile(lum.iter().map(|&l| l * scale as f32), cfg.white_percentile)
         .filter(|w| *w > 0.0)
