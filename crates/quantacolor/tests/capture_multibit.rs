@@ -100,10 +100,22 @@ fn cmos_capture_round_trips_through_the_format() {
 #[test]
 fn bad_multibit_metadata_is_a_clear_error() {
     let cases = [
-        ("exposure_s = 0.01\nbit_depth = 0\ngain_e_per_dn = 1\n", "`bit_depth`"),
-        ("exposure_s = 0.01\nbit_depth = 17\ngain_e_per_dn = 1\n", "`bit_depth`"),
-        ("exposure_s = 0.01\nbit_depth = 10\n", "missing `gain_e_per_dn`"),
-        ("exposure_s = 0.01\nbit_depth = 10\ngain_e_per_dn = -1\n", "`gain_e_per_dn`"),
+        (
+            "exposure_s = 0.01\nbit_depth = 0\ngain_e_per_dn = 1\n",
+            "`bit_depth`",
+        ),
+        (
+            "exposure_s = 0.01\nbit_depth = 17\ngain_e_per_dn = 1\n",
+            "`bit_depth`",
+        ),
+        (
+            "exposure_s = 0.01\nbit_depth = 10\n",
+            "missing `gain_e_per_dn`",
+        ),
+        (
+            "exposure_s = 0.01\nbit_depth = 10\ngain_e_per_dn = -1\n",
+            "`gain_e_per_dn`",
+        ),
         (
             "exposure_s = 0.01\nbit_depth = 10\ngain_e_per_dn = 1\nfull_well_e = 1000\n",
             "not both",
@@ -112,8 +124,14 @@ fn bad_multibit_metadata_is_a_clear_error() {
             "exposure_s = 0.01\nbit_depth = 10\ngain_e_per_dn = 1\nblack_level_dn = 2000\n",
             "`black_level_dn`",
         ),
-        ("exposure_s = 0.01\ngain_e_per_dn = 1\n", "only for multi-bit"),
-        ("exposure_s = 0.01\nbit_depth = \"ten\"\n", "`bit_depth` must be an integer"),
+        (
+            "exposure_s = 0.01\ngain_e_per_dn = 1\n",
+            "only for multi-bit",
+        ),
+        (
+            "exposure_s = 0.01\nbit_depth = \"ten\"\n",
+            "`bit_depth` must be an integer",
+        ),
         (
             "exposure_s = 0.01\ndark_count_rate_hz = 1\ndark_current_e_per_s = 1\n",
             "not both",
@@ -149,7 +167,10 @@ fn frames_and_metadata_must_agree() {
         .collect();
     std::fs::write(&toml_path, &binary).unwrap();
     let err = Capture::open(&path).unwrap_err().to_string();
-    assert!(err.contains("frames.npy") && err.contains("no `bit_depth`"), "{err}");
+    assert!(
+        err.contains("frames.npy") && err.contains("no `bit_depth`"),
+        "{err}"
+    );
     // A sample above full scale.
     let four_bits = text
         .replace("bit_depth = 10", "bit_depth = 4")
@@ -268,14 +289,20 @@ fn saturated_patch_reads_full_well_not_dark() {
         for c in 0..3 {
             let centre = rec.linear[[24, 32, c]] as f64;
             let truth = sim.ground_truth[[24, 32, c]] as f64;
-            assert!(truth > full_well, "the patch must be above full well: {truth}");
+            assert!(
+                truth > full_well,
+                "the patch must be above full well: {truth}"
+            );
             assert!(
                 centre.is_finite() && centre > 0.9 * full_well && centre <= full_well + 1.0,
                 "{method:?} channel {c}: patch reads {centre}, full well {full_well}"
             );
             let bg = rec.linear[[4, 4, c]] as f64;
             let bg_truth = sim.ground_truth[[4, 4, c]] as f64;
-            assert!((bg - bg_truth).abs() < 0.25 * bg_truth, "{bg} vs {bg_truth}");
+            assert!(
+                (bg - bg_truth).abs() < 0.25 * bg_truth,
+                "{bg} vs {bg_truth}"
+            );
         }
     }
 }
@@ -317,7 +344,10 @@ fn gaussian_poisson_model_matches_simulated_samples() {
     let var =
         estimates.iter().map(|e| (e - mean).powi(2)).sum::<f64>() / (estimates.len() - 1) as f64;
     let predicted = model.flux_variance(lambda, n);
-    assert!((mean - lambda).abs() < 4.0 * (predicted / 4000.0).sqrt(), "{mean}");
+    assert!(
+        (mean - lambda).abs() < 4.0 * (predicted / 4000.0).sqrt(),
+        "{mean}"
+    );
     assert!((var / predicted - 1.0).abs() < 0.08, "{var} vs {predicted}");
     // Per-sample variance in DN² (grey-value noise of the merge).
     let dn_var = model.sample_variance(model.mean_sample(lambda));
@@ -328,7 +358,11 @@ fn gaussian_poisson_model_matches_simulated_samples() {
     let am = a.iter().sum::<f64>() / a.len() as f64;
     let av = a.iter().map(|v| (v - am).powi(2)).sum::<f64>() / (a.len() - 1) as f64;
     assert!((av - 1.0).abs() < 0.08, "stabilised variance {av}");
-    assert!((stab.inverse(am) - lambda).abs() < 0.1, "{}", stab.inverse(am));
+    assert!(
+        (stab.inverse(am) - lambda).abs() < 0.1,
+        "{}",
+        stab.inverse(am)
+    );
 }
 
 #[test]

@@ -132,7 +132,11 @@ impl BinaryFrames {
         if h == 0 || width == 0 {
             return Err(Error::format(path, "frames have zero height or width"));
         }
-        let item = if layout == FrameLayout::MultiBit { 2 } else { 1 };
+        let item = if layout == FrameLayout::MultiBit {
+            2
+        } else {
+            1
+        };
         let expected = t
             .checked_mul(h)
             .and_then(|n| n.checked_mul(last))

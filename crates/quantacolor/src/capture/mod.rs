@@ -898,7 +898,9 @@ pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<
     fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
     let t = tmp.path();
     match parts.frames {
-        FrameData::Packed(packed) => write_member(t, dir, FRAMES_FILE, |w| write_frames(w, packed))?,
+        FrameData::Packed(packed) => {
+            write_member(t, dir, FRAMES_FILE, |w| write_frames(w, packed))?
+        }
         FrameData::MultiBit(frames) => write_member(t, dir, FRAMES_FILE, npy_writer(frames))?,
     }
     write_member(t, dir, CFA_NPY_FILE, npy_writer(parts.cfa.codes()))?;

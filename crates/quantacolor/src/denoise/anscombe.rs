@@ -206,9 +206,7 @@ impl Stabiliser {
     /// The pixel model.
     pub fn model(&self) -> &PixelModel {
         match self {
-            Stabiliser::Binomial { model, .. } | Stabiliser::GaussianPoisson { model, .. } => {
-                model
-            }
+            Stabiliser::Binomial { model, .. } | Stabiliser::GaussianPoisson { model, .. } => model,
         }
     }
 

@@ -15,10 +15,10 @@
 //! three channels (the RMS noise of the stabilised R, G, B).
 
 use super::anscombe::Stabiliser;
-use crate::model::PixelModel;
 use super::bm3d::{bm3d_multichannel_varying, Bm3dConfig};
 use crate::align::patch::{bilinear, box_downsample};
 use crate::error::{Error, Result};
+use crate::model::PixelModel;
 use ndarray::{Array2, Array3, ArrayView3, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -575,7 +575,7 @@ pub fn model_variance_map(
             (0..w)
                 .map(|x| {
                     pixel_variance(linear, noise, stabiliser, transform, w_weights, has_w, y, x)
-                    .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
+                        .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
                 })
                 .collect()
         })
@@ -630,9 +630,7 @@ fn pixel_variance(
         }
     }
     // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
-    let da = [0, 1, 2].map(|c| {
-        stabiliser.derivative(linear[[y, x, c]] as f64)
-    });
+    let da = [0, 1, 2].map(|c| stabiliser.derivative(linear[[y, x, c]] as f64));
     // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.
     let mut var = [0.0; 3];
     for (i, row) in transform.forward.iter().enumerate() {

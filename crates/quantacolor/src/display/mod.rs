@@ -22,4 +22,6 @@ pub use render::{
     frame_path, mesopic_params, output_is_tiff, quantise16, quantise8, render, render_srgb16,
     render_srgb8, render_stack, write_display, write_rendered, BitDepth, RenderOptions,
 };
-pub use tonemap::{global_exposure, tone_map, GlobalConfig, ToneMap};
+pub use tonemap::{
+    global_exposure, global_white, tone_map, tone_map_global, GlobalConfig, ToneMap,
+};

@@ -4,8 +4,8 @@
 use crate::cfa::Cfa;
 use crate::denoise::chroma::DenoiseMethod;
 use crate::display::{
-    auto_exposure_scale, encode_srgb8, global_exposure, hstack, tone_map, vstack, GlobalConfig,
-    ToneMap,
+    auto_exposure_scale, encode_srgb8, global_exposure, global_white, hstack, tone_map_global,
+    vstack, GlobalConfig,
 };
 use crate::error::Result;
 use crate::metrics::{evaluate, EvalOptions, Scores};
@@ -153,28 +153,41 @@ pub(super) fn contact_sheet(
 }
 
 /// Contact sheet of tone-mapped results: one row per entry of `rows`, each the centre `size` x
-/// `size` crop of the truth then of every estimate, all normalised like the metric (the truth's
-/// 99.5th percentile to 1) and rendered by the global operator (Reinhard 2002) at the exposure
-/// it picks for the truth, so that rows of HDR scenes with light sources show their dark parts.
+/// `size` crop of the first pair's truth, then of every estimate. Each estimate is normalised like
+/// the metric, by its own truth (the truth's 99.5th percentile to 1: sensors differ in units), and
+/// all are rendered by the global operator (Reinhard 2002) at the exposure and white point it
+/// picks for the row's first (normalised) truth, so that rows of HDR scenes with light sources
+/// show their dark parts and every image of a row renders alike.
 pub(super) fn tone_mapped_sheet(
-    rows: &[(&Array3<f32>, Vec<&Array3<f32>>)],
+    rows: &[Vec<(&Array3<f32>, &Array3<f32>)>],
     size: usize,
 ) -> Result<Array3<u8>> {
     let cfg = GlobalConfig::default();
-    let mut rendered_rows = Vec::new();
-    for (truth, estimates) in rows {
+    let normalised = |truth: &Array3<f32>, image: &Array3<f32>| {
         let norm = crate::display::exposure::percentile(truth.iter().copied(), 99.5)
             .filter(|p| *p > 0.0)
             .map_or(1.0, |p| 1.0 / p);
-        let exposure = global_exposure(truth.mapv(|v| v * norm).view(), &cfg);
-        let crops = std::iter::once(*truth)
-            .chain(estimates.iter().copied())
+        image.mapv(|v| v * norm)
+    };
+    let mut rendered_rows = Vec::new();
+    for pairs in rows {
+        let Some(&(first_truth, _)) = pairs.first() else {
+            continue;
+        };
+        let reference = normalised(first_truth, first_truth);
+        let exposure = global_exposure(reference.view(), &cfg);
+        let white = global_white(reference.view(), exposure, &cfg);
+        let images: Vec<Array3<f32>> = std::iter::once(reference)
+            .chain(pairs.iter().map(|(t, e)| normalised(t, e)))
+            .collect();
+        let crops = images
+            .iter()
             .map(|a| {
                 let (h, w, _) = a.dim();
                 let (ch, cw) = (size.min(h), size.min(w));
                 let (y0, x0) = ((h - ch) / 2, (w - cw) / 2);
-                let crop = a.slice(s![y0..y0 + ch, x0..x0 + cw, ..]).mapv(|v| v * norm);
-                let display = tone_map(crop.view(), Some(exposure), &ToneMap::Global(cfg))?;
+                let crop = a.slice(s![y0..y0 + ch, x0..x0 + cw, ..]);
+                let display = tone_map_global(crop, exposure, white, &cfg)?;
                 Ok(encode_srgb8(display.view(), 1.0))
             })
             .collect::<Result<Vec<Array3<u8>>>>()?;

@@ -141,15 +141,15 @@ fn setting(quick: bool) -> Setting {
 pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<ExperimentOutput> {
     let st = setting(options.quick);
     let mut rows = Vec::new();
-    let mut sheet: Vec<(Array3<f32>, Vec<Array3<f32>>)> = Vec::new();
+    // (truth, estimate) of every sensor, per light and motion.
+    let mut sheet: Vec<Vec<(Array3<f32>, Array3<f32>)>> = Vec::new();
     let mut settings_text = Vec::new();
     for (light, default_scene, photons) in LIGHTS {
         let spec = options.scene.as_deref().unwrap_or(default_scene);
         let scene = Scene::from_spec(spec)?;
         let means = scene_channel_means(&scene, st.height, st.width);
         for (mname, motion) in motions() {
-            let mut truth0 = None;
-            let mut images = Vec::new();
+            let mut pairs = Vec::new();
             for (sname, kind, cfa_name) in SENSORS {
                 let sensor = SensorModel::table1(kind);
                 let frames = (st.exposure_s * sensor.frame_rate_hz).round().max(1.0) as usize;
@@ -185,10 +185,9 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
                     psnr: s.psnr_srgb,
                     ssim: s.ssim_srgb,
                 });
-                images.push(t.burst);
-                truth0.get_or_insert(t.truth);
+                pairs.push((t.truth, t.burst));
             }
-            sheet.push((truth0.expect("at least one sensor"), images));
+            sheet.push(pairs);
         }
     }
 
@@ -216,9 +215,7 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
                 points: conditions
                     .iter()
                     .enumerate()
-                    .filter_map(|(i, (l, m))| {
-                        find(&rows, l, m, s, c).map(|r| (i as f64, r.psnr))
-                    })
+                    .filter_map(|(i, (l, m))| find(&rows, l, m, s, c).map(|r| (i as f64, r.psnr)))
                     .collect(),
             })
             .collect(),
@@ -229,9 +226,9 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
                 .collect(),
         ),
     })?;
-    let sheet_refs: Vec<(&Array3<f32>, Vec<&Array3<f32>>)> = sheet
+    let sheet_refs: Vec<Vec<(&Array3<f32>, &Array3<f32>)>> = sheet
         .iter()
-        .map(|(t, imgs)| (t, imgs.iter().collect()))
+        .map(|pairs| pairs.iter().map(|(t, e)| (t, e)).collect())
         .collect();
     let contact = tone_mapped_sheet(&sheet_refs, st.crop)?;
 
@@ -292,7 +289,8 @@ fn find<'a>(
 }
 
 fn claims(rows: &[SensorRow]) -> Vec<Claim> {
-    let psnr = |l: &str, m: &str, s: &str, c: &str| find(rows, l, m, s, c).map_or(f64::NAN, |r| r.psnr);
+    let psnr =
+        |l: &str, m: &str, s: &str, c: &str| find(rows, l, m, s, c).map_or(f64::NAN, |r| r.psnr);
     let rgbw = "rgbw-75-bluenoise";
     let spad = |l: &str, m: &str| psnr(l, m, "spad", rgbw);
     let cmos = |l: &str, m: &str| psnr(l, m, "cmos", "bayer");
