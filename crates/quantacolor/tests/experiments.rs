@@ -277,7 +277,7 @@ fn sensors_files_rows_and_determinism() {
             _ => None,
         })
         .unwrap();
-    assert_eq!(sheet, (4 * 48 + 3 * 4, 5 * 64.min(48) + 4 * 4, 3));
+    assert_eq!(sheet, (4 * 48 + 3 * 4, 5 * 48 + 4 * 4, 3));
     assert_eq!(out.claims.len(), 4);
     let again = run(Experiment::Sensors);
     assert_eq!(out, again, "same options and seed give the same files");
