@@ -12,7 +12,7 @@ use std::path::PathBuf;
 #[derive(Debug, Args)]
 pub struct ExperimentArgs {
     /// Experiment: dynamic-range (§7, Fig. 19), motion (Fig. 10), w-fraction (supplement
-    /// Fig. 3) or cfa (Fig. 7).
+    /// Fig. 3), cfa (Fig. 7) or sensors (Fig. 11-12, supplement Fig. 4).
     pub name: String,
     /// Output directory (CSV, PNG plots, summary.md).
     #[arg(long)]

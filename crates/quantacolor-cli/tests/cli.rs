@@ -409,3 +409,76 @@ fn experiment_writes_csv_plot_and_summary_and_rejects_bad_input() {
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
+
+#[test]
+fn cmos_capture_reconstructs_and_bad_multibit_metadata_exits_2() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cmos");
+    ok(&[
+        "simulate",
+        "--scene",
+        "builtin:chart",
+        "--motion",
+        "static",
+        "--frames",
+        "12",
+        "--flux",
+        "100",
+        "--size",
+        "64x48",
+        "--cfa",
+        "bayer",
+        "--sensor",
+        "cmos",
+        "--out",
+        cap.to_str().unwrap(),
+    ]);
+    let rec = tmp.path().join("rec");
+    ok(&[
+        "reconstruct",
+        cap.to_str().unwrap(),
+        "--out",
+        rec.to_str().unwrap(),
+    ]);
+    let scores = ok(&[
+        "eval",
+        rec.join("linear.npy").to_str().unwrap(),
+        cap.join("ground_truth.npy").to_str().unwrap(),
+        "--border",
+        "6",
+        "--no-lpips",
+    ]);
+    let text = String::from_utf8_lossy(&scores.stdout);
+    let psnr: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("psnr_srgb = "))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no psnr_srgb in {text}"));
+    assert!(psnr > 18.0, "{text}");
+
+    let out = tmp.path().join("out");
+    let out_s = out.to_str().unwrap();
+    let toml = std::fs::read_to_string(cap.join("capture.toml")).unwrap();
+    std::fs::write(
+        cap.join("capture.toml"),
+        toml.replace("bit_depth = 10", "bit_depth = 0"),
+    )
+    .unwrap();
+    let err = expect_failure(
+        &["reconstruct", cap.to_str().unwrap(), "--out", out_s],
+        "capture.toml",
+    );
+    assert!(err.contains("`bit_depth`"), "{err}");
+    let no_gain: String = toml
+        .lines()
+        .filter(|l| !l.starts_with("gain_e_per_dn"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(cap.join("capture.toml"), no_gain).unwrap();
+    let err = expect_failure(
+        &["reconstruct", cap.to_str().unwrap(), "--out", out_s],
+        "capture.toml",
+    );
+    assert!(err.contains("missing `gain_e_per_dn`"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
+}

@@ -615,10 +615,16 @@ impl PyCapture {
         })
     }
 
-    /// Bit-packed frames, uint8 (T, H, ceil(W/8)), MSB first (a copy).
+    /// Bit-packed frames, uint8 (T, H, ceil(W/8)), MSB first (a copy). Multi-bit captures
+    /// (a conventional sensor's uint16 frames) raise ValueError.
     #[getter]
-    fn frames<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<u8>> {
-        self.inner.frames.to_packed().into_pyarray(py)
+    fn frames<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray3<u8>>> {
+        if self.inner.frames.is_multibit() {
+            return Err(PyValueError::new_err(
+                "this capture holds multi-bit (uint16) frames; read frames.npy with numpy",
+            ));
+        }
+        Ok(self.inner.frames.to_packed().into_pyarray(py))
     }
 
     /// Number of binary frames T.
@@ -952,7 +958,7 @@ fn denoise<'py>(
         let input = DenoiseInput {
             noise: None,
             frames,
-            dark_per_frame: dark_counts_per_frame,
+            model: dark_counts_per_frame.into(),
             w_weights: w,
         };
         denoise_linear(image.view(), &input, &cfg)

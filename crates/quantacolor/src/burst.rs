@@ -15,6 +15,12 @@
 //!
 //! Frames are never visited one at a time with a kernel: a sub-block's bits are summed straight
 //! from the packed words and splatted once; the kernel regression runs once per image.
+//!
+//! Multi-bit frames of a conventional sensor run through the same stages as the paper does it
+//! (§6.1): every frame is its own block (and sub-block), there is no motion interpolation or
+//! refinement inside blocks, and the grey-value noise and the flux inversion follow the
+//! Gaussian–Poisson model of the capture ([`crate::model::PixelModel`]) instead of the binomial
+//! one ([`config_for_capture`]).
 
 use crate::align::{
     align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, split_for_merge,
@@ -24,8 +30,8 @@ use crate::align::{
 use crate::capture::Capture;
 use crate::error::Result;
 use crate::merge::{
-    merge_guide, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst, SubBlock, SubBlockMotion,
-    SubBlockRobustness,
+    merge_guide, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst, SubBlock,
+    SubBlockMotion, SubBlockRobustness,
 };
 use crate::pipeline::StageTiming;
 use crate::progress::Progress;
@@ -69,6 +75,18 @@ impl BurstReconstruction {
     pub fn merge_flow(&self, t: f64) -> Array3<f32> {
         self.motion.flow_at_frame(t)
     }
+}
+
+/// The burst configuration for `capture`: `config` itself for binary frames; for multi-bit
+/// frames (paper §6.1) blocks of one frame, and no sub-block refinement or fast-motion tracking
+/// (a frame has no motion inside it to refine).
+pub fn config_for_capture(capture: &Capture, config: &BurstConfig) -> BurstConfig {
+    let mut config = config.clone();
+    if capture.frames.is_multibit() {
+        config.align.blocks.block_size = Some(1);
+        config.refine.enabled = false;
+    }
+    config
 }
 
 /// Sub-blocks summed and merged at a time: bounds memory to a few (H, W) images per chunk.
@@ -121,6 +139,8 @@ pub fn reconstruct_burst_with_motion(
     oracle: Option<MotionOracle<'_>>,
     progress: &dyn Progress,
 ) -> Result<BurstReconstruction> {
+    let config = &config_for_capture(capture, config);
+    let model = capture.meta.pixel_model();
     let frames = &capture.frames;
     let hot = capture.hot_pixels.as_ref();
     let mut laps = Laps::new();
@@ -152,7 +172,10 @@ pub fn reconstruct_burst_with_motion(
             })
             .collect()
     };
-    let grey_trials = alignment.plan.block_size as f32;
+    let grey_noise = GreyNoise {
+        trials: alignment.plan.block_size as f32,
+        model,
+    };
     let reference_block = alignment.plan.reference_block;
     let detections_per_frame = alignment
         .grey
@@ -203,7 +226,7 @@ pub fn reconstruct_burst_with_motion(
         &grey_blocks,
         &block_flows(&motion),
         reference_block,
-        grey_trials,
+        grey_noise,
         &config.merge,
     )?;
     drop(grey_blocks);
@@ -275,7 +298,12 @@ fn merge_sub_blocks(
     config: &MergeConfig,
     progress: &dyn Progress,
 ) -> Result<MergedBurst> {
-    let mut accumulator = MergeAccumulator::new(&capture.cfa, &guide.kernels, &config.accumulate)?;
+    let mut accumulator = MergeAccumulator::new(
+        &capture.cfa,
+        &guide.kernels,
+        &config.accumulate,
+        capture.meta.pixel_model(),
+    )?;
     if let Some(hot) = &capture.hot_pixels {
         accumulator.exclude_sites(hot)?;
     }
@@ -304,7 +332,7 @@ fn merge_sub_blocks(
         progress.advance(chunk.len() as u64);
     }
     progress.finish();
-    let planes = accumulator.finish(capture.meta.dark_counts_per_frame(), capture.meta.w_weights);
+    let planes = accumulator.finish(capture.meta.w_weights);
     Ok(MergedBurst::from_planes(
         planes,
         guide,

@@ -1,5 +1,7 @@
 //! Bernoulli imaging model of a single-photon pixel: detection probability, the maximum-likelihood
-//! flux estimate, its noise, SNR and dynamic range (paper §3, Eq. 1–6 and Eq. 9; §7).
+//! flux estimate, its noise, SNR and dynamic range (paper §3, Eq. 1–6 and Eq. 9; §7); and the
+//! Gaussian–Poisson model of a conventional multi-bit pixel that the paper compares against
+//! (§6.1, §7), joined in [`PixelModel`], which the merge and the denoiser ask.
 //!
 //! During one binary frame a SPAD pixel receives a Poisson number of photon detections with mean
 //! λ = φ·η·τ (Eq. 2–3) plus dark counts with mean `d`; it reports 1 if at least one avalanche
@@ -369,6 +371,200 @@ pub fn conventional_dynamic_range(
         upper_limit: UpperLimit::Saturation,
         db: ratio_to_db(max_flux / min_flux),
     })
+}
+
+/// Upper tail of the standard normal, Q(z) = P(Z > z) (Abramowitz & Stegun 7.1.26 for erfc,
+/// absolute error below 1.5e-7).
+pub fn normal_tail(z: f64) -> f64 {
+    let x = z.abs() / std::f64::consts::SQRT_2;
+    let t = 1.0 / (1.0 + 0.327_591_1 * x);
+    let poly = t
+        * (0.254_829_592
+            + t * (-0.284_496_736
+                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    let erfc = poly * (-x * x).exp();
+    if z >= 0.0 {
+        0.5 * erfc
+    } else {
+        1.0 - 0.5 * erfc
+    }
+}
+
+/// Equivalent dark counts per frame of a binary jot's read noise: a jot reads 1 when its
+/// photoelectrons plus Gaussian read noise of σ = `read_noise_e` exceed 0.5 e- (paper Table 1),
+/// so with no photon it still fires with probability Q(0.5/σ). To first order that is a Poisson
+/// dark count of mean −ln(1 − Q(0.5/σ)) per frame, which the MLE of Eq. 6 removes like any
+/// other dark count (this project's approximation; it ignores the Q(0.5/σ) chance of missing
+/// a single photoelectron, a relative gain loss of 1.9 % at σ = 0.24 e-). 0 for σ = 0 (a SPAD).
+pub fn read_noise_false_positive_dark(read_noise_e: f64) -> f64 {
+    if read_noise_e > 0.0 {
+        -(-normal_tail(0.5 / read_noise_e)).ln_1p()
+    } else {
+        0.0
+    }
+}
+
+/// The Gaussian–Poisson model of a conventional (multi-bit) pixel (paper §6.1, the model the
+/// paper's CMOS comparisons use): during one frame the pixel collects a Poisson number of
+/// photoelectrons with mean λ (plus dark electrons d), adds Gaussian read noise of σ_r
+/// electrons, and is digitised to `DN = black + e / gain` (rounded, clipped to
+/// `0..=saturation_dn`). The flux estimate from the mean of n samples is the linear inversion
+///
+/// ```text
+/// λ̂ = (mean DN − black)·gain − d,     Var(λ̂) = (λ + d + σ_r² + gain²/12) / n
+/// ```
+///
+/// (shot noise + read noise + quantisation). Saturation: a sample at `saturation_dn` is a
+/// clipped value; the merge averages it as it is, so a pixel that is saturated in every frame
+/// reports [`GaussianPoisson::full_well_e`] − d, the largest flux it can report (the analogue of
+/// the binary model's [`saturation_flux`]), never a wrapped or dark value.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GaussianPoisson {
+    /// Electrons per digital number.
+    pub gain_e_per_dn: f64,
+    /// Read noise, electrons RMS.
+    pub read_noise_e: f64,
+    /// Digital number of zero electrons (pedestal).
+    pub black_level_dn: f64,
+    /// Largest digital number, `2^bit_depth − 1` (full scale; samples there are saturated).
+    pub saturation_dn: f64,
+}
+
+impl GaussianPoisson {
+    /// Electrons at full scale above the black level: the full well as the ADC sees it.
+    pub fn full_well_e(&self) -> f64 {
+        (self.saturation_dn - self.black_level_dn) * self.gain_e_per_dn
+    }
+
+    /// Noise variance of one frame beyond the photon shot noise, electrons²: read noise plus
+    /// uniform quantisation (gain²/12).
+    pub fn floor_variance_e2(&self) -> f64 {
+        self.read_noise_e * self.read_noise_e + self.gain_e_per_dn * self.gain_e_per_dn / 12.0
+    }
+}
+
+/// How a frame's samples relate to photon detections.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Readout {
+    /// Binary frames (SPAD, jot): a sample is 0 or 1, Bernoulli with P(1) = 1 − exp(−(λ + d))
+    /// (paper Eq. 1–6).
+    Binary,
+    /// Multi-bit frames of a conventional sensor: digital numbers ([`GaussianPoisson`]).
+    GaussianPoisson(GaussianPoisson),
+}
+
+/// The photon model of one pixel of a capture: the single switch between the paper's binary
+/// model (Eq. 2–6) and the Gaussian–Poisson model of a conventional sensor (§6.1). The merge,
+/// its robustness and reference (noise of grey values), and the denoiser (noise of the merged
+/// flux) all ask it, so both kinds of capture run through the same pipeline.
+///
+/// Fluxes are in detections per frame (photoelectrons per frame for a conventional sensor);
+/// "samples" are what a frame holds per pixel (bits, or digital numbers).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelModel {
+    /// Dark counts (binary) or dark electrons (conventional) per frame, `d`.
+    pub dark_per_frame: f64,
+    pub readout: Readout,
+}
+
+impl From<f64> for PixelModel {
+    /// A binary pixel with `dark_per_frame` dark counts per frame.
+    fn from(dark_per_frame: f64) -> Self {
+        PixelModel::binary(dark_per_frame)
+    }
+}
+
+impl PixelModel {
+    /// A binary pixel (paper Eq. 2–6) with `dark_per_frame` dark counts per frame.
+    pub fn binary(dark_per_frame: f64) -> Self {
+        PixelModel {
+            dark_per_frame,
+            readout: Readout::Binary,
+        }
+    }
+
+    /// Whether the frames are binary.
+    pub fn is_binary(&self) -> bool {
+        matches!(self.readout, Readout::Binary)
+    }
+
+    /// The largest sample a frame can hold: 1, or the saturation DN.
+    pub fn max_sample(&self) -> f64 {
+        match self.readout {
+            Readout::Binary => 1.0,
+            Readout::GaussianPoisson(g) => g.saturation_dn,
+        }
+    }
+
+    /// Flux λ̂ (dark removed) from the mean sample per frame `mean` over `frames` frames (which
+    /// may be fractional, e.g. a merge's effective number): binary, the MLE of Eq. 6
+    /// ([`mle_flux`], unclamped, finite at saturation); conventional, the linear inversion of
+    /// [`GaussianPoisson`], with a mean at or above full scale read as full scale.
+    pub fn flux(&self, mean: f64, frames: f64) -> f64 {
+        match self.readout {
+            Readout::Binary => mle_flux(mean * frames, frames, self.dark_per_frame),
+            Readout::GaussianPoisson(g) => {
+                if frames.is_nan() || frames <= 0.0 {
+                    return f64::NAN;
+                }
+                (mean.min(g.saturation_dn) - g.black_level_dn) * g.gain_e_per_dn
+                    - self.dark_per_frame
+            }
+        }
+    }
+
+    /// The mean sample per frame at flux `lambda` (the expected value [`PixelModel::flux`]
+    /// inverts; ignores clipping).
+    pub fn mean_sample(&self, lambda: f64) -> f64 {
+        match self.readout {
+            Readout::Binary => detection_probability(lambda, self.dark_per_frame),
+            Readout::GaussianPoisson(g) => {
+                g.black_level_dn + (lambda + self.dark_per_frame) / g.gain_e_per_dn
+            }
+        }
+    }
+
+    /// The largest flux an estimate over `frames` frames can report: [`saturation_flux`] for
+    /// binary frames, the full well minus dark for a conventional pixel.
+    pub fn saturation_flux(&self, frames: f64) -> f64 {
+        match self.readout {
+            Readout::Binary => saturation_flux(frames, self.dark_per_frame),
+            Readout::GaussianPoisson(g) => g.full_well_e() - self.dark_per_frame,
+        }
+    }
+
+    /// Variance of one frame's sample whose mean is `mean` (samples²): binomial p(1 − p)
+    /// (p clamped to [0, 1]); conventional, shot noise of the electrons above black, read
+    /// noise and quantisation, in DN². The noise of grey values in the Wiener reference and
+    /// the robustness weights (supplement Eq. 4–6).
+    pub fn sample_variance(&self, mean: f64) -> f64 {
+        match self.readout {
+            Readout::Binary => {
+                let p = mean.clamp(0.0, 1.0);
+                p * (1.0 - p)
+            }
+            Readout::GaussianPoisson(g) => {
+                let electrons = ((mean - g.black_level_dn) * g.gain_e_per_dn).max(0.0);
+                (electrons + g.floor_variance_e2()) / (g.gain_e_per_dn * g.gain_e_per_dn)
+            }
+        }
+    }
+
+    /// Asymptotic variance of the flux estimate λ̂ at flux `lambda` from `frames` frames:
+    /// binary, the Cramér–Rao bound p/((1 − p)·n) of [`mle_std`] with p kept below the
+    /// saturation count; conventional, (λ + d + σ_r² + gain²/12)/n.
+    pub fn flux_variance(&self, lambda: f64, frames: f64) -> f64 {
+        match self.readout {
+            Readout::Binary => {
+                let p = detection_probability(lambda.max(0.0), self.dark_per_frame)
+                    .min(1.0 - SATURATION_MARGIN / frames);
+                p / ((1.0 - p) * frames)
+            }
+            Readout::GaussianPoisson(g) => {
+                ((lambda + self.dark_per_frame).max(0.0) + g.floor_variance_e2()) / frames
+            }
+        }
+    }
 }
 
 #[cfg(test)]

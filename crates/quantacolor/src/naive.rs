@@ -8,7 +8,7 @@
 use crate::capture::Capture;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
-use crate::model::mle_flux;
+use crate::model::PixelModel;
 use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -28,15 +28,19 @@ pub fn centred_window(frame_count: usize, reference: usize, window: Option<usize
     start..start + n
 }
 
-/// Per-pixel flux map λ̂ (detections per frame, dark counts removed) from counts over `frames`
-/// frames, NaN where `excluded` is set (hot pixels).
+/// Per-pixel flux map λ̂ (detections per frame, dark counts removed) from counts (sums of
+/// samples) over `frames` frames by the pixel `model` (the MLE of Eq. 6 for binary frames; a
+/// plain number is a binary pixel's dark counts per frame), NaN where `excluded` is set (hot
+/// pixels).
 pub fn flux_map(
     counts: &Array2<u32>,
     frames: usize,
-    dark_per_frame: f64,
+    model: impl Into<PixelModel>,
     excluded: Option<&Array2<bool>>,
 ) -> Array2<f32> {
-    let mut flux = counts.mapv(|s| mle_flux(s as f64, frames as f64, dark_per_frame) as f32);
+    let model: PixelModel = model.into();
+    let n = frames as f64;
+    let mut flux = counts.mapv(|s| model.flux(s as f64 / n, n) as f32);
     if let Some(mask) = excluded {
         Zip::from(&mut flux).and(mask).for_each(|f, &hot| {
             if hot {
@@ -219,7 +223,7 @@ pub fn reconstruct_naive(
     let flux = flux_map(
         &counts,
         frames.len(),
-        capture.meta.dark_counts_per_frame(),
+        capture.meta.pixel_model(),
         capture.hot_pixels.as_ref(),
     );
     let planes = demosaic_normalized(&flux, &capture.cfa);
@@ -305,11 +309,8 @@ mod tests {
             frames: BinaryFrames::from_packed(pack_bits(&bits), w).unwrap(),
             cfa,
             meta: CaptureMeta {
-                exposure_s: 1e-4,
                 dark_count_rate_hz: dark / 1e-4,
-                w_weights: [1.0, 1.0, 1.0],
-                hot_pixels: None,
-                reference_frame: None,
+                ..CaptureMeta::new(1e-4)
             },
             hot_pixels: Some(hot),
         };

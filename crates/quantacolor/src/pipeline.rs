@@ -110,8 +110,9 @@ pub fn burst_config_for(config: &ReconstructConfig) -> BurstConfig {
     burst
 }
 
-/// The denoiser's inputs for a reconstruction of `capture`: the merge's binomial noise model
-/// when there is a burst merge, else the number of frames summed.
+/// The denoiser's inputs for a reconstruction of `capture`: the merge's noise model (binomial,
+/// or Gaussian–Poisson for multi-bit frames) when there is a burst merge, else the number of
+/// frames summed.
 pub fn denoise_input<'a>(
     capture: &Capture,
     burst: Option<&'a BurstReconstruction>,
@@ -123,7 +124,7 @@ pub fn denoise_input<'a>(
             effective_frames: b.merged.planes.effective_frames.view(),
         }),
         frames: frames_used as f64,
-        dark_per_frame: capture.meta.dark_counts_per_frame(),
+        model: capture.meta.pixel_model(),
         w_weights: capture.meta.w_weights,
     }
 }

@@ -4,7 +4,7 @@
 use ndarray::{s, Array2, Array3, Axis};
 use ndarray_npy::write_npy;
 use quantacolor::capture::frames::{pack_bits, FrameLayout};
-use quantacolor::capture::{io, write_capture, Capture, CaptureMeta, CaptureParts};
+use quantacolor::capture::{io, write_capture, Capture, CaptureMeta, CaptureParts, FrameData};
 use quantacolor::cfa::{Cfa, Channel};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -35,6 +35,7 @@ fn sample_meta() -> CaptureMeta {
         w_weights: [0.5, 1.0, 0.25],
         hot_pixels: None,
         reference_frame: Some(3),
+        ..CaptureMeta::new(1e-5)
     }
 }
 
@@ -47,7 +48,7 @@ fn write_valid(dir: &Path) -> Array3<u8> {
     write_capture(
         dir,
         &CaptureParts {
-            packed_frames: &packed,
+            frames: FrameData::Packed(&packed),
             width: W,
             cfa: &cfa,
             meta: &meta,
@@ -109,7 +110,7 @@ fn packed_capture_round_trips_with_every_optional_part() {
     write_capture(
         &dir,
         &CaptureParts {
-            packed_frames: &packed,
+            frames: FrameData::Packed(&packed),
             width: W,
             cfa: &cfa,
             meta: &meta,
@@ -500,7 +501,7 @@ fn rewriting_replaces_the_capture_and_leaves_no_temporaries() {
     write_capture(
         &dir,
         &CaptureParts {
-            packed_frames: &packed,
+            frames: FrameData::Packed(&packed),
             width: 20,
             cfa: &cfa,
             meta: &meta,
@@ -536,7 +537,7 @@ fn failed_write_leaves_the_existing_capture_untouched() {
     // Fails half-way: frames and CFA are already written when the over-long file name
     // (beyond the 255-byte limit of common file systems) cannot be created.
     let failing = CaptureParts {
-        packed_frames: &packed,
+        frames: FrameData::Packed(&packed),
         width: W,
         cfa: &cfa,
         meta: &meta,
@@ -586,7 +587,7 @@ fn refuses_to_replace_a_directory_that_is_not_a_capture() {
     let err = write_capture(
         &dir,
         &CaptureParts {
-            packed_frames: &packed,
+            frames: FrameData::Packed(&packed),
             width: W,
             cfa: &cfa,
             meta: &meta,
@@ -611,7 +612,7 @@ fn writer_rejects_inconsistent_parts() {
     let cfa = sample_cfa(H, W);
     let meta = CaptureMeta::new(1e-5);
     let base = CaptureParts {
-        packed_frames: &packed,
+        frames: FrameData::Packed(&packed),
         width: W,
         cfa: &cfa,
         meta: &meta,
@@ -740,7 +741,7 @@ fn colorspad_png_loads_as_a_75_percent_w_cfa() {
     write_capture(
         &dir,
         &CaptureParts {
-            packed_frames: &pack_bits(&bits),
+            frames: FrameData::Packed(&pack_bits(&bits)),
             width: 512,
             cfa: &cfa,
             meta: &meta,

@@ -53,7 +53,7 @@ fn binomial_noise_model_matches_the_measured_noise_of_the_merge() {
             effective_frames: planes.effective_frames.view(),
         }),
         frames: 256.0,
-        dark_per_frame: capture.meta.dark_counts_per_frame(),
+        model: capture.meta.pixel_model(),
         w_weights: capture.meta.w_weights,
     };
     let transform = ColorTransform::w_weighted_ycbcr(capture.meta.w_weights).unwrap();
@@ -97,7 +97,7 @@ fn sigma_sources_without_a_model_and_when_given() {
     let input = DenoiseInput {
         noise: None,
         frames: 400.0,
-        dark_per_frame: 0.0,
+        model: 0.0.into(),
         w_weights: [1.0, 1.0, 1.0],
     };
     let (_, report) = denoise_linear(img.view(), &input, &DenoiseConfig::default()).unwrap();

@@ -8,7 +8,6 @@
 use ndarray::{Array3, Axis};
 use quantacolor::burst::reconstruct_burst;
 use quantacolor::cfa::colorspad_cfa;
-use quantacolor::denoise::anscombe::BinomialAnscombe;
 use quantacolor::denoise::chroma::{
     denoise_linear, model_variance_map, stabilise, ColorTransform, DenoiseConfig,
 };
@@ -74,13 +73,11 @@ fn diagnose_noise_model() {
         let merged = burst.merged.linear.view();
         let (denoised, report) = denoise_linear(merged, &input, &denoise).unwrap();
         let stab = stabilise(merged, &input, transform).unwrap();
-        let anscombe = BinomialAnscombe::new(stab.anscombe.trials()).unwrap();
         let variance = model_variance_map(
             &merged,
             input.noise.as_ref().unwrap(),
-            &anscombe,
+            &stab.stabiliser,
             &transform,
-            input.dark_per_frame,
             input.w_weights,
         );
         let truth = stabilise(sim.ground_truth.view(), &input, transform)
@@ -93,7 +90,7 @@ fn diagnose_noise_model() {
         let s_den = evaluate(denoised.view(), sim.ground_truth.view(), &opts).unwrap();
         println!(
             "\n== {case}: trials {} σ {:?} (report {:?}); sRGB PSNR none {:.2} → {:.2} dB, SSIM {:.3} → {:.3}",
-            stab.anscombe.trials(),
+            stab.stabiliser.trials(),
             stab.sigmas,
             report.map(|r| r.sigmas),
             s_none.psnr_srgb,

@@ -1,5 +1,6 @@
 //! The paper's experiments (`quantacolor::experiments`) in quick mode: files, CSV headers, row
-//! counts and value sanity, determinism, and the dynamic-range relation of §7 exactly.
+//! counts and value sanity, determinism, the dynamic-range relation of §7 exactly, and the
+//! equal-light rule of the sensors experiment.
 
 use quantacolor::experiments::{
     self, dynamic_range, Artifact, Experiment, ExperimentOptions, ExperimentOutput,
@@ -222,6 +223,82 @@ fn cfa_files() {
         let (p, s) = (num(&r[2]), num(&r[3]));
         assert!((8.0..60.0).contains(&p) && s > 0.0 && s <= 1.0, "{r:?}");
     }
+}
+
+#[test]
+fn sensors_files_rows_and_determinism() {
+    let out = run(Experiment::Sensors);
+    assert_files(
+        &out,
+        &[
+            "sensors.csv",
+            "sensors.png",
+            "contact_sheet.png",
+            "summary.md",
+        ],
+    );
+    let rows = table(
+        &out,
+        "sensors.csv",
+        "scene,light,motion,sensor,cfa,psnr,ssim",
+    );
+    assert_eq!(rows.len(), 16);
+    let sensors = [
+        ("cmos", "bayer"),
+        ("spad", "bayer"),
+        ("spad", "rgbw-75-bluenoise"),
+        ("jot", "rgbw-75-bluenoise"),
+    ];
+    for (light, scene) in [
+        ("daylight", "builtin:chart"),
+        ("night", "builtin:chart-hdr"),
+    ] {
+        for motion in ["slow", "fast"] {
+            for (sensor, cfa) in sensors {
+                let matching: Vec<_> = rows
+                    .iter()
+                    .filter(|r| r[1] == light && r[2] == motion && r[3] == sensor && r[4] == cfa)
+                    .collect();
+                assert_eq!(matching.len(), 1, "{light} {motion} {sensor} {cfa}");
+                assert_eq!(matching[0][0], scene);
+            }
+        }
+    }
+    for r in &rows {
+        let (p, s) = (num(&r[5]), num(&r[6]));
+        assert!((3.0..60.0).contains(&p) && s > -1.0 && s <= 1.0, "{r:?}");
+    }
+    // The contact sheet: 4 rows (light x motion) of truth + 4 sensors, 48 px crops, 4 px gaps.
+    let sheet = out
+        .files
+        .iter()
+        .find_map(|(n, a)| match a {
+            Artifact::Png(img) if n == "contact_sheet.png" => Some(img.dim()),
+            _ => None,
+        })
+        .unwrap();
+    assert_eq!(sheet, (4 * 48 + 3 * 4, 5 * 48 + 4 * 4, 3));
+    assert_eq!(out.claims.len(), 4);
+    let again = run(Experiment::Sensors);
+    assert_eq!(out, again, "same options and seed give the same files");
+}
+
+#[test]
+fn sensor_light_levels_follow_equal_photons() {
+    use quantacolor::experiments::sensors::sensor_flux;
+    use quantacolor::simulate::{SensorKind, SensorModel};
+    // Equal photons per second: detections per frame scale with frame time and quantum
+    // efficiency (paper Eq. 2–3); for a grey scene Σ QE · m.
+    let means = [0.5, 0.5, 0.5];
+    let spad = sensor_flux(&SensorModel::table1(SensorKind::Spad), 1.0e4, means);
+    let cmos = sensor_flux(&SensorModel::table1(SensorKind::Cmos), 1.0e4, means);
+    let jot = sensor_flux(&SensorModel::table1(SensorKind::Jot), 1.0e4, means);
+    assert!(
+        (spad - 1.0e4 / 24_000.0 * 0.5 * 0.36).abs() < 1e-12,
+        "{spad}"
+    );
+    assert!((cmos / spad - 100.0 * 1.72 / 0.36).abs() < 1e-9, "{cmos}");
+    assert!((jot / spad - 24.0 * 2.19 / 0.36).abs() < 1e-9, "{jot}");
 }
 
 #[test]

@@ -41,7 +41,7 @@ fn merge_all(
         sub_blocks: &subs,
         cfa,
         w_weights: W_WEIGHTS,
-        dark_per_frame: DARK,
+        model: DARK.into(),
     };
     merge_burst(&input, config).unwrap()
 }
@@ -375,7 +375,7 @@ fn merge_burst_rejects_inconsistent_input() {
         sub_blocks: &subs,
         cfa: &cfa,
         w_weights: W_WEIGHTS,
-        dark_per_frame: DARK,
+        model: DARK.into(),
     };
     assert!(merge_burst(&input, &MergeConfig::default()).is_err());
     let input = BurstInput {

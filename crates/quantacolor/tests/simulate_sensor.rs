@@ -243,12 +243,14 @@ fn cmos_frames_stay_in_ten_bits_and_average_the_flux() {
         .indexed_iter()
         .filter(|((_, y, x), _)| g[[*y, *x]])
         .fold((0.0, 0.0), |(s, n), (_, &v)| (s + v as f64, n + 1.0));
-    // Poisson(λ) + N(0, 2.4²): std of the mean ≈ sqrt((λ + 5.8) / n).
+    // black + Poisson(λ) + N(0, 2.4²): std of the mean ≈ sqrt((λ + 5.8) / n).
     let sigma = ((lambda[1] + 5.8) / n).sqrt();
+    let black = sim.sensor.black_level_dn;
+    assert_eq!(black, 16.0);
     assert!(
-        (sum / n - lambda[1]).abs() < 5.0 * sigma,
+        (sum / n - black - lambda[1]).abs() < 5.0 * sigma,
         "{} vs {}",
-        sum / n,
+        sum / n - black,
         lambda[1]
     );
     // Saturation clips at 1023.

@@ -135,8 +135,8 @@ impl HotPixelCorrector {
             .map(|i| self.candidates[i].as_slice())
     }
 
-    /// Per-pixel count of ones over `range` (`(H, W)`), with each hot pixel's bit in frame `t`
-    /// replaced by the bit of candidate number `draw(seed, pixel, t) mod k` (supplement §1.4).
+    /// Per-pixel count of ones (sum of samples, for multi-bit frames) over `range` (`(H, W)`),
+    /// with each hot pixel's sample in frame `t` replaced by the sample of candidate number `draw(seed, pixel, t) mod k` (supplement §1.4).
     pub fn corrected_block_sum(&self, frames: &BinaryFrames, range: Range<usize>) -> Array2<u32> {
         assert_eq!(
             (frames.height(), frames.width()),
@@ -155,7 +155,7 @@ impl HotPixelCorrector {
                 for t in range.clone() {
                     let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
                     let (y, x) = cands[pick];
-                    count += frames.bit(t, y as usize, x as usize) as u32;
+                    count += frames.sample(t, y as usize, x as usize);
                 }
                 count
             })

@@ -423,7 +423,7 @@ fn scoring_step(
 /// Fits the camera trajectory of every frame to the photons (see the module documentation),
 /// starting from `motion`'s camera, and replaces `motion`'s sub-blocks by runs of frames within
 /// one block over which the fitted camera moves at most `max_sub_block_motion_px`. Runs only
-/// when the grey channel is W; returns whether it ran.
+/// on binary frames whose grey channel is W; returns whether it ran.
 pub fn fit_photon_trajectory(
     capture: &Capture,
     grey_method: GreyMethod,
@@ -434,6 +434,7 @@ pub fn fit_photon_trajectory(
 ) -> Result<bool> {
     let frames = &capture.frames;
     if !config.enabled
+        || frames.is_multibit()
         || !matches!(grey_method, GreyMethod::InterpolateW)
         || frames.frame_count() < 2
     {

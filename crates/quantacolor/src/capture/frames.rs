@@ -1,6 +1,8 @@
-//! Binary frames: bit-packed uint8 (T, H, ceil(W/8)), MSB first as `np.packbits` writes them, or
-//! unpacked bool/uint8 0/1 (T, H, W). Files are memory-mapped, never copied whole into memory;
-//! block sums are computed straight from the packed bytes.
+//! Frames: binary, bit-packed uint8 (T, H, ceil(W/8)), MSB first as `np.packbits` writes them, or
+//! unpacked bool/uint8 0/1 (T, H, W); or multi-bit, uint16 (T, H, W) digital numbers of a
+//! conventional sensor. Files are memory-mapped, never copied whole into memory; block sums are
+//! computed straight from the stored bytes (for binary frames, from the packed words). A sum is
+//! the number of ones (binary) or the sum of digital numbers (multi-bit): the merge's "counts".
 
 use super::npy::{NpyDtype, NpyHeader};
 use crate::error::{Error, Result};
@@ -18,6 +20,8 @@ pub enum FrameLayout {
     Packed,
     /// W bytes per row, each 0 or 1 (nonzero counts as 1).
     Unpacked,
+    /// 2·W bytes per row: little-endian uint16 digital numbers (multi-bit frames).
+    MultiBit,
 }
 
 #[derive(Debug)]
@@ -26,7 +30,9 @@ enum Storage {
     Mapped { map: Mmap, offset: usize },
 }
 
-/// A stack of T binary frames of H x W pixels.
+/// A stack of T frames of H x W pixels: binary (the paper's SPAD and jot frames) or multi-bit
+/// ([`FrameLayout::MultiBit`], a conventional sensor's digital numbers). [`Self::sum_range`]
+/// and [`Self::sample`] work for both; the bit accessors are for binary frames.
 #[derive(Debug)]
 pub struct BinaryFrames {
     storage: Storage,
@@ -84,6 +90,13 @@ impl BinaryFrames {
         let (t, h, last) = (shape[0], shape[1], shape[2]);
         let layout = match header.dtype {
             NpyDtype::Bool => FrameLayout::Unpacked,
+            NpyDtype::U16 if last == width => FrameLayout::MultiBit,
+            NpyDtype::U16 => {
+                return Err(Error::format(
+                    path,
+                    format!("uint16 frames have width {last}, the CFA has width {width}"),
+                ))
+            }
             NpyDtype::U8 if last == width.div_ceil(8) && last != width => FrameLayout::Packed,
             NpyDtype::U8 if last == width => FrameLayout::Unpacked,
             NpyDtype::U8 => {
@@ -100,7 +113,8 @@ impl BinaryFrames {
                 return Err(Error::format(
                     path,
                     format!(
-                        "dtype '{}' is not supported for binary frames (need uint8 or bool)",
+                        "dtype '{}' is not supported for frames (need uint8 or bool for binary \
+                         frames, little-endian uint16 for multi-bit frames)",
                         header.descr
                     ),
                 ))
@@ -118,9 +132,15 @@ impl BinaryFrames {
         if h == 0 || width == 0 {
             return Err(Error::format(path, "frames have zero height or width"));
         }
+        let item = if layout == FrameLayout::MultiBit {
+            2
+        } else {
+            1
+        };
         let expected = t
             .checked_mul(h)
             .and_then(|n| n.checked_mul(last))
+            .and_then(|n| n.checked_mul(item))
             .and_then(|n| n.checked_add(header.data_offset));
         let Some(_end) = expected.filter(|&e| e <= map.len()) else {
             return Err(Error::format(
@@ -170,6 +190,46 @@ impl BinaryFrames {
         })
     }
 
+    /// Wraps multi-bit frames held in memory, uint16 (T, H, W) digital numbers.
+    pub fn from_multibit(frames: &Array3<u16>) -> Result<BinaryFrames> {
+        let (t, h, w) = frames.dim();
+        if t == 0 || h == 0 || w == 0 {
+            return Err(Error::invalid("multi-bit frames are empty"));
+        }
+        let data: Vec<u8> = frames.iter().flat_map(|v| v.to_le_bytes()).collect();
+        Ok(BinaryFrames {
+            storage: Storage::Owned(data),
+            layout: FrameLayout::MultiBit,
+            frame_count: t,
+            height: h,
+            width: w,
+        })
+    }
+
+    /// Whether the frames are multi-bit digital numbers (not binary).
+    pub fn is_multibit(&self) -> bool {
+        self.layout == FrameLayout::MultiBit
+    }
+
+    /// The largest sample of any frame (0 or 1 for binary frames); parallel over frames.
+    pub fn max_sample(&self) -> u32 {
+        (0..self.frame_count)
+            .into_par_iter()
+            .map(|t| {
+                (0..self.height)
+                    .map(|y| self.row_samples(t, y).max().unwrap_or(0))
+                    .max()
+                    .unwrap_or(0)
+            })
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// The samples of row `y` of frame `t` (bits as 0/1, or digital numbers).
+    fn row_samples(&self, t: usize, y: usize) -> impl Iterator<Item = u32> + '_ {
+        (0..self.width).map(move |x| self.sample(t, y, x))
+    }
+
     /// Number of frames T.
     pub fn frame_count(&self) -> usize {
         self.frame_count
@@ -194,6 +254,7 @@ impl BinaryFrames {
         match self.layout {
             FrameLayout::Packed => self.width.div_ceil(8),
             FrameLayout::Unpacked => self.width,
+            FrameLayout::MultiBit => 2 * self.width,
         }
     }
 
@@ -211,16 +272,25 @@ impl BinaryFrames {
         &self.data()[start..start + rb]
     }
 
-    /// The bit of pixel `(y, x)` in frame `t`.
+    /// The bit of pixel `(y, x)` in frame `t` (for multi-bit frames: whether the sample is
+    /// nonzero).
     pub fn bit(&self, t: usize, y: usize, x: usize) -> bool {
+        self.sample(t, y, x) != 0
+    }
+
+    /// The sample of pixel `(y, x)` in frame `t`: its bit (0 or 1) or its digital number.
+    pub fn sample(&self, t: usize, y: usize, x: usize) -> u32 {
         let row = self.raw_row(t, y);
         match self.layout {
-            FrameLayout::Packed => (row[x / 8] >> (7 - x % 8)) & 1 == 1,
-            FrameLayout::Unpacked => row[x] != 0,
+            FrameLayout::Packed => ((row[x / 8] >> (7 - x % 8)) & 1) as u32,
+            FrameLayout::Unpacked => (row[x] != 0) as u32,
+            FrameLayout::MultiBit => u16::from_le_bytes([row[2 * x], row[2 * x + 1]]) as u32,
         }
     }
 
-    /// Per-pixel count of ones over `frames`, (H, W); parallel over rows.
+    /// Per-pixel count of ones (binary) or sum of digital numbers (multi-bit) over `frames`,
+    /// (H, W); parallel over rows. Multi-bit sums saturate at `u32::MAX` (2^16 frames of 16-bit
+    /// full scale).
     pub fn sum_range(&self, frames: Range<usize>) -> Array2<u32> {
         assert!(
             frames.start <= frames.end && frames.end <= self.frame_count,
@@ -260,6 +330,13 @@ impl BinaryFrames {
                 for t in frames {
                     for (acc, &v) in out.iter_mut().zip(self.raw_row(t, y)) {
                         *acc += (v != 0) as u32;
+                    }
+                }
+            }
+            FrameLayout::MultiBit => {
+                for t in frames {
+                    for (acc, v) in out.iter_mut().zip(self.raw_row(t, y).chunks_exact(2)) {
+                        *acc = acc.saturating_add(u16::from_le_bytes([v[0], v[1]]) as u32);
                     }
                 }
             }
@@ -308,10 +385,10 @@ impl BinaryFrames {
                     out[last] &= 0xFFu8 << (8 - self.width % 8);
                 }
             }
-            FrameLayout::Unpacked => {
+            FrameLayout::Unpacked | FrameLayout::MultiBit => {
                 out.fill(0);
-                for (x, &v) in row.iter().enumerate() {
-                    if v != 0 {
+                for x in 0..self.width {
+                    if self.sample(t, y, x) != 0 {
                         out[x / 8] |= 0x80 >> (x % 8);
                     }
                 }
@@ -319,7 +396,8 @@ impl BinaryFrames {
         }
     }
 
-    /// All frames bit-packed, uint8 (T, H, ceil(W/8)), MSB first (a copy; `frames.npy`'s layout).
+    /// All frames bit-packed, uint8 (T, H, ceil(W/8)), MSB first (a copy; `frames.npy`'s layout
+    /// for binary frames; multi-bit frames become "sample nonzero").
     pub fn to_packed(&self) -> Array3<u8> {
         let (t, h, w) = (self.frame_count, self.height, self.width);
         match self.layout {
@@ -328,11 +406,25 @@ impl BinaryFrames {
                 Array3::from_shape_vec((t, h, w.div_ceil(8)), self.data()[..bytes].to_vec())
                     .expect("stored bytes match the shape")
             }
-            FrameLayout::Unpacked => {
+            FrameLayout::Unpacked | FrameLayout::MultiBit => {
                 let bits = Array3::from_shape_fn((t, h, w), |(ti, y, x)| self.bit(ti, y, x) as u8);
                 pack_bits(&bits)
             }
         }
+    }
+
+    /// All multi-bit frames as uint16 (T, H, W) (a copy; `frames.npy`'s layout); `None` for
+    /// binary frames.
+    pub fn to_multibit(&self) -> Option<Array3<u16>> {
+        if self.layout != FrameLayout::MultiBit {
+            return None;
+        }
+        let (t, h, w) = (self.frame_count, self.height, self.width);
+        let values: Vec<u16> = self.data()[..2 * t * h * w]
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .collect();
+        Some(Array3::from_shape_vec((t, h, w), values).expect("stored bytes match the shape"))
     }
 
     /// One frame unpacked to 0/1, (H, W).

@@ -41,13 +41,44 @@ pub const HOT_PIXELS_FILE: &str = "hot_pixels.npy";
 /// The linear ground truth of simulated captures.
 pub const GROUND_TRUTH_FILE: &str = "ground_truth.npy";
 
-const META_KEYS: [&str; 5] = [
+const META_KEYS: [&str; 11] = [
     "exposure_s",
     "dark_count_rate_hz",
+    "dark_current_e_per_s",
     "w_weights",
     "hot_pixels",
     "reference_frame",
+    "bit_depth",
+    "read_noise_e",
+    "gain_e_per_dn",
+    "full_well_e",
+    "black_level_dn",
 ];
+
+/// Keys that only multi-bit captures (`bit_depth` >= 2) may carry.
+const MULTIBIT_KEYS: [&str; 3] = ["gain_e_per_dn", "full_well_e", "black_level_dn"];
+
+/// The readout of a multi-bit (conventional sensor) capture: `frames.npy` holds uint16
+/// digital numbers (T, H, W), reconstructed with the Gaussian–Poisson model
+/// ([`crate::model::GaussianPoisson`], paper §6.1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MultiBitReadout {
+    /// Bits per sample, 2..=16; samples lie in `0..=2^bit_depth − 1`, and a sample at full
+    /// scale is saturated.
+    pub bit_depth: u32,
+    /// Electrons per digital number (`full_well_e` in `capture.toml` sets it to
+    /// full_well / (2^bit_depth − 1 − black_level_dn)).
+    pub gain_e_per_dn: f64,
+    /// Digital number of zero electrons (default 0).
+    pub black_level_dn: f64,
+}
+
+impl MultiBitReadout {
+    /// The largest digital number, `2^bit_depth − 1`.
+    pub fn saturation_dn(&self) -> u32 {
+        ((1u64 << self.bit_depth.min(16)) - 1) as u32
+    }
+}
 
 /// Contents of `capture.toml`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -66,6 +97,14 @@ pub struct CaptureMeta {
     /// Reference frame index (default T/2 rounded down).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference_frame: Option<usize>,
+    /// Read noise, electrons RMS (default 0): the Gaussian read noise of a multi-bit capture,
+    /// or a binary jot's read noise, whose false positives count as dark counts
+    /// ([`crate::model::read_noise_false_positive_dark`]).
+    #[serde(skip)]
+    pub read_noise_e: f64,
+    /// `Some` for multi-bit frames (`bit_depth` >= 2), `None` for binary frames.
+    #[serde(skip)]
+    pub multibit: Option<MultiBitReadout>,
 }
 
 fn default_w_weights() -> [f64; 3] {
@@ -113,12 +152,38 @@ impl CaptureMeta {
             w_weights: default_w_weights(),
             hot_pixels: None,
             reference_frame: None,
+            read_noise_e: 0.0,
+            multibit: None,
         }
     }
 
-    /// Dark counts per binary frame, `d` of paper Eq. 3.
+    /// Dark counts per frame, `d` of paper Eq. 3: dark count rate (dark current, for multi-bit
+    /// frames) times exposure, plus, for a binary capture with read noise (a jot), its
+    /// read-noise false positives as equivalent dark counts.
     pub fn dark_counts_per_frame(&self) -> f64 {
-        self.dark_count_rate_hz * self.exposure_s
+        let dark = self.dark_count_rate_hz * self.exposure_s;
+        match self.multibit {
+            Some(_) => dark,
+            None => dark + crate::model::read_noise_false_positive_dark(self.read_noise_e),
+        }
+    }
+
+    /// The photon model of the capture's pixels (binary, paper Eq. 2–6, or Gaussian–Poisson
+    /// for multi-bit frames, §6.1) with [`CaptureMeta::dark_counts_per_frame`].
+    pub fn pixel_model(&self) -> crate::model::PixelModel {
+        use crate::model::{GaussianPoisson, PixelModel, Readout};
+        PixelModel {
+            dark_per_frame: self.dark_counts_per_frame(),
+            readout: match self.multibit {
+                None => Readout::Binary,
+                Some(m) => Readout::GaussianPoisson(GaussianPoisson {
+                    gain_e_per_dn: m.gain_e_per_dn,
+                    read_noise_e: self.read_noise_e,
+                    black_level_dn: m.black_level_dn,
+                    saturation_dn: m.saturation_dn() as f64,
+                }),
+            },
+        }
     }
 
     /// Parses the text of a `capture.toml`; `path` names it in errors. Unknown top-level keys
@@ -157,7 +222,98 @@ impl CaptureMeta {
                 "missing required key `exposure_s` (exposure of one binary frame, seconds)",
             )
         })?;
-        let dark_count_rate_hz = number("dark_count_rate_hz")?.unwrap_or(0.0);
+        let dark_count_rate_hz = match (
+            number("dark_count_rate_hz")?,
+            number("dark_current_e_per_s")?,
+        ) {
+            (Some(_), Some(_)) => {
+                return Err(Error::format(
+                    path,
+                    "give `dark_count_rate_hz` or `dark_current_e_per_s`, not both (they are \
+                     the same quantity: dark events per pixel per second)",
+                ))
+            }
+            (a, b) => a.or(b).unwrap_or(0.0),
+        };
+        let bit_depth = match table.get("bit_depth") {
+            None => None,
+            Some(toml::Value::Integer(i)) => Some(*i),
+            Some(v) => return Err(bad_type("bit_depth", "an integer", v)),
+        };
+        let read_noise_e = number("read_noise_e")?.unwrap_or(0.0);
+        let multibit = match bit_depth {
+            None | Some(1) => {
+                if let Some(key) = MULTIBIT_KEYS.iter().find(|k| table.contains_key(**k)) {
+                    return Err(Error::format(
+                        path,
+                        format!(
+                            "`{key}` is only for multi-bit frames; set `bit_depth` (2..=16) for \
+                             a conventional sensor's capture"
+                        ),
+                    ));
+                }
+                None
+            }
+            Some(b) if !(2..=16).contains(&b) => {
+                return Err(Error::format(
+                    path,
+                    format!(
+                        "`bit_depth` must be 1 (binary frames) or 2..=16 (multi-bit uint16 \
+                         frames), found {b}"
+                    ),
+                ))
+            }
+            Some(b) => {
+                let bit_depth = b as u32;
+                let black_level_dn = number("black_level_dn")?.unwrap_or(0.0);
+                let full_scale = ((1u64 << bit_depth) - 1) as f64;
+                if !(black_level_dn.is_finite()
+                    && black_level_dn >= 0.0
+                    && black_level_dn < full_scale)
+                {
+                    return Err(Error::format(
+                        path,
+                        format!(
+                            "`black_level_dn` must be >= 0 and below full scale {full_scale}, \
+                             found {black_level_dn}"
+                        ),
+                    ));
+                }
+                let gain_e_per_dn = match (number("gain_e_per_dn")?, number("full_well_e")?) {
+                    (Some(g), None) => g,
+                    (None, Some(fw)) => {
+                        if !(fw.is_finite() && fw > 0.0) {
+                            return Err(Error::format(
+                                path,
+                                format!("`full_well_e` must be a finite number > 0, found {fw}"),
+                            ));
+                        }
+                        fw / (full_scale - black_level_dn)
+                    }
+                    (Some(_), Some(_)) => {
+                        return Err(Error::format(
+                            path,
+                            "give `gain_e_per_dn` or `full_well_e`, not both",
+                        ))
+                    }
+                    (None, None) => {
+                        return Err(Error::format(
+                            path,
+                            format!(
+                                "missing `gain_e_per_dn` (electrons per digital number) or \
+                                 `full_well_e`: a {bit_depth}-bit capture needs one to turn \
+                                 digital numbers into photoelectrons"
+                            ),
+                        ))
+                    }
+                };
+                Some(MultiBitReadout {
+                    bit_depth,
+                    gain_e_per_dn,
+                    black_level_dn,
+                })
+            }
+        };
         let w_weights = match table.get("w_weights") {
             None => default_w_weights(),
             Some(v) => {
@@ -206,6 +362,8 @@ impl CaptureMeta {
             w_weights,
             hot_pixels,
             reference_frame,
+            read_noise_e,
+            multibit,
         };
         meta.check().map_err(|m| Error::format(path, m))?;
         Ok(meta)
@@ -216,6 +374,18 @@ impl CaptureMeta {
         self.check().map_err(Error::invalid)?;
         let mut table = toml::Table::try_from(self)
             .map_err(|e| Error::invalid(format!("cannot serialise capture metadata: {e}")))?;
+        if self.read_noise_e != 0.0 {
+            table.insert("read_noise_e".into(), self.read_noise_e.into());
+        }
+        if let Some(m) = self.multibit {
+            // A conventional sensor's dark events are dark current.
+            if let Some(dark) = table.remove("dark_count_rate_hz") {
+                table.insert("dark_current_e_per_s".into(), dark);
+            }
+            table.insert("bit_depth".into(), i64::from(m.bit_depth).into());
+            table.insert("gain_e_per_dn".into(), m.gain_e_per_dn.into());
+            table.insert("black_level_dn".into(), m.black_level_dn.into());
+        }
         for (key, value) in extra.into_iter().flatten() {
             if META_KEYS.contains(&key.as_str()) || !is_table_like(value) {
                 return Err(Error::invalid(format!(
@@ -248,6 +418,37 @@ impl CaptureMeta {
                 "`w_weights` must be finite, >= 0 and not all zero, found {w:?}"
             ));
         }
+        if !(self.read_noise_e.is_finite() && self.read_noise_e >= 0.0) {
+            return Err(format!(
+                "`read_noise_e` must be a finite number >= 0, found {}",
+                self.read_noise_e
+            ));
+        }
+        if let Some(m) = self.multibit {
+            if !(2..=16).contains(&m.bit_depth) {
+                return Err(format!(
+                    "`bit_depth` must be 1 (binary frames) or 2..=16 (multi-bit uint16 \
+                     frames), found {}",
+                    m.bit_depth
+                ));
+            }
+            if !(m.gain_e_per_dn.is_finite() && m.gain_e_per_dn > 0.0) {
+                return Err(format!(
+                    "`gain_e_per_dn` must be a finite number > 0, found {}",
+                    m.gain_e_per_dn
+                ));
+            }
+            let full_scale = m.saturation_dn() as f64;
+            if !(m.black_level_dn.is_finite()
+                && m.black_level_dn >= 0.0
+                && m.black_level_dn < full_scale)
+            {
+                return Err(format!(
+                    "`black_level_dn` must be >= 0 and below full scale {full_scale}, found {}",
+                    m.black_level_dn
+                ));
+            }
+        }
         if let Some(name) = &self.hot_pixels {
             if name.is_empty() || Path::new(name).is_absolute() {
                 return Err(format!(
@@ -273,6 +474,36 @@ pub struct Capture {
     pub meta: CaptureMeta,
     /// Hot-pixel mask (true = hot or dead), if the capture names one.
     pub hot_pixels: Option<Array2<bool>>,
+}
+
+/// Checks that binary frames come with binary metadata and multi-bit frames with a
+/// `bit_depth` >= 2 whose full scale holds every sample; the message says what disagrees.
+fn check_frame_kind(frames: &BinaryFrames, meta: &CaptureMeta) -> std::result::Result<(), String> {
+    match (frames.is_multibit(), meta.multibit) {
+        (false, None) => Ok(()),
+        (false, Some(m)) => Err(format!(
+            "capture.toml says `bit_depth` = {}, but the frames are binary (uint8 or bool); \
+             multi-bit frames are uint16 (T, H, W)",
+            m.bit_depth
+        )),
+        (true, None) => Err(
+            "the frames are uint16 (multi-bit), but capture.toml has no `bit_depth` (2..=16) \
+             and `gain_e_per_dn` or `full_well_e`"
+                .into(),
+        ),
+        (true, Some(m)) => {
+            let max = frames.max_sample();
+            if max > m.saturation_dn() {
+                Err(format!(
+                    "a sample is {max}, above the full scale {} of `bit_depth` = {}",
+                    m.saturation_dn(),
+                    m.bit_depth
+                ))
+            } else {
+                Ok(())
+            }
+        }
+    }
 }
 
 /// Reads the CFA of a capture: `cfa.npy` (uint8 (H, W) codes) if present, else `cfa.png`.
@@ -329,6 +560,7 @@ impl Capture {
                 ),
             ));
         }
+        check_frame_kind(&frames, &meta).map_err(|m| Error::format(&frames_path, m))?;
         let t = frames.frame_count();
         if let Some(r) = meta.reference_frame {
             if r >= t {
@@ -402,6 +634,7 @@ impl Capture {
         }
         meta.hot_pixels = None;
         meta.check().map_err(Error::invalid)?;
+        check_frame_kind(&frames, &meta).map_err(|m| Error::invalid(format!("frames: {m}")))?;
         let t = frames.frame_count();
         if let Some(r) = meta.reference_frame {
             if r >= t {
@@ -456,12 +689,31 @@ impl Capture {
     }
 }
 
+/// The frames of a capture to write.
+#[derive(Debug, Clone, Copy)]
+pub enum FrameData<'a> {
+    /// Binary frames, bit-packed uint8 (T, H, ceil(W/8)), MSB first.
+    Packed(&'a Array3<u8>),
+    /// Multi-bit frames, uint16 (T, H, W) digital numbers (the metadata must say `bit_depth`).
+    MultiBit(&'a Array3<u16>),
+}
+
+impl FrameData<'_> {
+    /// (T, H, last dimension) of the stored array.
+    fn dim(&self) -> (usize, usize, usize) {
+        match self {
+            FrameData::Packed(a) => a.dim(),
+            FrameData::MultiBit(a) => a.dim(),
+        }
+    }
+}
+
 /// Everything needed to write a capture directory.
 #[derive(Debug, Clone)]
 pub struct CaptureParts<'a> {
-    /// Packed frames, uint8 (T, H, ceil(W/8)), MSB first.
-    pub packed_frames: &'a Array3<u8>,
-    /// Width W in pixels (the packed array pads it to a multiple of 8).
+    /// The frames: packed binary or multi-bit.
+    pub frames: FrameData<'a>,
+    /// Width W in pixels (a packed array pads it to a multiple of 8).
     pub width: usize,
     pub cfa: &'a Cfa,
     pub meta: &'a CaptureMeta,
@@ -488,7 +740,7 @@ const RESERVED: [&str; 6] = [
 
 /// Checks `parts` for consistency before anything touches the disk.
 fn check_parts(parts: &CaptureParts<'_>) -> Result<()> {
-    let (t, h, row_bytes) = parts.packed_frames.dim();
+    let (t, h, row_len) = parts.frames.dim();
     let (ch, cw) = parts.cfa.codes().dim();
     if t == 0 || h == 0 || parts.width == 0 {
         return Err(Error::invalid(format!(
@@ -502,12 +754,44 @@ fn check_parts(parts: &CaptureParts<'_>) -> Result<()> {
             parts.width
         )));
     }
-    if row_bytes != parts.width.div_ceil(8) {
-        return Err(Error::invalid(format!(
-            "packed frames have {row_bytes} bytes per row, width {} needs {}",
-            parts.width,
-            parts.width.div_ceil(8)
-        )));
+    match (parts.frames, parts.meta.multibit) {
+        (FrameData::Packed(_), None) => {
+            if row_len != parts.width.div_ceil(8) {
+                return Err(Error::invalid(format!(
+                    "packed frames have {row_len} bytes per row, width {} needs {}",
+                    parts.width,
+                    parts.width.div_ceil(8)
+                )));
+            }
+        }
+        (FrameData::MultiBit(frames), Some(m)) => {
+            if row_len != parts.width {
+                return Err(Error::invalid(format!(
+                    "multi-bit frames are {row_len} wide, the width is {}",
+                    parts.width
+                )));
+            }
+            if let Some(&max) = frames.iter().max() {
+                if u32::from(max) > m.saturation_dn() {
+                    return Err(Error::invalid(format!(
+                        "a frame sample is {max}, above the full scale {} of bit_depth {}",
+                        m.saturation_dn(),
+                        m.bit_depth
+                    )));
+                }
+            }
+        }
+        (FrameData::Packed(_), Some(m)) => {
+            return Err(Error::invalid(format!(
+                "the metadata says bit_depth {}, but the frames are binary",
+                m.bit_depth
+            )))
+        }
+        (FrameData::MultiBit(_), None) => {
+            return Err(Error::invalid(
+                "multi-bit frames need metadata with a bit depth and gain (CaptureMeta::multibit)",
+            ))
+        }
     }
     if let Some(r) = parts.meta.reference_frame {
         if r >= t {
@@ -613,9 +897,12 @@ pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<
     let tmp = TempGuard::dir(io::temp_sibling(dir)?);
     fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
     let t = tmp.path();
-    write_member(t, dir, FRAMES_FILE, |w| {
-        write_frames(w, parts.packed_frames)
-    })?;
+    match parts.frames {
+        FrameData::Packed(packed) => {
+            write_member(t, dir, FRAMES_FILE, |w| write_frames(w, packed))?
+        }
+        FrameData::MultiBit(frames) => write_member(t, dir, FRAMES_FILE, npy_writer(frames))?,
+    }
     write_member(t, dir, CFA_NPY_FILE, npy_writer(parts.cfa.codes()))?;
     if let Some(mask) = parts.hot_pixels {
         write_member(t, dir, HOT_PIXELS_FILE, npy_writer(mask))?;

@@ -13,6 +13,7 @@
 //! to the p with E[A(X) | p] = a, computed here from the binomial distribution on a table.
 
 use crate::error::{Error, Result};
+use crate::model::{PixelModel, Readout};
 
 /// Number of table points in p (uniform in asin √p, so uniform in the transformed domain).
 const TABLE_POINTS: usize = 4097;
@@ -150,6 +151,117 @@ impl BinomialAnscombe {
             0.0
         };
         self.table_p[lo] + t * (self.table_p[hi] - self.table_p[lo])
+    }
+}
+
+/// Variance stabilisation of a merged flux λ (detections per frame) from `trials` frames, by
+/// the capture's pixel model ([`PixelModel`]):
+///
+/// - binary frames: the bit rate p = 1 − exp(−(λ + d)) (paper Eq. 2–3), then the binomial
+///   Anscombe transform A(n·p) with its exact unbiased inverse ([`BinomialAnscombe`], paper
+///   §4.3);
+/// - multi-bit frames (Gaussian–Poisson, §6.1): the generalized Anscombe transform (Murtagh,
+///   Starck & Bijaoui 1995) of the equivalent count Y = n·(λ + c), c = d + σ_r² + gain²/12
+///   (shot noise plus read and quantisation noise as a Poisson count of the same variance):
+///   a = 2·√(Y + ⅜), inverted by the asymptotically unbiased Y = (a/2)² − ⅛ (Mäkitalo & Foi
+///   2013 in the regime where n·c is large: a conventional burst has n·σ_r² of hundreds).
+#[derive(Debug, Clone)]
+pub enum Stabiliser {
+    Binomial {
+        anscombe: BinomialAnscombe,
+        model: PixelModel,
+    },
+    GaussianPoisson {
+        trials: f64,
+        /// c = d + σ_r² + gain²/12, electrons per frame.
+        floor: f64,
+        model: PixelModel,
+    },
+}
+
+impl Stabiliser {
+    /// The stabiliser of `model` for `trials` frames (at least 1).
+    pub fn new(model: PixelModel, trials: f64) -> Result<Self> {
+        Ok(match model.readout {
+            Readout::Binary => Stabiliser::Binomial {
+                anscombe: BinomialAnscombe::new(trials)?,
+                model,
+            },
+            Readout::GaussianPoisson(g) => {
+                if !trials.is_finite() || trials < 0.5 {
+                    return Err(Error::invalid(format!(
+                        "Gaussian–Poisson Anscombe transform: number of frames must be at \
+                         least 1, got {trials}"
+                    )));
+                }
+                Stabiliser::GaussianPoisson {
+                    trials,
+                    floor: model.dark_per_frame + g.floor_variance_e2(),
+                    model,
+                }
+            }
+        })
+    }
+
+    /// The pixel model.
+    pub fn model(&self) -> &PixelModel {
+        match self {
+            Stabiliser::Binomial { model, .. } | Stabiliser::GaussianPoisson { model, .. } => model,
+        }
+    }
+
+    /// The number of frames n.
+    pub fn trials(&self) -> f64 {
+        match self {
+            Stabiliser::Binomial { anscombe, .. } => anscombe.trials(),
+            Stabiliser::GaussianPoisson { trials, .. } => *trials,
+        }
+    }
+
+    /// Bit rate of binary frames, p = 1 − exp(−(λ + d)) clamped to [0, 1].
+    fn bit_rate(lambda: f64, dark: f64) -> f64 {
+        (1.0 - (-(lambda + dark).max(0.0)).exp()).clamp(0.0, 1.0)
+    }
+
+    /// The stabilised value of flux `lambda`.
+    pub fn forward(&self, lambda: f64) -> f64 {
+        match self {
+            Stabiliser::Binomial { anscombe, model } => {
+                anscombe.forward_rate(Self::bit_rate(lambda, model.dark_per_frame))
+            }
+            Stabiliser::GaussianPoisson { trials, floor, .. } => {
+                2.0 * (trials * (lambda + floor) + 0.375).max(0.0).sqrt()
+            }
+        }
+    }
+
+    /// d(forward)/dλ at `lambda` (delta method).
+    pub fn derivative(&self, lambda: f64) -> f64 {
+        match self {
+            Stabiliser::Binomial { anscombe, model } => {
+                let p = Self::bit_rate(lambda, model.dark_per_frame);
+                anscombe.derivative_rate(p) * (-(lambda + model.dark_per_frame).max(0.0)).exp()
+            }
+            Stabiliser::GaussianPoisson { trials, floor, .. } => {
+                trials / (trials * (lambda + floor) + 0.375).max(1e-12).sqrt()
+            }
+        }
+    }
+
+    /// The flux whose stabilised value has expectation `value` (exact unbiased inverse for
+    /// binary frames, capped below saturation; asymptotically unbiased for Gaussian–Poisson).
+    pub fn inverse(&self, value: f64) -> f64 {
+        match self {
+            Stabiliser::Binomial { anscombe, model } => {
+                let max_rate = 1.0 - 0.5 / anscombe.trials();
+                let p = anscombe.inverse_exact(value).min(max_rate);
+                -(1.0 - p).ln() - model.dark_per_frame
+            }
+            Stabiliser::GaussianPoisson { trials, floor, .. } => {
+                let y = 0.25 * value * value - 0.125;
+                y / trials - floor
+            }
+        }
     }
 }
 

@@ -2,21 +2,23 @@
 //!
 //! With an RGBW array the luminance of the merged image comes from the dense W pixels and the
 //! chrominance from the sparse R, G, B pixels, so chrominance is far noisier. The image is
-//! variance-stabilised per channel ([`BinomialAnscombe`]), converted to a YCbCr whose luma
+//! variance-stabilised per channel ([`Stabiliser`]: the binomial Anscombe transform, or for
+//! multi-bit frames the generalized Anscombe transform of the Gaussian–Poisson model), converted to a YCbCr whose luma
 //! weights (kR, kG, kB) are the normalised W weights (supplement Eq. 7–8), so that Y carries
 //! exactly the W information, and denoised with BM3D grouping on Y only, filtering Y with a
-//! small σ and Cb, Cr with a larger one. The σs come from the binomial noise model of the merge
-//! (each channel's bit rate and effective number of frames, carried through Eq. 8, the
+//! small σ and Cb, Cr with a larger one. The σs come from the noise model of the merge
+//! (each channel's flux and effective number of frames under the pixel model, carried through Eq. 8, the
 //! transform and the colour matrix by the delta method) unless the user gives them.
 //!
 //! [`DenoiseMethod::Bm3d`] is the plain colour BM3D it is compared against (CBM3D, Dabov et al.
 //! ICIP 2007): the orthonormal opponent colour space, grouping on its luminance, one σ for all
 //! three channels (the RMS noise of the stabilised R, G, B).
 
-use super::anscombe::BinomialAnscombe;
+use super::anscombe::Stabiliser;
 use super::bm3d::{bm3d_multichannel_varying, Bm3dConfig};
 use crate::align::patch::{bilinear, box_downsample};
 use crate::error::{Error, Result};
+use crate::model::PixelModel;
 use ndarray::{Array2, Array3, ArrayView3, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -173,8 +175,8 @@ impl ColorTransform {
     }
 }
 
-/// The merge's binomial noise model (see `merge::MergedPlanes`): per-channel flux and effective
-/// number of frames, (4, H, W) in code order R, G, B, W, on the grid of the linear image.
+/// The merge's noise model (see `merge::MergedPlanes`, with the pixel model of
+/// [`DenoiseInput::model`]): per-channel flux and effective number of frames, (4, H, W) in code order R, G, B, W, on the grid of the linear image.
 #[derive(Debug, Clone, Copy)]
 pub struct MergeNoise<'a> {
     pub flux: ArrayView3<'a, f32>,
@@ -187,6 +189,8 @@ pub struct MergeNoise<'a> {
 pub enum SigmaSource {
     /// The binomial noise model of the merge.
     BinomialModel,
+    /// The Gaussian–Poisson noise model of the merge (multi-bit frames).
+    GaussianPoissonModel,
     /// Median absolute deviation of the finest diagonal Haar coefficients (Donoho 1995), used
     /// when no merge noise model exists (e.g. the naive method).
     Estimated,
@@ -198,7 +202,7 @@ pub enum SigmaSource {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DenoiseReport {
     pub method: DenoiseMethod,
-    /// Trials n of the binomial Anscombe transform.
+    /// Frames n of the Anscombe transform (binomial, or generalized for multi-bit frames).
     pub anscombe_trials: f64,
     /// σ of the three channels of the colour transform, stabilised domain.
     pub sigmas: [f32; 3],
@@ -210,19 +214,15 @@ pub struct DenoiseReport {
 pub struct DenoiseInput<'a> {
     /// The merge's noise model; `None` estimates σ from the image.
     pub noise: Option<MergeNoise<'a>>,
-    /// Binary frames behind each pixel when `noise` is `None` (sets the Anscombe trials).
+    /// Frames behind each pixel when `noise` is `None` (sets the Anscombe trials).
     pub frames: f64,
-    pub dark_per_frame: f64,
+    /// The capture's pixel model (binary with its dark counts, or Gaussian–Poisson).
+    pub model: PixelModel,
     pub w_weights: [f64; 3],
 }
 
-/// Bit rate p = 1 − exp(−(λ + d)) of a flux λ (paper Eq. 2–3), clamped to [0, 1].
-fn bit_rate(flux: f64, dark: f64) -> f64 {
-    (1.0 - (-(flux + dark).max(0.0)).exp()).clamp(0.0, 1.0)
-}
-
-/// Denoises a linear RGB image (H, W, 3) in detections per frame (paper §4.3): binomial
-/// Anscombe per channel, colour transform, BM3D with grouping on the luma, inverse colour
+/// Denoises a linear RGB image (H, W, 3) in detections per frame (paper §4.3): Anscombe
+/// transform per channel ([`Stabiliser`]), colour transform, BM3D with grouping on the luma, inverse colour
 /// transform, exact unbiased inverse Anscombe, back to flux.
 pub fn denoise_linear(
     linear: ArrayView3<f32>,
@@ -260,7 +260,7 @@ pub fn denoise_linear(
         }
     }
     let Stabilised {
-        anscombe,
+        stabiliser,
         mut planes,
         sigmas: modelled,
         source,
@@ -268,7 +268,6 @@ pub fn denoise_linear(
         ..
     } = stabilise(linear, input, transform)?;
     let relative_variance = relative_variance.filter(|_| config.sigma_map);
-    let dark = input.dark_per_frame;
     let mut sigmas = match config.method {
         // Plain colour BM3D: one σ, the RMS over the channels (orthonormal transform).
         DenoiseMethod::Bm3d => {
@@ -322,8 +321,7 @@ pub fn denoise_linear(
     )?;
     denoised.mapv_inplace(|v| v / scale);
 
-    // Back: inverse colour transform, exact unbiased inverse Anscombe, flux.
-    let max_rate = 1.0 - 0.5 / anscombe.trials();
+    // Back: inverse colour transform, unbiased inverse Anscombe, flux.
     let mut out = Array3::<f32>::zeros((h, w, 3));
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
@@ -333,8 +331,7 @@ pub fn denoise_linear(
                 let t = [0, 1, 2].map(|ch| denoised[[ch, y, x]] as f64);
                 let a = ColorTransform::apply(&transform.inverse, t);
                 for ch in 0..3 {
-                    let p = anscombe.inverse_exact(a[ch]).min(max_rate);
-                    row[[x, ch]] = (-(1.0 - p).ln() - dark) as f32;
+                    row[[x, ch]] = stabiliser.inverse(a[ch]) as f32;
                 }
             }
         });
@@ -342,7 +339,7 @@ pub fn denoise_linear(
         out,
         Some(DenoiseReport {
             method: config.method,
-            anscombe_trials: anscombe.trials(),
+            anscombe_trials: stabiliser.trials(),
             sigmas,
             sigma_source: source,
         }),
@@ -408,7 +405,7 @@ pub fn bm3d_multiscale(
 /// A linear image in the stabilised, colour-transformed domain, with its noise σs.
 #[derive(Debug, Clone)]
 pub struct Stabilised {
-    pub anscombe: BinomialAnscombe,
+    pub stabiliser: Stabiliser,
     pub transform: ColorTransform,
     /// (3, H, W): the transform's channels of A(n·p) per colour channel.
     pub planes: Array3<f32>,
@@ -420,9 +417,10 @@ pub struct Stabilised {
     pub relative_variance: Option<Array3<f32>>,
 }
 
-/// Stabilises a linear image (H, W, 3): each colour channel's flux to its bit rate
-/// p = 1 − exp(−(λ + d)), then the binomial Anscombe transform A(n·p) with n from the merge's
-/// effective frames, then `transform`. The σs come from the merge's binomial model when
+/// Stabilises a linear image (H, W, 3): each colour channel's flux by the [`Stabiliser`] of the
+/// pixel model (binary: bit rate p = 1 − exp(−(λ + d)), then the binomial Anscombe transform
+/// A(n·p); multi-bit: the generalized Anscombe transform) with n from the merge's effective
+/// frames, then `transform`. The σs come from the merge's noise model when
 /// `input.noise` is given, otherwise from the planes ([`mad_sigma`]).
 pub fn stabilise(
     linear: ArrayView3<f32>,
@@ -435,7 +433,6 @@ pub fn stabilise(
             "denoising expects an (H, W, 3) image, got {c} channels"
         )));
     }
-    let dark = input.dark_per_frame;
     let trials = match input.noise {
         Some(noise) => {
             check_noise_shape(&noise, h, w)?;
@@ -443,14 +440,14 @@ pub fn stabilise(
         }
         None => input.frames,
     };
-    let anscombe = BinomialAnscombe::new(trials.max(1.0))?;
+    let stabiliser = Stabiliser::new(input.model, trials.max(1.0))?;
     let mut planes = Array3::<f32>::zeros((3, h, w));
     for y in 0..h {
         for x in 0..w {
             let a = [0, 1, 2].map(|ch| {
                 let v = linear[[y, x, ch]];
                 let v = if v.is_finite() { v as f64 } else { 0.0 };
-                anscombe.forward_rate(bit_rate(v, dark))
+                stabiliser.forward(v)
             });
             let t = ColorTransform::apply(&transform.forward, a);
             for ch in 0..3 {
@@ -460,17 +457,16 @@ pub fn stabilise(
     }
     let (sigmas, source, relative_variance) = match input.noise {
         Some(noise) => {
-            let variance = model_variance_map(
-                &linear,
-                &noise,
-                &anscombe,
-                &transform,
-                dark,
-                input.w_weights,
-            );
+            let variance =
+                model_variance_map(&linear, &noise, &stabiliser, &transform, input.w_weights);
             let sigmas = median_sigmas(&variance);
             let relative = relative_variance(variance, sigmas);
-            (sigmas, SigmaSource::BinomialModel, Some(relative))
+            let source = if input.model.is_binary() {
+                SigmaSource::BinomialModel
+            } else {
+                SigmaSource::GaussianPoissonModel
+            };
+            (sigmas, source, Some(relative))
         }
         None => {
             let est = [0, 1, 2].map(|ch| mad_sigma(planes.index_axis(Axis(0), ch)));
@@ -478,7 +474,7 @@ pub fn stabilise(
         }
     };
     Ok(Stabilised {
-        anscombe,
+        stabiliser,
         transform,
         planes,
         sigmas,
@@ -554,15 +550,16 @@ fn relative_variance(mut variance: Array3<f32>, sigmas: [f32; 3]) -> Array3<f32>
     variance
 }
 
-/// Per-pixel noise variance (3, H, W) of the three transformed channels from the binomial model,
-/// by the delta method (Var λ_c = p_c / ((1 − p_c)·N_c) for the MLE of Eq. 6, through Eq. 8,
-/// the Anscombe transform and the colour matrix); NaN where the model is undefined.
+/// Per-pixel noise variance (3, H, W) of the three transformed channels from the merge's noise
+/// model, by the delta method (Var λ_c of the pixel model, [`PixelModel::flux_variance`]:
+/// p_c / ((1 − p_c)·N_c) for the binary MLE of Eq. 6, (λ_c + d + σ_r² + gain²/12)/N_c for
+/// Gaussian–Poisson; through Eq. 8, the Anscombe transform and the colour matrix); NaN where the
+/// model is undefined.
 pub fn model_variance_map(
     linear: &ArrayView3<f32>,
     noise: &MergeNoise,
-    anscombe: &BinomialAnscombe,
+    stabiliser: &Stabiliser,
     transform: &ColorTransform,
-    dark: f64,
     w_weights: [f64; 3],
 ) -> Array3<f32> {
     let (h, w, _) = linear.dim();
@@ -577,10 +574,8 @@ pub fn model_variance_map(
         .map(|y| {
             (0..w)
                 .map(|x| {
-                    pixel_variance(
-                        linear, noise, anscombe, transform, dark, w_weights, has_w, y, x,
-                    )
-                    .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
+                    pixel_variance(linear, noise, stabiliser, transform, w_weights, has_w, y, x)
+                        .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
                 })
                 .collect()
         })
@@ -599,9 +594,8 @@ pub fn model_variance_map(
 fn pixel_variance(
     linear: &ArrayView3<f32>,
     noise: &MergeNoise,
-    anscombe: &BinomialAnscombe,
+    stabiliser: &Stabiliser,
     transform: &ColorTransform,
-    dark: f64,
     w_weights: [f64; 3],
     has_w: bool,
     y: usize,
@@ -617,8 +611,7 @@ fn pixel_variance(
         if c >= channels {
             return 0.0;
         }
-        let p = bit_rate(lam[c], dark).min(1.0 - 0.5 / n[c]);
-        p / ((1.0 - p) * n[c])
+        stabiliser.model().flux_variance(lam[c], n[c])
     });
     // ∂out_c/∂λ_k of Eq. 8, out_c = λ_c·λ_W / L with L = Σ w_k·λ_k.
     let mut jac = [[0.0f64; 4]; 3];
@@ -637,11 +630,7 @@ fn pixel_variance(
         }
     }
     // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
-    let da = [0, 1, 2].map(|c| {
-        let out = linear[[y, x, c]] as f64;
-        let p = bit_rate(out, dark);
-        anscombe.derivative_rate(p) * (-(out + dark).max(0.0)).exp()
-    });
+    let da = [0, 1, 2].map(|c| stabiliser.derivative(linear[[y, x, c]] as f64));
     // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.
     let mut var = [0.0; 3];
     for (i, row) in transform.forward.iter().enumerate() {
@@ -756,7 +745,7 @@ mod tests {
         let input = DenoiseInput {
             noise: None,
             frames: 100.0,
-            dark_per_frame: 0.0,
+            model: PixelModel::binary(0.0),
             w_weights: [1.0; 3],
         };
         let config = DenoiseConfig {

@@ -62,6 +62,22 @@ pub fn hstack<T: Copy>(images: &[ArrayView3<T>], gap: usize, fill: T) -> Array3<
     out
 }
 
+/// Places images one above the other with `gap` rows of `fill` between them (left-aligned).
+pub fn vstack<T: Copy>(images: &[ArrayView3<T>], gap: usize, fill: T) -> Array3<T> {
+    let w = images.iter().map(|i| i.dim().1).max().unwrap_or(0);
+    let c = images.first().map(|i| i.dim().2).unwrap_or(3);
+    let h: usize =
+        images.iter().map(|i| i.dim().0).sum::<usize>() + gap * images.len().saturating_sub(1);
+    let mut out = Array3::from_elem((h, w, c), fill);
+    let mut y0 = 0;
+    for img in images {
+        let (ih, iw, _) = img.dim();
+        out.slice_mut(s![y0..y0 + ih, ..iw, ..]).assign(img);
+        y0 += ih + gap;
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

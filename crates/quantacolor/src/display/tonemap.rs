@@ -106,12 +106,74 @@ pub fn tone_map(
             let s = exposure.unwrap_or_else(|| auto_exposure_scale(img.view()));
             img.mapv(|v| (v * s).clamp(0.0, 1.0))
         }
-        ToneMap::Global(cfg) => global(img, exposure, cfg)?,
+        ToneMap::Global(cfg) => global(img, exposure, None, cfg)?,
         ToneMap::Mantiuk06(cfg) => mantiuk06(img, exposure.unwrap_or(1.0), cfg)?,
     })
 }
 
-fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Result<Array3<f32>> {
+/// Exposure of the global operator: `key` over the log-average luminance (Reinhard Eq. 1; δ
+/// avoids log 0); 1 for a black image.
+fn key_exposure(lum: &[f32], key: f32) -> f64 {
+    let max = lum.iter().copied().fold(0.0f32, f32::max) as f64;
+    let delta = 1e-6 * max.max(f64::MIN_POSITIVE);
+    let mean_log =
+        lum.iter().map(|&l| (l as f64 + delta).ln()).sum::<f64>() / lum.len().max(1) as f64;
+    let avg = mean_log.exp();
+    if avg > 0.0 {
+        key as f64 / avg
+    } else {
+        1.0
+    }
+}
+
+/// The exposure [`ToneMap::Global`] with `cfg` would choose for `linear` (H, W, 3): to render
+/// several images (e.g. reconstructions and their ground truth) at one exposure.
+pub fn global_exposure(linear: ArrayView3<f32>, cfg: &GlobalConfig) -> f32 {
+    let img = sanitise(linear);
+    let lum: Vec<f32> = img
+        .lanes(Axis(2))
+        .into_iter()
+        .map(|p| luminance(&[p[0], p[1], p[2]]))
+        .collect();
+    key_exposure(&lum, cfg.key) as f32
+}
+
+/// The global operator with both its settings given: `exposure` and the white point `white`
+/// (scaled luminance), e.g. those [`global_exposure`] and [`global_white`] pick for a reference
+/// image, so that several images render alike.
+pub fn tone_map_global(
+    linear: ArrayView3<f32>,
+    exposure: f32,
+    white: f32,
+    cfg: &GlobalConfig,
+) -> Result<Array3<f32>> {
+    if !(exposure.is_finite() && exposure > 0.0 && white.is_finite() && white > 0.0) {
+        return Err(Error::invalid(format!(
+            "global tone map: exposure {exposure} and white point {white} must be positive"
+        )));
+    }
+    global(sanitise(linear), Some(exposure), Some(white as f64), cfg)
+}
+
+/// The white point [`ToneMap::Global`] with `cfg` picks for `linear` at `exposure`: the
+/// `white_percentile` of the scaled luminance (1 for a black image).
+pub fn global_white(linear: ArrayView3<f32>, exposure: f32, cfg: &GlobalConfig) -> f32 {
+    let img = sanitise(linear);
+    let lum = img
+        .lanes(Axis(2))
+        .into_iter()
+        .map(|p| luminance(&[p[0], p[1], p[2]]) * exposure);
+    percentile(lum, cfg.white_percentile)
+        .filter(|w| *w > 0.0)
+        .unwrap_or(1.0)
+}
+
+fn global(
+    mut img: Array3<f32>,
+    exposure: Option<f32>,
+    white: Option<f64>,
+    cfg: &GlobalConfig,
+) -> Result<Array3<f32>> {
     if !(cfg.key.is_finite() && cfg.key > 0.0 && (0.0..=100.0).contains(&cfg.white_percentile)) {
         return Err(Error::invalid(
             "global tone map: key must be positive, white percentile in 0..=100",
@@ -124,23 +186,13 @@ fn global(mut img: Array3<f32>, exposure: Option<f32>, cfg: &GlobalConfig) -> Re
         .collect();
     let scale = match exposure {
         Some(e) => e as f64,
-        None => {
-            // Log-average luminance (Reinhard Eq. 1) over lit pixels; δ avoids log 0.
-            let max = lum.iter().copied().fold(0.0f32, f32::max) as f64;
-            let delta = 1e-6 * max.max(f64::MIN_POSITIVE);
-            let mean_log =
-                lum.iter().map(|&l| (l as f64 + delta).ln()).sum::<f64>() / lum.len().max(1) as f64;
-            let avg = mean_log.exp();
-            if avg > 0.0 {
-                cfg.key as f64 / avg
-            } else {
-                1.0
-            }
-        }
+        None => key_exposure(&lum, cfg.key),
     };
-    let white = percentile(lum.iter().map(|&l| l * scale as f32), cfg.white_percentile)
-        .filter(|w| *w > 0.0)
-        .unwrap_or(1.0) as f64;
+    let white = white.unwrap_or_else(|| {
+        percentile(lum.iter().map(|&l| l * scale as f32), cfg.white_percentile)
+            .filter(|w| *w > 0.0)
+            .unwrap_or(1.0) as f64
+    });
     Zip::from(img.lanes_mut(Axis(2))).par_for_each(|mut px| {
         let l = luminance(&[px[0], px[1], px[2]]) as f64 * scale;
         if l > 0.0 {

@@ -3,12 +3,15 @@
 
 use crate::cfa::Cfa;
 use crate::denoise::chroma::DenoiseMethod;
-use crate::display::{auto_exposure_scale, encode_srgb8, hstack};
+use crate::display::{
+    auto_exposure_scale, encode_srgb8, global_exposure, global_white, hstack, tone_map_global,
+    vstack, GlobalConfig,
+};
 use crate::error::Result;
 use crate::metrics::{evaluate, EvalOptions, Scores};
 use crate::pipeline::{reconstruct, Method, ReconstructConfig};
 use crate::progress::Progress;
-use crate::simulate::{self, Scene, SimulationConfig};
+use crate::simulate::{self, Scene, SensorKind, SimulationConfig};
 use ndarray::{s, Array3, ArrayView3};
 
 /// CSV text: `header`, then one line per row, each line ending in `\n`.
@@ -34,7 +37,8 @@ pub(super) struct Trial {
     pub naive: Option<Array3<f32>>,
 }
 
-/// Simulates `config` (behind `cfa` when given) and reconstructs it; both reconstructions run
+/// Simulates `config` (behind `cfa` when given; a binary sensor, or the multi-bit CMOS sensor)
+/// and reconstructs it; both reconstructions run
 /// without denoising, so that the experiments measure alignment and merge, as the paper's
 /// figures compare them.
 pub(super) fn trial(
@@ -44,11 +48,18 @@ pub(super) fn trial(
     with_naive: bool,
     progress: &dyn Progress,
 ) -> Result<Trial> {
-    let sim = match cfa {
-        Some(c) => simulate::simulate_with_cfa(config, scene, c, progress)?,
-        None => simulate::simulate(config, scene, progress)?,
+    let cfa = match cfa {
+        Some(c) => c.clone(),
+        None => simulate::config_cfa(config)?,
     };
-    let capture = sim.to_capture()?;
+    // Conventional sensors run through the same pipeline with multi-bit frames (paper §6.1).
+    let (capture, truth) = if config.sensor == SensorKind::Cmos {
+        let sim = simulate::simulate_cmos_with_cfa(config, scene, &cfa, progress)?;
+        (sim.to_capture()?, sim.ground_truth)
+    } else {
+        let sim = simulate::simulate_with_cfa(config, scene, &cfa, progress)?;
+        (sim.to_capture()?, sim.ground_truth)
+    };
     let run = |method: Method| -> Result<Array3<f32>> {
         let mut rc = ReconstructConfig {
             method,
@@ -64,7 +75,7 @@ pub(super) fn trial(
         None
     };
     Ok(Trial {
-        truth: sim.ground_truth,
+        truth,
         burst,
         naive,
     })
@@ -139,4 +150,50 @@ pub(super) fn contact_sheet(
         .collect();
     let views: Vec<_> = crops.iter().map(|c| c.view()).collect();
     hstack(&views, 4, 255)
+}
+
+/// Contact sheet of tone-mapped results: one row per entry of `rows`, each the centre `size` x
+/// `size` crop of the first pair's truth, then of every estimate. Each estimate is normalised like
+/// the metric, by its own truth (the truth's 99.5th percentile to 1: sensors differ in units), and
+/// all are rendered by the global operator (Reinhard 2002) at the exposure and white point it
+/// picks for the row's first (normalised) truth, so that rows of HDR scenes with light sources
+/// show their dark parts and every image of a row renders alike.
+pub(super) fn tone_mapped_sheet(
+    rows: &[Vec<(&Array3<f32>, &Array3<f32>)>],
+    size: usize,
+) -> Result<Array3<u8>> {
+    let cfg = GlobalConfig::default();
+    let normalised = |truth: &Array3<f32>, image: &Array3<f32>| {
+        let norm = crate::display::exposure::percentile(truth.iter().copied(), 99.5)
+            .filter(|p| *p > 0.0)
+            .map_or(1.0, |p| 1.0 / p);
+        image.mapv(|v| v * norm)
+    };
+    let mut rendered_rows = Vec::new();
+    for pairs in rows {
+        let Some(&(first_truth, _)) = pairs.first() else {
+            continue;
+        };
+        let reference = normalised(first_truth, first_truth);
+        let exposure = global_exposure(reference.view(), &cfg);
+        let white = global_white(reference.view(), exposure, &cfg);
+        let images: Vec<Array3<f32>> = std::iter::once(reference)
+            .chain(pairs.iter().map(|(t, e)| normalised(t, e)))
+            .collect();
+        let crops = images
+            .iter()
+            .map(|a| {
+                let (h, w, _) = a.dim();
+                let (ch, cw) = (size.min(h), size.min(w));
+                let (y0, x0) = ((h - ch) / 2, (w - cw) / 2);
+                let crop = a.slice(s![y0..y0 + ch, x0..x0 + cw, ..]);
+                let display = tone_map_global(crop, exposure, white, &cfg)?;
+                Ok(encode_srgb8(display.view(), 1.0))
+            })
+            .collect::<Result<Vec<Array3<u8>>>>()?;
+        let views: Vec<_> = crops.iter().map(|c| c.view()).collect();
+        rendered_rows.push(hstack(&views, 4, 255));
+    }
+    let views: Vec<_> = rendered_rows.iter().map(|r| r.view()).collect();
+    Ok(vstack(&views, 4, 255))
 }

@@ -8,6 +8,7 @@
 //! | `motion`         | Fig. 10                    | [`motion`]          |
 //! | `w-fraction`     | supplement Fig. 3          | [`w_fraction`]      |
 //! | `cfa`            | Fig. 7                     | [`cfa`]             |
+//! | `sensors`        | Fig. 11–12, suppl. Fig. 4  | [`sensors`]         |
 //!
 //! Every experiment takes the sensor of paper Table 1 ([`crate::simulate::SensorModel::table1`]).
 //! The simulated ones run the simulator ([`crate::simulate`]) and the reconstruction pipeline
@@ -23,6 +24,7 @@ pub mod cfa;
 pub mod dynamic_range;
 pub mod motion;
 pub mod plot;
+pub mod sensors;
 pub mod w_fraction;
 
 mod common;
@@ -38,19 +40,22 @@ pub enum Experiment {
     Motion,
     WFraction,
     Cfa,
+    Sensors,
 }
 
 impl Experiment {
     /// Command-line names, in the order of [`Experiment::all`].
-    pub const NAMES: [&'static str; 4] = ["dynamic-range", "motion", "w-fraction", "cfa"];
+    pub const NAMES: [&'static str; 5] =
+        ["dynamic-range", "motion", "w-fraction", "cfa", "sensors"];
 
     /// Every experiment.
-    pub fn all() -> [Experiment; 4] {
+    pub fn all() -> [Experiment; 5] {
         [
             Experiment::DynamicRange,
             Experiment::Motion,
             Experiment::WFraction,
             Experiment::Cfa,
+            Experiment::Sensors,
         ]
     }
 
@@ -61,6 +66,7 @@ impl Experiment {
             Experiment::Motion => "motion",
             Experiment::WFraction => "w-fraction",
             Experiment::Cfa => "cfa",
+            Experiment::Sensors => "sensors",
         }
     }
 }
@@ -141,6 +147,7 @@ pub fn run(
         Experiment::Motion => motion::run(options, progress),
         Experiment::WFraction => w_fraction::run(options, progress),
         Experiment::Cfa => cfa::run(options, progress),
+        Experiment::Sensors => sensors::run(options, progress),
     }
 }
 

@@ -1,15 +1,16 @@
 //! Joint demosaic and merge by kernel regression (paper §4.2, Fig. 4; supplement Eq. 1–3;
 //! Wronski et al. 2019 Eq. 1; Takeda et al. 2007): every output pixel gathers, per channel, the
 //! CFA sites of every sub-block that land near it after motion compensation, weighted by the
-//! anisotropic kernel and the sub-block's robustness, then inverts the Bernoulli response of
-//! the accumulated counts (paper Eq. 6). Samples are first splatted into sub-pixel phase bins
+//! anisotropic kernel and the sub-block's robustness, then inverts the pixel's response on the
+//! accumulated counts: the Bernoulli MLE of paper Eq. 6 for binary frames, the Gaussian–Poisson
+//! inversion for multi-bit frames (§6.1; [`crate::model::PixelModel`]). Samples are first splatted into sub-pixel phase bins
 //! on the reference grid, so the regression runs once whatever the number of sub-blocks
 //! (this project's implementation choice; the sum it computes is the paper's).
 
 use super::kernels::KernelField;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
-use crate::model::mle_flux;
+use crate::model::PixelModel;
 use crate::naive::normalized_convolution;
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
@@ -27,13 +28,15 @@ pub enum SubBlockRobustness {
     Map(Array2<f32>),
 }
 
-/// A group of consecutive binary frames summed into one multi-bit image whose motion relative
-/// to the reference agrees to a fraction of a pixel over its frames.
+/// A group of consecutive frames summed into one multi-bit image whose motion relative
+/// to the reference agrees to a fraction of a pixel over its frames (for multi-bit frames of a
+/// conventional sensor, one frame: paper §6.1).
 #[derive(Debug, Clone)]
 pub struct SubBlock {
-    /// (H, W) number of ones over `frames` binary frames, per pixel.
+    /// (H, W) sum of the samples over `frames` frames per pixel: the number of ones of binary
+    /// frames, the sum of digital numbers of multi-bit frames.
     pub counts: Array2<u32>,
-    /// Binary frames summed into `counts`.
+    /// Frames summed into `counts`.
     pub frames: u32,
     /// Where each site's scene point sits in the reference.
     pub flow: SubBlockMotion,
@@ -97,9 +100,10 @@ pub struct AccumulateConfig {
     pub max_radius: usize, // 5 px
     /// Kernel truncation: samples with dᵀΩ⁻¹d above this are skipped (9 = 3 std).
     pub cutoff: f32, // 9 (squared Mahalanobis distance)
-    /// Mean bit rate of W above which W counts as saturated and the RGB estimate replaces it
+    /// Mean sample of W, as a fraction of the largest sample (1 for binary frames, full scale
+    /// for multi-bit ones), above which W counts as saturated and the RGB estimate replaces it
     /// (supplement §7), provided R, G and B are below it.
-    pub w_saturation: f32, // 0.98 detections per frame (bit rate)
+    pub w_saturation: f32, // 0.98 (bit rate of binary frames)
     /// Exponent α of the per-channel kernel widening: Ω_c = Ω·scale_c^α with scale_c the area
     /// per site ([`KernelField::channel_scale`]). 1 widens each channel's kernel by its mean
     /// site spacing (right for a single frame); many sub-blocks at sub-pixel offsets sample
@@ -133,11 +137,13 @@ pub struct MergedPlanes {
     /// frame, dark counts removed. W is replaced by wR·R + wG·G + wB·B where it saturates.
     /// Channels absent from the CFA are NaN.
     pub flux: Array3<f32>,
-    /// (4, H·s, W·s) merged mean bit rate p̂ = Σ w·counts / Σ w·frames per channel.
+    /// (4, H·s, W·s) merged mean sample per frame p̂ = Σ w·counts / Σ w·frames per channel: the
+    /// bit rate of binary frames, the mean digital number of multi-bit frames.
     pub bit_rate: Array3<f32>,
-    /// (4, H·s, W·s) effective number of binary frames behind each bit rate, (Σ w·F)² / Σ w²·F
-    /// (Kish): the binomial noise model of the merge, Var(p̂) = p(1 − p)/N. NaN where no sample
-    /// reached the pixel (filled pixels).
+    /// (4, H·s, W·s) effective number of frames behind each mean, (Σ w·F)² / Σ w²·F (Kish):
+    /// with the pixel model, the noise model of the merge (binomial Var(p̂) = p(1 − p)/N for
+    /// binary frames; [`PixelModel::flux_variance`]). NaN where no sample reached the pixel
+    /// (filled pixels).
     pub effective_frames: Array3<f32>,
     /// (H·s, W·s) pixels where the saturated W was replaced by the RGB estimate.
     pub w_fallback: Array2<bool>,
@@ -163,6 +169,7 @@ pub struct MergeAccumulator<'a> {
     cfa: &'a Cfa,
     kernels: &'a KernelField,
     config: AccumulateConfig,
+    model: PixelModel,
     codes: Vec<u8>,
     /// Sites never splatted (hot pixels), row-major (H·W).
     excluded: Option<Vec<bool>>,
@@ -216,10 +223,18 @@ pub fn reference_position(flow: &[f32], h: usize, w: usize, q: [f32; 2]) -> [f32
 }
 
 impl<'a> MergeAccumulator<'a> {
-    /// Empty accumulators for `cfa` with the kernels of the reference.
-    pub fn new(cfa: &'a Cfa, kernels: &'a KernelField, config: &AccumulateConfig) -> Result<Self> {
+    /// Empty accumulators for `cfa` with the kernels of the reference, for frames whose
+    /// samples follow `model` (a plain number: binary frames with that many dark counts per
+    /// frame).
+    pub fn new(
+        cfa: &'a Cfa,
+        kernels: &'a KernelField,
+        config: &AccumulateConfig,
+        model: impl Into<PixelModel>,
+    ) -> Result<Self> {
         let (h, w) = (cfa.height(), cfa.width());
-        validate(&[], &[], kernels, h, w, config)?;
+        let model: PixelModel = model.into();
+        validate(&[], &[], kernels, h, w, config, model.max_sample())?;
         let channel_scale = KernelField::channel_scale(cfa).map(|s| {
             if s > 0.0 {
                 s.powf(config.spacing_exponent)
@@ -240,6 +255,7 @@ impl<'a> MergeAccumulator<'a> {
             cfa,
             kernels,
             config: config.clone(),
+            model,
             codes: cfa.codes().iter().copied().collect(),
             excluded: None,
             channel_scale,
@@ -278,6 +294,7 @@ impl<'a> MergeAccumulator<'a> {
             h,
             w,
             &self.config,
+            self.model.max_sample(),
         )?;
         let u = self.bins_per_px as f32;
         let margin = self.margin as f32;
@@ -363,9 +380,12 @@ impl<'a> MergeAccumulator<'a> {
         Ok(())
     }
 
-    /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel bit rates and MLE
-    /// fluxes (paper Eq. 6), holes filled, W saturation fallback applied.
-    pub fn finish(self, dark_per_frame: f64, w_weights: [f64; 3]) -> MergedPlanes {
+    /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel mean samples and
+    /// fluxes (the MLE of paper Eq. 6, or the Gaussian–Poisson inversion: [`PixelModel::flux`]),
+    /// holes filled, W saturation fallback applied.
+    pub fn finish(self, w_weights: [f64; 3]) -> MergedPlanes {
+        let model = self.model;
+        let w_saturation = self.config.w_saturation * model.max_sample() as f32;
         let scale = self.config.scale;
         let (h, w) = (self.cfa.height(), self.cfa.width());
         let (hs, ws) = (h * scale, w * scale);
@@ -435,7 +455,7 @@ impl<'a> MergeAccumulator<'a> {
                     let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
                     bit_rate[[ch, oy, ox]] = p;
                     effective_frames[[ch, oy, ox]] = n_eff as f32;
-                    flux[[ch, oy, ox]] = mle_flux(p as f64 * n_eff, n_eff, dark_per_frame) as f32;
+                    flux[[ch, oy, ox]] = model.flux(p as f64, n_eff) as f32;
                 }
             }
         }
@@ -463,7 +483,7 @@ impl<'a> MergeAccumulator<'a> {
         if channel_scale[..3].iter().all(|&s| s > 0.0) && channel_scale[3] > 0.0 {
             for oy in 0..hs {
                 for ox in 0..ws {
-                    let sat = |ch: usize| bit_rate[[ch, oy, ox]] > self.config.w_saturation;
+                    let sat = |ch: usize| bit_rate[[ch, oy, ox]] > w_saturation;
                     if sat(3) && !(sat(0) || sat(1) || sat(2)) {
                         let lum: f64 = (0..3)
                             .map(|ch| flux[[ch, oy, ox]] as f64 * w_weights[ch])
@@ -492,7 +512,8 @@ impl<'a> MergeAccumulator<'a> {
 /// ([`KernelField::channel_scale`], α = `spacing_exponent`), within `max_radius`:
 /// num_c += w·counts_k(q), den_c += w·frames_k. Then p̂_c = num_c/den_c and
 /// λ_c = mle_flux(p̂_c·N, N, dark) with the effective number of frames N = (Σ w·F)² / Σ w²·F
-/// (Kish), so the saturation clamp of the MLE acts at the right count. Kernels are read at
+/// (Kish), so the saturation clamp of the MLE acts at the right count (multi-bit frames: the
+/// Gaussian–Poisson inversion of `model`, [`PixelModel::flux`]). Kernels are read at
 /// the nearest reference pixel of p, robustness at the nearest of p_q, and p_q is rounded to
 /// the phase bins of [`MergeAccumulator`]. Pixels that no sample reaches are filled by
 /// normalized convolution of their plane. Where W's p̂ exceeds `w_saturation` but R, G, B do
@@ -502,16 +523,16 @@ pub fn demosaic_merge(
     block_robustness: &[Array2<f32>],
     cfa: &Cfa,
     kernels: &KernelField,
-    dark_per_frame: f64,
+    model: impl Into<PixelModel>,
     w_weights: [f64; 3],
     config: &AccumulateConfig,
 ) -> Result<MergedPlanes> {
     if sub_blocks.is_empty() {
         return Err(Error::invalid("merge: no sub-blocks given"));
     }
-    let mut acc = MergeAccumulator::new(cfa, kernels, config)?;
+    let mut acc = MergeAccumulator::new(cfa, kernels, config, model)?;
     acc.add(sub_blocks, block_robustness)?;
-    Ok(acc.finish(dark_per_frame, w_weights))
+    Ok(acc.finish(w_weights))
 }
 
 fn validate(
@@ -521,6 +542,7 @@ fn validate(
     h: usize,
     w: usize,
     config: &AccumulateConfig,
+    max_sample: f64,
 ) -> Result<()> {
     if !(1..=8).contains(&config.scale) {
         return Err(Error::invalid(format!(
@@ -563,9 +585,11 @@ fn validate(
                 "merge: sub-block {k} has zero frames"
             )));
         }
-        if let Some(((y, x), c)) = b.counts.indexed_iter().find(|(_, &c)| c > b.frames) {
+        let most = b.frames as f64 * max_sample;
+        if let Some(((y, x), c)) = b.counts.indexed_iter().find(|(_, &c)| c as f64 > most) {
             return Err(Error::invalid(format!(
-                "merge: sub-block {k} counts {c} ones at (y={y}, x={x}) in {} frames",
+                "merge: sub-block {k} sums to {c} at (y={y}, x={x}), more than {} frames of at \
+                 most {max_sample} each",
                 b.frames
             )));
         }

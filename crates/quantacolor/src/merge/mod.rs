@@ -35,9 +35,38 @@ pub use warp::{sample_bilinear, warp_to_reference};
 
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::model::PixelModel;
 use crate::naive::{combine_rgbw, normalized_convolution};
 use ndarray::{Array2, Array3, Zip};
 use serde::{Deserialize, Serialize};
+
+/// The noise of a grey block value (the mean sample per frame over `trials` frames, see
+/// [`grey_from_counts`]): Var = v(μ)/trials with v the pixel model's per-frame sample variance
+/// ([`PixelModel::sample_variance`]: binomial μ(1 − μ) for binary frames, Gaussian–Poisson for
+/// multi-bit ones). The Wiener reference and the robustness weights ask it. A plain number is
+/// that many Bernoulli trials of a binary pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GreyNoise {
+    /// Frames averaged into one grey value (times pixels binned, where binned).
+    pub trials: f32,
+    pub model: PixelModel,
+}
+
+impl From<f32> for GreyNoise {
+    fn from(trials: f32) -> Self {
+        GreyNoise {
+            trials,
+            model: PixelModel::binary(0.0),
+        }
+    }
+}
+
+impl GreyNoise {
+    /// Variance of a grey value whose mean is `mean`.
+    pub fn variance(&self, mean: f32) -> f32 {
+        (self.model.sample_variance(mean as f64) / self.trials as f64) as f32
+    }
+}
 
 /// Configuration of the whole merge.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -58,15 +87,15 @@ pub struct BurstInput<'a> {
     pub block_flows: &'a [Array3<f32>],
     /// Index of the reference block.
     pub reference_block: usize,
-    /// Bernoulli trials averaged into one grey value (frames per block x pixels binned).
+    /// Frames averaged into one grey value (frames per block x pixels binned).
     pub grey_trials: f32,
     /// Sub-blocks to merge; `SubBlockRobustness::Block(i)` refers to block i above.
     pub sub_blocks: &'a [SubBlock],
     pub cfa: &'a Cfa,
     /// W = wR·R + wG·G + wB·B.
     pub w_weights: [f64; 3],
-    /// Dark counts per binary frame.
-    pub dark_per_frame: f64,
+    /// The pixel model (binary with its dark counts per frame, or Gaussian–Poisson).
+    pub model: PixelModel,
 }
 
 /// Result of [`merge_burst`], with the intermediate stages for inspection.
@@ -95,14 +124,16 @@ pub struct MergeGuide {
 }
 
 /// Stages 1–3 of the merge (supplement §1.2–1.3): the Wiener-merged reference of the grey
-/// blocks warped by `block_flows`, its kernel field, and per-block robustness.
+/// blocks warped by `block_flows`, its kernel field, and per-block robustness; `noise` is the
+/// noise of a grey value ([`GreyNoise`]; a number: that many Bernoulli trials).
 pub fn merge_guide(
     grey_blocks: &[Array2<f32>],
     block_flows: &[Array3<f32>],
     reference_block: usize,
-    grey_trials: f32,
+    noise: impl Into<GreyNoise>,
     config: &MergeConfig,
 ) -> Result<MergeGuide> {
+    let noise: GreyNoise = noise.into();
     let blocks = grey_blocks.len();
     if reference_block >= blocks {
         return Err(Error::invalid(format!(
@@ -114,7 +145,7 @@ pub fn merge_guide(
         grey_blocks,
         block_flows,
         reference_block,
-        grey_trials,
+        noise,
         &config.wiener,
     )?;
     let kernels = kernel_field(
@@ -129,7 +160,7 @@ pub fn merge_guide(
             if k == reference_block {
                 Ok(Array2::ones((h, w)))
             } else {
-                robustness(&reference, grey, flow, grey_trials, &config.robustness)
+                robustness(&reference, grey, flow, noise, &config.robustness)
             }
         })
         .collect::<Result<Vec<_>>>()?;
@@ -161,7 +192,10 @@ pub fn merge_burst(input: &BurstInput, config: &MergeConfig) -> Result<MergedBur
         input.grey_blocks,
         input.block_flows,
         input.reference_block,
-        input.grey_trials,
+        GreyNoise {
+            trials: input.grey_trials,
+            model: input.model,
+        },
         config,
     )?;
     let planes = demosaic_merge(
@@ -169,7 +203,7 @@ pub fn merge_burst(input: &BurstInput, config: &MergeConfig) -> Result<MergedBur
         &guide.robustness,
         input.cfa,
         &guide.kernels,
-        input.dark_per_frame,
+        input.model,
         input.w_weights,
         &config.accumulate,
     )?;
@@ -190,8 +224,8 @@ impl MergedBurst {
     }
 }
 
-/// Grey image of one block for alignment and the reference: the mean bit rate counts/frames of
-/// the W sites, with the other sites filled by normalized convolution of their W neighbours
+/// Grey image of one block for alignment and the reference: the mean sample counts/frames (bit
+/// rate, or digital number of multi-bit frames) of the W sites, with the other sites filled by normalized convolution of their W neighbours
 /// (Gaussian σ = 0.7 px). On a CFA without W, G plays that role. The value then averages
 /// `frames` Bernoulli trials.
 pub fn grey_from_counts(counts: &Array2<u32>, frames: u32, cfa: &Cfa) -> Result<Array2<f32>> {

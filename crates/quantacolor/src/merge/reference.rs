@@ -4,6 +4,7 @@
 //! registered to the reference block; it steers the merge kernels and the robustness weights.
 
 use super::warp::{positive, warp_to_reference};
+use super::GreyNoise;
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
@@ -84,14 +85,16 @@ type TileRow = (isize, Vec<(isize, Vec<f32>)>);
 /// Merges grey block images into a reference image (supplement §1.2).
 ///
 /// `grey_blocks[k]` are (H, W) block means (mean bit rate of a grey channel over the block's
-/// frames, comparable across blocks); `flows_dense[k]` are (H, W, 2) dense flows (dy, dx) from
-/// the reference grid into block k; `ref_index` names the reference block (its own flow should
-/// be zero); `trials` is the number of Bernoulli trials averaged into one grey value (binary
-/// frames per block, times pixels binned per value). Each block is warped to the reference grid by bilinear sampling at p + flow(p);
+/// frames, or mean digital number of multi-bit frames, comparable across blocks);
+/// `flows_dense[k]` are (H, W, 2) dense flows (dy, dx) from the reference grid into block k;
+/// `ref_index` names the reference block (its own flow should be zero); `noise` is the number
+/// of frames averaged into one grey value with the pixel model ([`GreyNoise`]; a plain number
+/// is that many Bernoulli trials). Each block is warped to the reference grid by bilinear sampling at p + flow(p);
 /// then, in 16x16 tiles at stride 8, per DFT frequency
 /// A_k = |D_k|² / (|D_k|² + c·σ²) with D_k = T_ref − T_k, and the merged tile is
-/// Σ_k (T_k + A_k (T_ref − T_k)) / K. σ² is the variance of D_k per frequency for binomial
-/// pixel noise μ(1−μ)/trials (μ the tile mean): n²·(v_ref + v_k) for an n x n tile. Tiles are
+/// Σ_k (T_k + A_k (T_ref − T_k)) / K. σ² is the variance of D_k per frequency for the pixel
+/// noise v(μ) of the model at the tile mean μ (binomial μ(1−μ)/trials for binary frames,
+/// Gaussian–Poisson for multi-bit ones): n²·(v_ref + v_k) for an n x n tile. Tiles are
 /// blended with a raised-cosine window (weights normalised, so borders stay unbiased).
 /// A misaligned block differs strongly from the reference, so A → 1 and it contributes the
 /// reference's content instead of its own (no ghosting).
@@ -99,9 +102,10 @@ pub fn reference_image(
     grey_blocks: &[Array2<f32>],
     flows_dense: &[Array3<f32>],
     ref_index: usize,
-    trials: f32,
+    noise: impl Into<GreyNoise>,
     config: &WienerConfig,
 ) -> Result<Array2<f32>> {
+    let noise: GreyNoise = noise.into();
     let k_count = grey_blocks.len();
     if k_count == 0 {
         return Err(Error::invalid("reference image: no grey blocks given"));
@@ -123,7 +127,7 @@ pub fn reference_image(
             config.tile
         )));
     }
-    if !positive(trials) || config.c.is_nan() || config.c < 0.0 {
+    if !positive(noise.trials) || config.c.is_nan() || config.c < 0.0 {
         return Err(Error::invalid(
             "reference image: trials must be positive and c non-negative",
         ));
@@ -187,7 +191,6 @@ pub fn reference_image(
                     }
                     sum * norm
                 };
-                let binomial = |mean: f32| mean.clamp(0.0, 1.0) * (1.0 - mean.clamp(0.0, 1.0));
                 let mean_ref = load(&warped[ref_index], &mut reference);
                 fft.run(&mut reference, &mut scratch, false);
                 acc.copy_from_slice(&reference);
@@ -197,7 +200,8 @@ pub fn reference_image(
                     }
                     let mean_k = load(img, &mut other);
                     fft.run(&mut other, &mut scratch, false);
-                    let sigma2 = (n * n) as f32 * (binomial(mean_ref) + binomial(mean_k)) / trials;
+                    let sigma2 =
+                        (n * n) as f32 * (noise.variance(mean_ref) + noise.variance(mean_k));
                     let noise = config.c * sigma2.max(f32::MIN_POSITIVE);
                     for ((a, &t_ref), &t_k) in acc.iter_mut().zip(&reference).zip(&other) {
                         let d = t_ref - t_k;

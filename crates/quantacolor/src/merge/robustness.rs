@@ -1,8 +1,10 @@
 //! Robustness weights (supplement Eq. 4–6, after Wronski et al. 2019, §5.2): where a block's
 //! warped content disagrees with the reference by more than the local variability and the
-//! binomial noise explain, its samples are rejected from the merge.
+//! photon noise (binomial, or Gaussian–Poisson for multi-bit frames) explain, its samples are
+//! rejected from the merge.
 
 use super::warp::{check_flow, warp_to_reference};
+use super::GreyNoise;
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
@@ -105,17 +107,19 @@ fn local_spread(values: &Array2<f32>, r: usize) -> Array2<f32> {
 /// Robustness weights R ∈ [0, 1] of one block on the reference grid (supplement Eq. 4–6).
 ///
 /// The block's grey image is warped by `flow` (H, W, 2); its 3x3 local mean μ_k is compared
-/// with the reference's 3x3 mean μ and std σ_ref: d = |μ_k − μ|, σ² = σ_ref² + μ(1−μ)/trials
-/// (binomial noise of a grey value averaging `trials` Bernoulli trials), R = clamp(s·exp(−d²/σ²) − t, 0, 1), with s = `s` where
+/// with the reference's 3x3 mean μ and std σ_ref: d = |μ_k − μ|, σ² = σ_ref² + v(μ) with v the
+/// noise of a grey value ([`GreyNoise`]: binomial μ(1−μ)/trials for binary frames, the
+/// Gaussian–Poisson variance for multi-bit ones), R = clamp(s·exp(−d²/σ²) − t, 0, 1), with s = `s` where
 /// the flow's local spread (Euclidean norm of the max − min of dy and dx over a
 /// (2·motion_radius+1)² window) is at most `motion_threshold`, and `s_motion` elsewhere.
 pub fn robustness(
     reference: &Array2<f32>,
     grey_block: &Array2<f32>,
     flow: &Array3<f32>,
-    trials: f32,
+    noise: impl Into<GreyNoise>,
     config: &RobustnessConfig,
 ) -> Result<Array2<f32>> {
+    let noise: GreyNoise = noise.into();
     let (h, w) = reference.dim();
     if grey_block.dim() != (h, w) {
         return Err(Error::invalid(format!(
@@ -124,7 +128,7 @@ pub fn robustness(
         )));
     }
     check_flow(flow, h, w, "robustness")?;
-    if !super::warp::positive(trials) {
+    if !super::warp::positive(noise.trials) {
         return Err(Error::invalid("robustness: trials must be positive"));
     }
     let warped = warp_to_reference(grey_block, flow)?;
@@ -146,8 +150,7 @@ pub fn robustness(
         .and(&spread_y)
         .and(&spread_x)
         .par_for_each(|r, &mk, &mu, &sd, &sy, &sx| {
-            let p = mu.clamp(0.0, 1.0);
-            let sigma2 = (sd * sd + p * (1.0 - p) / trials).max(1e-12);
+            let sigma2 = (sd * sd + noise.variance(mu)).max(1e-12);
             let d = mk - mu;
             let s = if (sy * sy + sx * sx).sqrt() > config.motion_threshold {
                 config.s_motion

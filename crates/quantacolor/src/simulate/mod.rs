@@ -35,7 +35,7 @@ pub use motion::{Motion, MotionConfig, ObjectTrack};
 pub use scene::{Scene, SceneRaster};
 pub use sensor::{DarkCountMap, FluxSpec, JotReadout, SensorKind, SensorModel};
 
-use crate::capture::{CaptureMeta, CaptureParts};
+use crate::capture::{CaptureMeta, CaptureParts, FrameData, MultiBitReadout};
 use crate::cfa::{self, Cfa, Pattern};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
@@ -158,7 +158,7 @@ impl SimulatedCapture {
     /// The parts `capture::write_capture` writes, including `motion.toml`.
     pub fn capture_parts(&self) -> Result<CaptureParts<'_>> {
         Ok(CaptureParts {
-            packed_frames: &self.packed_frames,
+            frames: FrameData::Packed(&self.packed_frames),
             width: self.width,
             cfa: &self.cfa,
             meta: &self.meta,
@@ -182,42 +182,37 @@ impl SimulatedCapture {
 }
 
 impl SimulatedCmosCapture {
-    /// Writes `dir` with `frames.npy` (uint16 (T, H, W)), `cfa.npy`, `hot_pixels.npy`,
-    /// `ground_truth.npy`, `motion.toml` and `capture.toml` (with `bit_depth`). This is a
-    /// baseline format for comparisons; binary-capture readers do not accept it.
+    /// The simulated capture as an opened multi-bit [`Capture`](crate::capture::Capture) held
+    /// in memory (no files written).
+    pub fn to_capture(&self) -> Result<crate::capture::Capture> {
+        crate::capture::Capture::from_memory(
+            crate::capture::BinaryFrames::from_multibit(&self.frames)?,
+            self.cfa.clone(),
+            self.meta.clone(),
+            Some(self.hot_pixels.clone()),
+        )
+    }
+
+    /// The parts `capture::write_capture` writes, including `motion.toml`.
+    pub fn capture_parts(&self) -> Result<CaptureParts<'_>> {
+        Ok(CaptureParts {
+            frames: FrameData::MultiBit(&self.frames),
+            width: self.cfa.width(),
+            cfa: &self.cfa,
+            meta: &self.meta,
+            hot_pixels: Some(&self.hot_pixels),
+            ground_truth: Some(&self.ground_truth),
+            extra_files: vec![(MOTION_FILE.into(), self.motion.to_toml()?.into_bytes())],
+            extra_toml: None,
+        })
+    }
+
+    /// Writes the capture directory atomically: `frames.npy` (uint16 (T, H, W)), `cfa.npy`,
+    /// `hot_pixels.npy`, `ground_truth.npy`, `motion.toml` and `capture.toml` (with
+    /// `bit_depth`, `read_noise_e`, `gain_e_per_dn`, `black_level_dn` and
+    /// `dark_current_e_per_s`), readable by `reconstruct` like any capture.
     pub fn write(&self, dir: impl AsRef<Path>) -> Result<()> {
-        let dir = dir.as_ref();
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-        let npy = |name: &str, r: std::result::Result<(), ndarray_npy::WriteNpyError>| {
-            r.map_err(|e| Error::format(dir.join(name), format!("cannot write: {e}")))
-        };
-        npy(
-            "frames.npy",
-            ndarray_npy::write_npy(dir.join("frames.npy"), &self.frames),
-        )?;
-        npy(
-            "cfa.npy",
-            ndarray_npy::write_npy(dir.join("cfa.npy"), self.cfa.codes()),
-        )?;
-        npy(
-            "hot_pixels.npy",
-            ndarray_npy::write_npy(dir.join("hot_pixels.npy"), &self.hot_pixels),
-        )?;
-        npy(
-            "ground_truth.npy",
-            ndarray_npy::write_npy(dir.join("ground_truth.npy"), &self.ground_truth),
-        )?;
-        let mut meta = toml::Table::try_from(&self.meta)
-            .map_err(|e| Error::invalid(format!("cannot serialise capture meta: {e}")))?;
-        meta.insert(
-            "bit_depth".into(),
-            toml::Value::Integer(self.sensor.bit_depth as i64),
-        );
-        let write = |name: &str, text: String| {
-            std::fs::write(dir.join(name), text).map_err(|e| Error::io(dir.join(name), e))
-        };
-        write("capture.toml", meta.to_string())?;
-        write(MOTION_FILE, self.motion.to_toml()?)
+        crate::capture::write_capture(dir, &self.capture_parts()?)
     }
 }
 
@@ -359,6 +354,12 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
         w_weights: [1.0, 1.0, 1.0],
         hot_pixels: Some("hot_pixels.npy".into()),
         reference_frame: Some(reference),
+        read_noise_e: sensor.read_noise_e,
+        multibit: (sensor.bit_depth > 1).then_some(MultiBitReadout {
+            bit_depth: sensor.bit_depth,
+            gain_e_per_dn: sensor.gain_e_per_dn,
+            black_level_dn: sensor.black_level_dn,
+        }),
     };
     Ok(Prepared {
         sensor,
@@ -457,8 +458,7 @@ pub fn simulate_cmos_with_cfa(
         &prep.field(),
         cfa,
         &prep.dark_per_frame,
-        prep.sensor.read_noise_e,
-        prep.sensor.bit_depth,
+        &prep.sensor,
         config.frames,
         config.seed,
         progress,

@@ -201,21 +201,26 @@ pub(crate) fn render_binary(
     packed
 }
 
-/// Renders `frames` CMOS frames: Poisson photoelectrons plus Gaussian read noise, rounded and
-/// clipped to `0..2^bit_depth − 1`, (T, H, W) uint16.
+/// Renders `frames` CMOS frames: Poisson photoelectrons plus Gaussian read noise, divided by
+/// the gain, offset by the black level, rounded and clipped to `0..2^bit_depth − 1`, (T, H, W)
+/// uint16 (the Gaussian–Poisson model of [`crate::model::GaussianPoisson`]).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn render_cmos(
     field: &FluxField<'_>,
     cfa: &Cfa,
     dark_per_frame: &Array2<f32>,
-    read_noise_e: f64,
-    bit_depth: u32,
+    sensor: &super::SensorModel,
     frames: usize,
     seed: u64,
     progress: &dyn Progress,
 ) -> Array3<u16> {
     let (h, w) = (cfa.height(), cfa.width());
-    let max = ((1u32 << bit_depth.min(16)) - 1) as f64;
+    let max = ((1u32 << sensor.bit_depth.min(16)) - 1) as f64;
+    let (read_noise_e, gain, black) = (
+        sensor.read_noise_e,
+        sensor.gain_e_per_dn,
+        sensor.black_level_dn,
+    );
     let mut out = Array3::<u16>::zeros((frames, h, w));
     progress.start("simulating CMOS frames", frames as u64);
     out.axis_iter_mut(Axis(0))
@@ -238,8 +243,8 @@ pub(crate) fn render_cmos(
                         0.0
                     };
                     let noise: f64 = StandardNormal.sample(&mut rng);
-                    frame[[y, x]] =
-                        (electrons + read_noise_e * noise).round().clamp(0.0, max) as u16;
+                    let dn = black + (electrons + read_noise_e * noise) / gain;
+                    frame[[y, x]] = dn.round().clamp(0.0, max) as u16;
                 }
             }
             progress.advance(1);

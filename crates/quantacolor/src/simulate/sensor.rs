@@ -51,12 +51,19 @@ pub struct SensorModel {
     pub read_noise_e: f64,
     /// Output bits per frame: 1 for SPAD and jot, 10 for the CMOS sensor.
     pub bit_depth: u32,
+    /// Electrons per digital number of a multi-bit sensor (1 for the CMOS sensor, so its 10-bit
+    /// full scale is about a 1000 e- full well; unused for binary sensors).
+    pub gain_e_per_dn: f64,
+    /// Digital number of zero electrons of a multi-bit sensor (the pedestal real sensors add so
+    /// that read noise below zero is not clipped): 16 DN for the CMOS sensor, 6.7 σ of its read
+    /// noise (this project's choice; Table 1 does not give one). 0 for binary sensors.
+    pub black_level_dn: f64,
 }
 
 impl SensorModel {
     /// The sensor of paper Table 1: SPAD 24 kfps, PDE 9/14/13 %, 2 cps; jot 1 kfps, QE
     /// 71/79/69 %, 0.24 e- read noise, 0.16 e-/s; CMOS 240 fps, 10 bits, QE 59/65/48 %, 2.4 e-,
-    /// 1 e-/s.
+    /// 1 e-/s (with this project's 1 e-/DN gain and 16 DN black level).
     pub fn table1(kind: SensorKind) -> SensorModel {
         match kind {
             SensorKind::Spad => SensorModel {
@@ -66,6 +73,8 @@ impl SensorModel {
                 dark_count_rate_hz: 2.0,
                 read_noise_e: 0.0,
                 bit_depth: 1,
+                gain_e_per_dn: 1.0,
+                black_level_dn: 0.0,
             },
             SensorKind::Jot => SensorModel {
                 kind,
@@ -74,6 +83,8 @@ impl SensorModel {
                 dark_count_rate_hz: 0.16,
                 read_noise_e: 0.24,
                 bit_depth: 1,
+                gain_e_per_dn: 1.0,
+                black_level_dn: 0.0,
             },
             SensorKind::Cmos => SensorModel {
                 kind,
@@ -82,6 +93,8 @@ impl SensorModel {
                 dark_count_rate_hz: 1.0,
                 read_noise_e: 2.4,
                 bit_depth: 10,
+                gain_e_per_dn: 1.0,
+                black_level_dn: 16.0,
             },
         }
     }
@@ -225,22 +238,7 @@ impl DarkCountMap {
     }
 }
 
-/// Upper tail of the standard normal, Q(z) = P(Z > z) (Abramowitz & Stegun 7.1.26 for erfc,
-/// absolute error below 1.5e-7).
-pub fn normal_tail(z: f64) -> f64 {
-    let x = z.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.327_591_1 * x);
-    let poly = t
-        * (0.254_829_592
-            + t * (-0.284_496_736
-                + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
-    let erfc = poly * (-x * x).exp();
-    if z >= 0.0 {
-        0.5 * erfc
-    } else {
-        1.0 - 0.5 * erfc
-    }
-}
+pub use crate::model::normal_tail;
 
 /// Binary jot readout (paper Table 1): photoelectrons n ~ Poisson(mean) plus Gaussian read noise
 /// of σ = `read_noise_e`, thresholded at 0.5 e-. The bit is 1 with probability
