@@ -266,25 +266,10 @@ fn split_at_oracle_motion(motion: &mut FrameMotion, oracle: MotionOracle<'_>, ma
         })
         .fold(0.0, f64::max)
     };
-    let mut sub_blocks = Vec::new();
-    let mut block_of = Vec::new();
-    let mut camera = Vec::new();
-    for (k, range) in motion.sub_blocks.iter().enumerate() {
-        let len = range.len();
-        let pieces =
-            ((travel(range) / max_motion_px.max(1e-6)).ceil() as usize).clamp(1, len.max(1));
-        for i in 0..pieces {
-            let r = range.start + i * len / pieces..range.start + (i + 1) * len / pieces;
-            if !r.is_empty() {
-                sub_blocks.push(r);
-                block_of.push(motion.block_of[k]);
-                camera.push(motion.camera[k]);
-            }
-        }
-    }
-    motion.sub_blocks = sub_blocks;
-    motion.block_of = block_of;
-    motion.camera = camera;
+    motion.split_sub_blocks(
+        |_, range| (travel(range) / max_motion_px.max(1e-6)).ceil() as usize,
+        |m, k, _| m.camera[k],
+    );
 }
 
 /// Joint demosaic-merge of every sub-block of `motion` at its own flow (or the `oracle`'s at

@@ -465,6 +465,34 @@ impl FrameMotion {
         self.dense(&self.camera[k], (r.start + r.end - 1) as f64 / 2.0)
     }
 
+    /// Cuts every sub-block `k` into `pieces(k, range)` equal runs of frames (at least one, at
+    /// most one per frame); each piece stays in its block and takes the camera
+    /// `camera(self, k, piece)`.
+    pub fn split_sub_blocks(
+        &mut self,
+        pieces: impl Fn(usize, &Range<usize>) -> usize,
+        camera: impl Fn(&FrameMotion, usize, &Range<usize>) -> AffineMotion,
+    ) {
+        let mut sub_blocks = Vec::new();
+        let mut block_of = Vec::new();
+        let mut cameras = Vec::new();
+        for (k, range) in self.sub_blocks.iter().enumerate() {
+            let len = range.len();
+            let n = pieces(k, range).clamp(1, len.max(1));
+            for i in 0..n {
+                let r = range.start + i * len / n..range.start + (i + 1) * len / n;
+                if !r.is_empty() {
+                    cameras.push(camera(self, k, &r));
+                    sub_blocks.push(r);
+                    block_of.push(self.block_of[k]);
+                }
+            }
+        }
+        self.sub_blocks = sub_blocks;
+        self.block_of = block_of;
+        self.camera = cameras;
+    }
+
     /// Sub-block `k`'s map from sensor site q to reference position p = matrix·q + offset
     /// ((y, x) order), when the camera explains all motion (no local residual): the merge then
     /// needs no dense flow.
@@ -518,28 +546,21 @@ pub fn plan_sub_blocks(motion: &mut FrameMotion, detections_per_frame: f64, conf
     };
     let shortest = by_light.max(config.min_sub_block_frames).max(1);
     let half = motion.half_size();
-    let mut sub_blocks = Vec::new();
-    let mut block_of = Vec::new();
-    let mut camera = Vec::new();
-    for (b, range) in motion.plan.blocks.clone().into_iter().enumerate() {
-        let len = range.len();
-        let travel = motion
-            .camera_at(range.start as f64)
-            .distance(&motion.camera_at((range.end - 1) as f64), half);
-        let for_motion = (travel / config.max_sub_block_motion_px.max(1e-6)).ceil() as usize;
-        let pieces = for_motion.clamp(1, (len / shortest).max(1));
-        for i in 0..pieces {
-            let r = range.start + i * len / pieces..range.start + (i + 1) * len / pieces;
-            if !r.is_empty() {
-                camera.push(motion.camera_at((r.start + r.end - 1) as f64 / 2.0));
-                sub_blocks.push(r);
-                block_of.push(b);
-            }
-        }
-    }
-    motion.sub_blocks = sub_blocks;
-    motion.block_of = block_of;
-    motion.camera = camera;
+    let pieces: Vec<usize> = motion
+        .sub_blocks
+        .iter()
+        .map(|range| {
+            let travel = motion
+                .camera_at(range.start as f64)
+                .distance(&motion.camera_at((range.end - 1) as f64), half);
+            let for_motion = (travel / config.max_sub_block_motion_px.max(1e-6)).ceil() as usize;
+            for_motion.clamp(1, (range.len() / shortest).max(1))
+        })
+        .collect();
+    motion.split_sub_blocks(
+        |k, _| pieces[k],
+        |m, _, r| m.camera_at((r.start + r.end - 1) as f64 / 2.0),
+    );
 }
 
 /// Bins of one level: the grey channel's sites summed over `bin` x `bin` squares.

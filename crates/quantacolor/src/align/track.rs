@@ -233,25 +233,18 @@ pub fn track_fast_camera_motion(
 /// once the motion is known at every few frames, the merge need not blur it.
 pub fn split_for_merge(motion: &mut FrameMotion, max_motion_px: f64) {
     let half = motion.half_size();
-    let mut sub_blocks = Vec::new();
-    let mut block_of = Vec::new();
-    let mut camera = Vec::new();
-    for (k, range) in motion.sub_blocks.iter().enumerate() {
-        let len = range.len();
-        let travel = motion
+    let travel = |range: &std::ops::Range<usize>| {
+        motion
             .camera_at(range.start as f64)
-            .distance(&motion.camera_at((range.end - 1) as f64), half);
-        let pieces = ((travel / max_motion_px.max(1e-6)).ceil() as usize).clamp(1, len.max(1));
-        for i in 0..pieces {
-            let r = range.start + i * len / pieces..range.start + (i + 1) * len / pieces;
-            if !r.is_empty() {
-                camera.push(motion.camera_at((r.start + r.end - 1) as f64 / 2.0));
-                sub_blocks.push(r);
-                block_of.push(motion.block_of[k]);
-            }
-        }
-    }
-    motion.sub_blocks = sub_blocks;
-    motion.block_of = block_of;
-    motion.camera = camera;
+            .distance(&motion.camera_at((range.end - 1) as f64), half)
+    };
+    let pieces: Vec<usize> = motion
+        .sub_blocks
+        .iter()
+        .map(|r| (travel(r) / max_motion_px.max(1e-6)).ceil() as usize)
+        .collect();
+    motion.split_sub_blocks(
+        |k, _| pieces[k],
+        |m, _, r| m.camera_at((r.start + r.end - 1) as f64 / 2.0),
+    );
 }
