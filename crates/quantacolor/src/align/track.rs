@@ -35,7 +35,11 @@ pub struct TrackConfig {
     /// at the image corners): blocks that long are streaks. Infinite disables tracking.
     /// Measured: a 2000-frame HDR pan (5 px between blocks) tracked at 4 px lost 0.1 dB
     /// and doubled the time; fast shake (40 px, 2°, 512 frames) estimates tens of pixels.
-    pub trigger_px: f64, // 12 px
+    /// With the photon trajectory after tracking, 6 px instead of 12 px tracks the night,
+    /// fast-shake SPAD capture of `experiment sensors` (long blocks at 0.015 detections per
+    /// frame): 15.34 -> 19.08 dB; no capture of `bench quality` moves between 6 and 12 px, so
+    /// none changes; at 4 px the daylight fast chart capture is tracked and loses 2.2 dB.
+    pub trigger_px: f64, // 6 px
     /// Coarse-to-fine levels of each sub-block's fit (the coarse level sets the capture range
     /// around the constant-velocity prediction).
     pub levels: Vec<RefineLevel>,
@@ -46,7 +50,7 @@ pub struct TrackConfig {
 impl Default for TrackConfig {
     fn default() -> Self {
         TrackConfig {
-            trigger_px: 12.0,
+            trigger_px: 6.0,
             levels: vec![
                 RefineLevel {
                     bin: 8,
