@@ -34,7 +34,7 @@ use super::refine::{sample_template, template_level, AffineMotion, FrameMotion, 
 use crate::capture::frames::FrameLayout;
 use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::Channel;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::progress::Progress;
 use ndarray::Array2;
 use rayon::prelude::*;
@@ -433,6 +433,19 @@ pub fn fit_photon_trajectory(
     progress: &dyn Progress,
 ) -> Result<bool> {
     let frames = &capture.frames;
+    if config.enabled
+        && (config.knot_frames == 0
+            || config
+                .sigmas_px
+                .iter()
+                .any(|&s| !(s > 0.0 && s.is_finite()))
+            || !(config.acceleration_px > 0.0 && config.acceleration_px.is_finite()))
+    {
+        return Err(Error::invalid(
+            "photon trajectory: knot_frames must be at least 1, and sigmas_px and \
+             acceleration_px positive",
+        ));
+    }
     if !config.enabled
         || frames.is_multibit()
         || !matches!(grey_method, GreyMethod::InterpolateW)
