@@ -559,7 +559,7 @@ pub(super) struct TemplateLevel {
 }
 
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
-#[inline]
+#[inline(always)]
 pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
     let (h, w) = (level.height, level.width);
     if !(y >= 0.0 && x >= 0.0 && y <= (h - 1) as f64 && x <= (w - 1) as f64) {
@@ -651,6 +651,10 @@ pub(super) fn bin_layout(
     BinLayout { sites, centroid }
 }
 
+/// Row and column of the k-th entry of the upper triangle of a 6 x 6 matrix, row by row.
+const UPPER_ROW: [usize; 21] = [0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 4, 4, 5];
+const UPPER_COL: [usize; 21] = [0, 1, 2, 3, 4, 5, 1, 2, 3, 4, 5, 2, 3, 4, 5, 3, 4, 5, 4, 5, 5];
+
 /// Gauss–Newton fit of the inverse camera map (sub-block → reference) of one sub-block with
 /// grey-site counts `counts` over `frames` frames; `None` when it does not converge.
 pub(super) fn fit_sub_block(
@@ -698,14 +702,13 @@ pub(super) fn fit_sub_block(
                 let z = residual.abs() / variance.sqrt();
                 let weight = if z > 3.0 { 3.0 / z } else { 1.0 } / variance;
                 let jac = [gy, gx, gy * rel[0], gy * rel[1], gx * rel[0], gx * rel[1]];
-                let mut k = 0;
+                let wj = jac.map(|j| weight * j);
+                // The same products and sums as row by row, in a fixed layout that vectorises.
+                for k in 0..21 {
+                    acc[k] += wj[UPPER_ROW[k]] * jac[UPPER_COL[k]];
+                }
                 for r in 0..6 {
-                    let wj = weight * jac[r];
-                    for jac_c in &jac[r..] {
-                        acc[k] += wj * jac_c;
-                        k += 1;
-                    }
-                    acc[21 + r] += wj * residual;
+                    acc[21 + r] += wj[r] * residual;
                 }
             }
             let mut normal = vec![vec![0.0f64; 6]; 6];
