@@ -359,36 +359,33 @@ impl<'a> MergeAccumulator<'a> {
             };
             let excluded = self.excluded.as_deref();
             // Target bin and robustness weight of every site, in parallel by rows.
-            targets
-                .par_chunks_mut(w)
-                .enumerate()
-                .for_each(|(y, row)| {
-                    for (x, target) in row.iter_mut().enumerate() {
-                        let i = y * w + x;
-                        *target = if excluded.is_some_and(|e| e[i]) {
+            targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, target) in row.iter_mut().enumerate() {
+                    let i = y * w + x;
+                    *target = if excluded.is_some_and(|e| e[i]) {
+                        (u32::MAX, 0.0)
+                    } else {
+                        let p = position([y as f32, x as f32]);
+                        let r = robust.map_or(1.0, |m| {
+                            let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
+                            let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
+                            m[ry * w + rx]
+                        });
+                        let by = round_half_away((p[0] + margin) * u);
+                        let bx = round_half_away((p[1] + margin) * u);
+                        if r <= 0.0
+                            || by < 0.0
+                            || bx < 0.0
+                            || by >= bins_h as f32
+                            || bx >= bins_w as f32
+                        {
                             (u32::MAX, 0.0)
                         } else {
-                            let p = position([y as f32, x as f32]);
-                            let r = robust.map_or(1.0, |m| {
-                                let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
-                                let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
-                                m[ry * w + rx]
-                            });
-                            let by = round_half_away((p[0] + margin) * u);
-                            let bx = round_half_away((p[1] + margin) * u);
-                            if r <= 0.0
-                                || by < 0.0
-                                || bx < 0.0
-                                || by >= bins_h as f32
-                                || bx >= bins_w as f32
-                            {
-                                (u32::MAX, 0.0)
-                            } else {
-                                ((by as usize * bins_w + bx as usize) as u32, r)
-                            }
-                        };
-                    }
-                });
+                            ((by as usize * bins_w + bx as usize) as u32, r)
+                        }
+                    };
+                }
+            });
             let frames = sub.frames as f32;
             for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(&self.codes) {
                 if bin == u32::MAX {
@@ -454,12 +451,14 @@ impl<'a> MergeAccumulator<'a> {
                     let (lo, hi) = match ellipse_limit {
                         Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
                             Some((dx_lo, dx_hi)) => (
-                                bx0.max(((dx_lo - inv_u as f64 + (margin + px) as f64)
-                                    * u as f64)
-                                    .floor() as isize),
-                                bx1.min(((dx_hi + inv_u as f64 + (margin + px) as f64)
-                                    * u as f64)
-                                    .ceil() as isize),
+                                bx0.max(
+                                    ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64)
+                                        .floor() as isize,
+                                ),
+                                bx1.min(
+                                    ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64)
+                                        .ceil() as isize,
+                                ),
                             ),
                             None => continue,
                         },
