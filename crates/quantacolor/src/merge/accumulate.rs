@@ -686,3 +686,50 @@ fn validate(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_half_away_matches_f32_round() {
+        let mut values = vec![
+            0.0,
+            0.5,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            0.49999997,
+            -0.49999997,
+            8_388_607.5,
+            1e9,
+            -1e9,
+        ];
+        values.extend((-4000..4000).map(|i| i as f32 * 0.013_7 + 0.25));
+        for v in values {
+            assert_eq!(round_half_away(v), v.round(), "{v}");
+        }
+        assert!(round_half_away(f32::NAN).is_nan());
+    }
+
+    #[test]
+    fn ellipse_span_holds_every_dx_below_the_limit() {
+        let limit = 20.0;
+        for (a, b2, c) in [(1.0f32, 0.0f32, 1.0f32), (4.0, 3.0, 1.5), (0.3, -0.5, 2.0)] {
+            for dy in [-3.0f32, -0.5, 0.0, 1.25, 4.0] {
+                let span = ellipse_span(a, b2, c, dy, limit);
+                for i in -400..=400 {
+                    let dx = i as f32 * 0.025;
+                    let quad = a * dy * dy + dx * (b2 * dy + c * dx);
+                    if (quad as f64) < limit {
+                        let (lo, hi) = span.expect("row with a point below the limit");
+                        assert!(lo <= dx as f64 && dx as f64 <= hi, "{a} {b2} {c} {dy} {dx}");
+                    }
+                }
+            }
+        }
+        // A row entirely outside the ellipse.
+        assert_eq!(ellipse_span(1.0, 0.0, 1.0, 10.0, limit), None);
+    }
+}
