@@ -214,7 +214,7 @@ fn flow_bilinear(flow: &[f32], h: usize, w: usize, y: f32, x: f32) -> [f32; 2] {
 /// makes of it: the same value for every finite `v` (up to the sign of a zero result).
 #[inline]
 fn round_half_away(v: f32) -> f32 {
-    if !(v.abs() < 8_388_608.0) {
+    if v.is_nan() || v.abs() >= 8_388_608.0 {
         // NaN, infinite or already integral (|v| >= 2^23).
         return v.round();
     }
