@@ -580,7 +580,7 @@ pub(super) struct TemplateLevel {
 }
 
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
-#[inline]
+#[inline(always)]
 pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
     let (h, w) = (level.height, level.width);
     if !(y >= 0.0 && x >= 0.0 && y <= (h - 1) as f64 && x <= (w - 1) as f64) {
@@ -672,6 +672,17 @@ pub(super) fn bin_layout(
     BinLayout { sites, centroid }
 }
 
+/// Blocks whose templates [`refine_pass`] makes at a time.
+const TEMPLATE_GROUP: usize = 4;
+
+/// Row and column of the k-th entry of the upper triangle of a 6 x 6 matrix, row by row.
+const UPPER_ROW: [usize; 21] = [
+    0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 2, 2, 2, 2, 3, 3, 3, 4, 4, 5,
+];
+const UPPER_COL: [usize; 21] = [
+    0, 1, 2, 3, 4, 5, 1, 2, 3, 4, 5, 2, 3, 4, 5, 3, 4, 5, 4, 5, 5,
+];
+
 /// Gauss–Newton fit of the inverse camera map (sub-block → reference) of one sub-block with
 /// grey-site counts `counts` over `frames` frames; `None` when it does not converge.
 pub(super) fn fit_sub_block(
@@ -719,14 +730,13 @@ pub(super) fn fit_sub_block(
                 let z = residual.abs() / variance.sqrt();
                 let weight = if z > 3.0 { 3.0 / z } else { 1.0 } / variance;
                 let jac = [gy, gx, gy * rel[0], gy * rel[1], gx * rel[0], gx * rel[1]];
-                let mut k = 0;
+                let wj = jac.map(|j| weight * j);
+                // The same products and sums as row by row, in a fixed layout that vectorises.
+                for k in 0..21 {
+                    acc[k] += wj[UPPER_ROW[k]] * jac[UPPER_COL[k]];
+                }
                 for r in 0..6 {
-                    let wj = weight * jac[r];
-                    for jac_c in &jac[r..] {
-                        acc[k] += wj * jac_c;
-                        k += 1;
-                    }
-                    acc[21 + r] += wj * residual;
+                    acc[21 + r] += wj[r] * residual;
                 }
             }
             let mut normal = vec![vec![0.0f64; 6]; 6];
@@ -888,9 +898,17 @@ fn refine_pass(
     // Each block's grey image on the reference grid, made when needed rather than kept: the
     // blocks' dense flows would grow with the number of frames.
     let warped = |b: usize| warp_to_reference(&grey_blocks[b], &motion.block_flow(b));
+    let block_ids: Vec<usize> = (0..n_blocks).collect();
     let mut total = Array2::<f32>::zeros(grey_blocks[0].dim());
-    for b in 0..n_blocks {
-        total += &warped(b)?;
+    for group in block_ids.chunks(TEMPLATE_GROUP) {
+        // Warped in parallel, summed in block order (the same sum as one at a time).
+        let images: Vec<Array2<f32>> = group
+            .par_iter()
+            .map(|&b| warped(b))
+            .collect::<Result<_>>()?;
+        for image in &images {
+            total += image;
+        }
     }
     let all = &total / n_blocks as f32;
     let last = config.levels.len() - 1;
@@ -902,28 +920,46 @@ fn refine_pass(
         .collect();
     progress.start("motion refinement", motion.sub_blocks.len() as u64);
     let mut fitted: Vec<Option<AffineMotion>> = vec![None; motion.sub_blocks.len()];
-    for b in 0..n_blocks {
-        let members: Vec<usize> = (0..motion.sub_blocks.len())
-            .filter(|&k| motion.block_of[k] == b)
+    let busy: Vec<usize> = block_ids
+        .iter()
+        .copied()
+        .filter(|&b| motion.block_of.contains(&b))
+        .collect();
+    // A few blocks at a time: their own templates in parallel, then all their sub-blocks' fits
+    // in one parallel loop (one block's few sub-blocks leave cores idle); memory stays bounded
+    // by the group, not the number of blocks.
+    for group in busy.chunks(TEMPLATE_GROUP) {
+        let own_templates: Vec<Option<TemplateLevel>> = group
+            .par_iter()
+            .map(|&b| -> Result<Option<TemplateLevel>> {
+                if n_blocks > 1 {
+                    let others = (&total - &warped(b)?) / (n_blocks - 1) as f32;
+                    Ok(Some(template_level(&others, config.levels[last].sigma_px)))
+                } else {
+                    Ok(None)
+                }
+            })
+            .collect::<Result<_>>()?;
+        let templates: Vec<Vec<&TemplateLevel>> = own_templates
+            .iter()
+            .map(|own| match own {
+                Some(own) => shared.iter().map(|t| t.as_ref().unwrap_or(own)).collect(),
+                None => shared.iter().flatten().collect(),
+            })
             .collect();
-        if members.is_empty() {
-            continue;
-        }
-        let own_template;
-        let templates: Vec<&TemplateLevel> = if n_blocks > 1 {
-            let others = (&total - &warped(b)?) / (n_blocks - 1) as f32;
-            own_template = template_level(&others, config.levels[last].sigma_px);
-            shared
-                .iter()
-                .map(|t| t.as_ref().unwrap_or(&own_template))
-                .collect()
-        } else {
-            shared.iter().flatten().collect()
-        };
+        let members: Vec<(usize, usize)> = (0..motion.sub_blocks.len())
+            .filter_map(|k| {
+                group
+                    .iter()
+                    .position(|&b| b == motion.block_of[k])
+                    .map(|g| (k, g))
+            })
+            .collect();
         let results: Vec<Option<AffineMotion>> = members
             .par_iter()
             .with_max_len(1)
-            .map(|&k| {
+            .map(|&(k, g)| {
+                let templates = &templates[g];
                 let range = motion.sub_blocks[k].clone();
                 let start = motion.camera[k];
                 let counts = frames.sum_range(range.clone());
@@ -932,7 +968,7 @@ fn refine_pass(
                         &counts,
                         range.len(),
                         layouts,
-                        &templates,
+                        templates,
                         inverse_start,
                         centre,
                         config.iterations,
@@ -944,7 +980,7 @@ fn refine_pass(
                 result
             })
             .collect();
-        for (k, r) in members.into_iter().zip(results) {
+        for (&(k, _), r) in members.iter().zip(results) {
             fitted[k] = r;
         }
     }

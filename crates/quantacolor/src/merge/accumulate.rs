@@ -194,8 +194,10 @@ pub struct MergeAccumulator<'a> {
 fn flow_bilinear(flow: &[f32], h: usize, w: usize, y: f32, x: f32) -> [f32; 2] {
     let y = y.clamp(0.0, (h - 1) as f32);
     let x = x.clamp(0.0, (w - 1) as f32);
-    let y0 = (y.floor() as usize).min(h.saturating_sub(2));
-    let x0 = (x.floor() as usize).min(w.saturating_sub(2));
+    // Truncation is the floor of a non-negative value (and 0 for NaN, as `floor` then a cast
+    // gives): no libm call in the hot loop.
+    let y0 = (y as usize).min(h.saturating_sub(2));
+    let x0 = (x as usize).min(w.saturating_sub(2));
     let (y1, x1) = ((y0 + 1).min(h - 1), (x0 + 1).min(w - 1));
     let (fy, fx) = (y - y0 as f32, x - x0 as f32);
     let mut out = [0.0; 2];
@@ -206,6 +208,25 @@ fn flow_bilinear(flow: &[f32], h: usize, w: usize, y: f32, x: f32) -> [f32; 2] {
         *o = top * (1.0 - fy) + bottom * fy;
     }
     out
+}
+
+/// `v.round()` (half away from zero) without the libm call that a target without SSE4.1
+/// makes of it: the same value for every finite `v` (up to the sign of a zero result).
+#[inline]
+fn round_half_away(v: f32) -> f32 {
+    if v.is_nan() || v.abs() >= 8_388_608.0 {
+        // NaN, infinite or already integral (|v| >= 2^23).
+        return v.round();
+    }
+    let t = (v as i32) as f32;
+    let frac = v - t; // exact
+    if frac >= 0.5 {
+        t + 1.0
+    } else if frac <= -0.5 {
+        t - 1.0
+    } else {
+        t
+    }
 }
 
 /// Reference-grid position of the sensor site `q` of a (sub-)block with forward `flow` (the
@@ -303,6 +324,7 @@ impl<'a> MergeAccumulator<'a> {
             .iter()
             .map(|m| m.as_standard_layout())
             .collect();
+        let mut targets = vec![(u32::MAX, 0.0f32); h * w];
         for sub in sub_blocks {
             let counts = sub.counts.as_standard_layout();
             let counts = counts.as_slice().expect("standard layout");
@@ -337,34 +359,33 @@ impl<'a> MergeAccumulator<'a> {
             };
             let excluded = self.excluded.as_deref();
             // Target bin and robustness weight of every site, in parallel by rows.
-            let targets: Vec<(u32, f32)> = (0..h)
-                .into_par_iter()
-                .flat_map_iter(|y| {
-                    (0..w).map(move |x| {
-                        let i = y * w + x;
-                        if excluded.is_some_and(|e| e[i]) {
-                            return (u32::MAX, 0.0);
-                        }
+            targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, target) in row.iter_mut().enumerate() {
+                    let i = y * w + x;
+                    *target = if excluded.is_some_and(|e| e[i]) {
+                        (u32::MAX, 0.0)
+                    } else {
                         let p = position([y as f32, x as f32]);
                         let r = robust.map_or(1.0, |m| {
-                            let ry = (p[0].round().max(0.0) as usize).min(h - 1);
-                            let rx = (p[1].round().max(0.0) as usize).min(w - 1);
+                            let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
+                            let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
                             m[ry * w + rx]
                         });
-                        let by = ((p[0] + margin) * u).round();
-                        let bx = ((p[1] + margin) * u).round();
+                        let by = round_half_away((p[0] + margin) * u);
+                        let bx = round_half_away((p[1] + margin) * u);
                         if r <= 0.0
                             || by < 0.0
                             || bx < 0.0
                             || by >= bins_h as f32
                             || bx >= bins_w as f32
                         {
-                            return (u32::MAX, 0.0);
+                            (u32::MAX, 0.0)
+                        } else {
+                            ((by as usize * bins_w + bx as usize) as u32, r)
                         }
-                        ((by as usize * bins_w + bx as usize) as u32, r)
-                    })
-                })
-                .collect();
+                    };
+                }
+            });
             let frames = sub.frames as f32;
             for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(&self.codes) {
                 if bin == u32::MAX {
@@ -402,6 +423,12 @@ impl<'a> MergeAccumulator<'a> {
         let inv_cov = inv_cov.as_slice().expect("standard layout");
         let inv_s = 1.0 / scale as f32;
         let offset = 0.5 * inv_s - 0.5;
+        // Every channel skips a bin whose quadratic form times the smallest channel factor is
+        // at or above the cutoff (rounding is monotone and the form is then positive), so the
+        // gather only visits the bins of each row inside that widest ellipse, widened by a bin
+        // on each side against rounding ([`ellipse_span`]): the same sums in the same order.
+        let min_inv_scale = inv_scale.iter().copied().fold(f32::INFINITY, f32::min);
+        let ellipse_limit = (min_inv_scale > 0.0).then(|| cutoff as f64 / min_inv_scale as f64);
         // (Σ g·S0, Σ g·S1, Σ g²·S2) per channel of every output pixel.
         let mut sums = vec![[0.0f32; 12]; hs * ws];
         sums.par_chunks_mut(ws).enumerate().for_each(|(oy, row)| {
@@ -421,10 +448,34 @@ impl<'a> MergeAccumulator<'a> {
                     let ady2 = a * dy * dy;
                     let bdy = b2 * dy;
                     let row_start = (by * bins_w) as usize;
+                    let (lo, hi) = match ellipse_limit {
+                        Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
+                            Some((dx_lo, dx_hi)) => (
+                                bx0.max(
+                                    ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64)
+                                        .floor() as isize,
+                                ),
+                                bx1.min(
+                                    ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64)
+                                        .ceil() as isize,
+                                ),
+                            ),
+                            None => continue,
+                        },
+                        None => (bx0, bx1),
+                    };
+                    let lo = lo.min(bx1 + 1);
+                    // dx by the same additions as a walk from bx0 (bit-identical positions).
                     let mut dx = bx0 as f32 * inv_u - margin - px;
-                    for bx in bx0..=bx1 {
+                    for _ in bx0..lo {
+                        dx += inv_u;
+                    }
+                    for bx in lo..=hi {
                         let quad = ady2 + dx * (bdy + c * dx);
                         dx += inv_u;
+                        if quad * min_inv_scale >= cutoff {
+                            continue;
+                        }
                         let cell = &bins[(row_start + bx as usize) * 12..][..12];
                         for ch in 0..4 {
                             let s = &cell[ch * 3..ch * 3 + 3];
@@ -501,6 +552,27 @@ impl<'a> MergeAccumulator<'a> {
             w_fallback,
         }
     }
+}
+
+/// The dx interval of row offset `dy` where the kernel's quadratic form
+/// a·dy² + 2b·dy·dx + c·dx² (`b2` = 2b) is below `limit`, widened by 0.1 % and 10⁻³ px against
+/// rounding; `None` when the whole row is at least 0.1 % above it. Not positive definite:
+/// an unbounded interval.
+fn ellipse_span(a: f32, b2: f32, c: f32, dy: f32, limit: f64) -> Option<(f64, f64)> {
+    let (a, b, c, dy) = (a as f64, b2 as f64 / 2.0, c as f64, dy as f64);
+    let det = a * c - b * b;
+    if !(c > 0.0 && det > 0.0) {
+        return Some((f64::NEG_INFINITY, f64::INFINITY));
+    }
+    // Minimum over dx at dx* = −b·dy/c, of value dy²·det/c.
+    let min = dy * dy * det / c;
+    let slack = limit * 1e-3 + 1e-6;
+    if min > limit + slack {
+        return None;
+    }
+    let half = ((limit + slack - min).max(0.0) / c).sqrt() * 1.001 + 1e-3;
+    let centre = -b * dy / c;
+    Some((centre - half, centre + half))
 }
 
 /// Joint demosaic and merge of `sub_blocks` (supplement Eq. 1–3).
@@ -613,4 +685,51 @@ fn validate(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_half_away_matches_f32_round() {
+        let mut values = vec![
+            0.0,
+            0.5,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            0.49999997,
+            -0.49999997,
+            8_388_607.5,
+            1e9,
+            -1e9,
+        ];
+        values.extend((-4000..4000).map(|i| i as f32 * 0.013_7 + 0.25));
+        for v in values {
+            assert_eq!(round_half_away(v), v.round(), "{v}");
+        }
+        assert!(round_half_away(f32::NAN).is_nan());
+    }
+
+    #[test]
+    fn ellipse_span_holds_every_dx_below_the_limit() {
+        let limit = 20.0;
+        for (a, b2, c) in [(1.0f32, 0.0f32, 1.0f32), (4.0, 3.0, 1.5), (0.3, -0.5, 2.0)] {
+            for dy in [-3.0f32, -0.5, 0.0, 1.25, 4.0] {
+                let span = ellipse_span(a, b2, c, dy, limit);
+                for i in -400..=400 {
+                    let dx = i as f32 * 0.025;
+                    let quad = a * dy * dy + dx * (b2 * dy + c * dx);
+                    if (quad as f64) < limit {
+                        let (lo, hi) = span.expect("row with a point below the limit");
+                        assert!(lo <= dx as f64 && dx as f64 <= hi, "{a} {b2} {c} {dy} {dx}");
+                    }
+                }
+            }
+        }
+        // A row entirely outside the ellipse.
+        assert_eq!(ellipse_span(1.0, 0.0, 1.0, 10.0, limit), None);
+    }
 }
