@@ -55,7 +55,7 @@ enum Command {
     Convert(cmd_convert::ConvertArgs),
     /// Summarise a capture: size, CFA, light level per channel, hot pixels, block size.
     Inspect(cmd_convert::InspectArgs),
-    /// The paper's experiments (dynamic-range, motion, w-fraction, cfa): CSV, plots, summary.md.
+    /// The paper's experiments (dynamic-range, sensors, motion, w-fraction, cfa): CSV, plots, summary.md.
     Experiment(cmd_experiment::ExperimentArgs),
     /// A static comparison page over reconstruction folders (exposure, tone map, low-light view,
     /// synchronised zoom; PSNR/SSIM), the user-study page (--study) and its tally (--tally).
