@@ -271,6 +271,7 @@ fn saturated_w_falls_back_to_rgb() {
     let with = demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, &config).unwrap();
     let off = AccumulateConfig {
         w_saturation: 1.5,
+        w_censoring_zeros: 0.0,
         ..config
     };
     let without = demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, &off).unwrap();
@@ -287,6 +288,90 @@ fn saturated_w_falls_back_to_rgb() {
         assert!((m_with - 3.0).abs() < 0.1 * 3.0, "{m_with}");
         assert!(m_without < 0.85 * 3.0, "{m_without}");
     }
+}
+
+/// Mean of each RGB channel of Eq. 8 over merged planes.
+fn rgb_means(planes: &MergedPlanes) -> Vec<f64> {
+    let rgb = quantacolor::naive::combine_rgbw(&planes.flux, W_WEIGHTS);
+    (0..3)
+        .map(|c| rgb.index_axis(Axis(2), c).mean().unwrap() as f64)
+        .collect()
+}
+
+#[test]
+fn a_censored_w_gives_way_to_saturating_colours() {
+    // λ = 4.5 per colour (bit rate 0.989, above `w_saturation`: supplement §7's rule keeps the
+    // clamped W) and λ_W = 13.5, over 200 frames: W fires in every frame and its estimate is
+    // clamped far below 13.5, so Eq. 8 darkens the colours; the colours still see zero frames.
+    let (h, w) = (24, 24);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let truth = 4.5;
+    let scene = move |_: f64, _: f64| [truth; 3];
+    let mut rng = ChaCha8Rng::seed_from_u64(36);
+    let still = Motion {
+        dy: 0.0,
+        dx: 0.0,
+        theta: 0.0,
+    };
+    let subs: Vec<_> = sub_blocks(&scene, &cfa, &[still; 5], 40, DARK, &mut rng)
+        .into_iter()
+        .map(|s| SubBlock {
+            robustness: SubBlockRobustness::Full,
+            ..s
+        })
+        .collect();
+    let kernels = kernel_field(&Array2::from_elem((h, w), 0.9), &KernelConfig::default()).unwrap();
+    let censoring = AccumulateConfig::default();
+    let section7 = AccumulateConfig {
+        w_censoring_zeros: 0.0,
+        ..censoring.clone()
+    };
+    let merge = |config: &AccumulateConfig| {
+        demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, config).unwrap()
+    };
+    let (new, old) = (merge(&censoring), merge(&section7));
+    assert!(!old.w_fallback.iter().any(|&f| f), "§7 rule fell back");
+    let share = new.w_fallback.iter().filter(|&&f| f).count() as f64 / (h * w) as f64;
+    assert!(share > 0.9, "censored W replaced on {share} of pixels");
+    for (c, (n, o)) in rgb_means(&new).into_iter().zip(rgb_means(&old)).enumerate() {
+        println!("channel {c}: censoring {n:.3}, §7 rule {o:.3}, truth {truth}");
+        assert!(o < 0.8 * truth, "{o}");
+        assert!((n - truth).abs() < 0.1 * truth, "{n}");
+    }
+}
+
+#[test]
+fn unsaturated_w_is_used_as_it_is() {
+    // λ_W = 1.5 over 200 frames: about 45 frames without a detection per W site, thousands
+    // behind a merged W pixel, so censoring never applies and Eq. 8 keeps W.
+    let (h, w) = (24, 24);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let scene = move |_: f64, _: f64| [0.5; 3];
+    let mut rng = ChaCha8Rng::seed_from_u64(37);
+    let still = Motion {
+        dy: 0.0,
+        dx: 0.0,
+        theta: 0.0,
+    };
+    let subs: Vec<_> = sub_blocks(&scene, &cfa, &[still; 5], 40, DARK, &mut rng)
+        .into_iter()
+        .map(|s| SubBlock {
+            robustness: SubBlockRobustness::Full,
+            ..s
+        })
+        .collect();
+    let kernels = kernel_field(&Array2::from_elem((h, w), 0.9), &KernelConfig::default()).unwrap();
+    let merged = demosaic_merge(
+        &subs,
+        &[],
+        &cfa,
+        &kernels,
+        DARK,
+        W_WEIGHTS,
+        &AccumulateConfig::default(),
+    )
+    .unwrap();
+    assert!(!merged.w_fallback.iter().any(|&f| f));
 }
 
 #[test]
