@@ -445,21 +445,19 @@ impl FrameMotion {
         let reference = alignment
             .grey
             .slice(s![alignment.plan.reference_block, .., ..]);
-        for b in 0..alignment.plan.len() {
+        for (b, camera_tiles) in camera_fits.iter().enumerate() {
             let residual = local.slice(s![b, .., .., ..]);
-            let block = alignment.grey.slice(s![b, .., ..]).to_owned();
-            let camera_tiles = &camera_fits[b];
+            let groups = coherent_groups(residual, gate.min_tiles);
+            let block =
+                (!groups.is_empty()).then(|| alignment.grey.slice(s![b, .., ..]).to_owned());
             let mut kept = Array3::<f32>::zeros(residual.dim());
-            for group in coherent_groups(residual, gate.min_tiles) {
-                let evidence = camera_tiles.as_ref().map_or(1.0, |fit| {
-                    local_motion_evidence(reference, &block, &grid, fit.view(), residual, &group)
-                });
-                if std::env::var("QC_DEBUG_LOCAL").is_ok() {
-                    eprintln!(
-                        "local group: block {b} tiles {} evidence {evidence:.4}",
-                        group.len()
-                    );
-                }
+            for group in groups {
+                let evidence = match (camera_tiles, &block) {
+                    (Some(fit), Some(block)) => {
+                        local_motion_evidence(reference, block, &grid, fit.view(), residual, &group)
+                    }
+                    _ => f64::INFINITY,
+                };
                 if evidence >= gate.min_evidence {
                     for (gi, gj) in group {
                         kept[[gi, gj, 0]] = residual[[gi, gj, 0]];
