@@ -157,7 +157,7 @@ pub fn reconstruct_burst_with_motion(
     let mut motion = FrameMotion::from_alignment(
         &alignment,
         config.align.affine_tolerance_px,
-        config.refine.local_motion_gate(),
+        config.refine.min_local_tiles,
     );
     if !config.refine.keep_local_motion {
         motion.drop_local_motion();
