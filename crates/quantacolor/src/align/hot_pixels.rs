@@ -160,6 +160,7 @@ impl HotPixelCorrector {
                 count
             })
             .collect();
+        frames.release(range);
         for (&idx, &c) in self.hot.iter().zip(&replaced) {
             sums[[idx / self.width, idx % self.width]] = c;
         }

@@ -347,7 +347,7 @@ impl FrameMotion {
         tolerance_px: f32,
         min_local_tiles: usize,
     ) -> FrameMotion {
-        let (_, h, w) = alignment.grey.dim();
+        let (h, w) = alignment.grey[alignment.plan.reference_block].dim();
         let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
         let grid = alignment.grid.clone();
         let mut local = alignment.flow.clone();
@@ -1131,9 +1131,9 @@ mod diagnose {
         .unwrap();
         let (h, w) = (capture.cfa.height(), capture.cfa.width());
         let zero = vec![Array3::<f32>::zeros((h, w, 2)); alignment.plan.len()];
-        let greys: Vec<Array2<f32>> = alignment.grey.outer_iter().map(|g| g.to_owned()).collect();
+        let greys = &alignment.grey;
         let reference = crate::merge::reference_image(
-            &greys,
+            greys,
             &zero,
             alignment.plan.reference_block,
             alignment.plan.block_size as f32,

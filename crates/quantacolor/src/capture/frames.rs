@@ -1,6 +1,7 @@
 //! Frames: binary, bit-packed uint8 (T, H, ceil(W/8)), MSB first as `np.packbits` writes them, or
 //! unpacked bool/uint8 0/1 (T, H, W); or multi-bit, uint16 (T, H, W) digital numbers of a
-//! conventional sensor. Files are memory-mapped, never copied whole into memory; block sums are
+//! conventional sensor. Files are memory-mapped, never copied whole into memory, and the passes
+//! over them release the pages behind them ([`BinaryFrames::release`]); block sums are
 //! computed straight from the stored bytes (for binary frames, from the packed words). A sum is
 //! the number of ones (binary) or the sum of digital numbers (multi-bit): the merge's "counts".
 
@@ -62,6 +63,10 @@ const fn spread_table() -> [u64; 256] {
     table
 }
 static SPREAD: [u64; 256] = spread_table();
+
+/// Frames summed at a time by [`BinaryFrames::sum_range`] before their mapped pages are
+/// released (16 MB of 496x254 packed frames).
+const SUM_CHUNK_FRAMES: usize = 1024;
 
 /// Frames added into the byte lanes of one u64 before they could overflow (255 max per lane).
 const LANE_FLUSH: usize = 255;
@@ -299,13 +304,46 @@ impl BinaryFrames {
         );
         let (h, w) = (self.height, self.width);
         let mut counts = Array2::<u32>::zeros((h, w));
+        let out = counts.as_slice_mut().expect("fresh array is contiguous");
+        // In chunks of frames, each released once summed: a sum over a whole capture keeps a
+        // bounded part of a memory-mapped file resident (the sums are integers, so chunking
+        // does not change them).
+        let mut start = frames.start;
+        while start < frames.end {
+            let end = (start + SUM_CHUNK_FRAMES).min(frames.end);
+            out.par_chunks_mut(w)
+                .enumerate()
+                .for_each(|(y, out)| self.sum_row(start..end, y, out));
+            self.release(start..end);
+            start = end;
+        }
         counts
-            .as_slice_mut()
-            .expect("fresh array is contiguous")
-            .par_chunks_mut(w)
-            .enumerate()
-            .for_each(|(y, out)| self.sum_row(frames.clone(), y, out));
-        counts
+    }
+
+    /// Hands the memory-mapped pages of `frames` back to the operating system (`madvise`
+    /// `MADV_DONTNEED`; Unix only, a no-op for frames held in memory). Passes over the frames
+    /// call it behind them so that the resident memory of a capture larger than RAM stays
+    /// bounded: the map is read-only, so a later read of the same frames faults the unchanged
+    /// file pages back in (from the page cache, as a rule) and sees the same bytes.
+    pub fn release(&self, frames: Range<usize>) {
+        #[cfg(unix)]
+        if let Storage::Mapped { map, offset } = &self.storage {
+            let frame_bytes = self.height * self.row_bytes();
+            let end = frames.end.min(self.frame_count);
+            if frames.start >= end {
+                return;
+            }
+            let start = offset + frames.start * frame_bytes;
+            let len = (end - frames.start) * frame_bytes;
+            // SAFETY: the map is a read-only file mapping that nothing in this process
+            // writes; dropping its pages only makes the next access read the file again.
+            // Advice is a hint: a failure changes nothing but memory use.
+            let _ = unsafe {
+                map.unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, start, len)
+            };
+        }
+        #[cfg(not(unix))]
+        let _ = frames;
     }
 
     fn sum_row(&self, frames: Range<usize>, y: usize, out: &mut [u32]) {
