@@ -14,7 +14,11 @@
 //!    combination (Eq. 8).
 //!
 //! Frames are never visited one at a time with a kernel: a sub-block's bits are summed straight
-//! from the packed words and splatted once; the kernel regression runs once per image.
+//! from the packed words and splatted once; the kernel regression runs once per image. A range
+//! that is both a block and a sub-block is summed once for alignment, refinement and merge
+//! ([`crate::capture::BinaryFrames::shared_sum`]). Memory is bounded in T: the frames' mapped
+//! pages are released behind each sum, the only per-block images kept are the grey blocks, and
+//! the reference image and robustness maps are made block by block.
 //!
 //! Multi-bit frames of a conventional sensor run through the same stages as the paper does it
 //! (§6.1): every frame is its own block (and sub-block), there is no motion interpolation or
@@ -169,6 +173,8 @@ pub fn reconstruct_burst_with_motion(
     let frames = &capture.frames;
     let hot = capture.hot_pixels.as_ref();
     let mut laps = Laps::new();
+    // Block and sub-block sums are made once and shared by alignment, refinement and merge.
+    frames.forget_shared_sums();
     let alignment = align(
         frames,
         &capture.cfa,
@@ -264,6 +270,7 @@ pub fn reconstruct_burst_with_motion(
         &config.merge,
         progress,
     )?;
+    frames.forget_shared_sums();
     laps.lap("demosaic-merge");
     Ok(BurstReconstruction {
         alignment,
@@ -393,7 +400,7 @@ fn merge_sub_blocks(
                 let range = motion.sub_blocks[k].clone();
                 let centre = (range.start + range.end - 1) as f64 / 2.0;
                 SubBlock {
-                    counts: capture.frames.sum_range(range.clone()),
+                    counts: capture.frames.shared_sum(range.clone()),
                     frames: range.len() as u32,
                     flow: match (oracle, motion.sub_block_reference_map(k)) {
                         (Some(oracle), _) => SubBlockMotion::Dense(oracle(centre)),

@@ -143,7 +143,7 @@ impl HotPixelCorrector {
             (self.height, self.width),
             "frames and hot-pixel corrector disagree in size"
         );
-        let mut sums = frames.sum_range(range.clone());
+        let mut sums = frames.shared_sum(range.clone());
         let replaced: Vec<u32> = self
             .hot
             .par_iter()

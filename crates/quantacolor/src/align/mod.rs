@@ -386,7 +386,7 @@ pub fn align(
         .map(|range| {
             let sums = match &corrector {
                 Some(c) => c.corrected_block_sum(frames, range.clone()),
-                None => frames.sum_range(range.clone()),
+                None => frames.shared_sum(range.clone()),
             };
             let image = grey_image(&sums, range.len(), cfa, grey_method);
             progress.advance(1);

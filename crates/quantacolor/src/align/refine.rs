@@ -962,7 +962,7 @@ fn refine_pass(
                 let templates = &templates[g];
                 let range = motion.sub_blocks[k].clone();
                 let start = motion.camera[k];
-                let counts = frames.sum_range(range.clone());
+                let counts = frames.shared_sum(range.clone());
                 let result = start.inverse().and_then(|inverse_start| {
                     fit_sub_block(
                         &counts,

@@ -10,9 +10,11 @@ use crate::error::{Error, Result};
 use memmap2::Mmap;
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
+use std::collections::HashMap;
 use std::fs::File;
 use std::ops::Range;
 use std::path::Path;
+use std::sync::Mutex;
 
 /// How the bits of one frame row are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -41,6 +43,21 @@ pub struct BinaryFrames {
     frame_count: usize,
     height: usize,
     width: usize,
+    /// Sums kept by [`Self::shared_sum`].
+    shared: Mutex<SharedSums>,
+}
+
+/// Budget of the sums [`BinaryFrames::shared_sum`] keeps, bytes: 256 sums of 496x254 as u16
+/// (the blocks of about 100,000 frames at 0.1 photons per frame), so that a reconstruction
+/// stays within its memory bound for any T (sums beyond it are made again when asked again).
+const SHARED_SUM_BYTES: usize = 64 << 20;
+
+/// Per-pixel sums over frame ranges, as u16 (a binary sum over fewer than 65,536 frames fits),
+/// within [`SHARED_SUM_BYTES`].
+#[derive(Debug, Default)]
+struct SharedSums {
+    sums: HashMap<(usize, usize), Vec<u16>>,
+    bytes: usize,
 }
 
 /// Byte `v` spread into eight byte lanes of a u64, MSB of `v` in the lowest lane, so that lane
@@ -166,6 +183,7 @@ impl BinaryFrames {
             frame_count: t,
             height: h,
             width,
+            shared: Mutex::default(),
         })
     }
 
@@ -192,6 +210,7 @@ impl BinaryFrames {
             frame_count: t,
             height: h,
             width,
+            shared: Mutex::default(),
         })
     }
 
@@ -208,6 +227,7 @@ impl BinaryFrames {
             frame_count: t,
             height: h,
             width: w,
+            shared: Mutex::default(),
         })
     }
 
@@ -320,6 +340,47 @@ impl BinaryFrames {
         counts
     }
 
+    /// [`Self::sum_range`] over `frames`, made once and shared by the stages that ask for the
+    /// same range (alignment's block sums, the refinement's and the merge's sub-block sums:
+    /// a sub-block that is a whole block is summed once for all three). Sums are kept as u16
+    /// up to a fixed budget (64 MB; beyond it, and for sums that do not fit in u16, a sum is
+    /// made again each time), until [`Self::forget_shared_sums`]. The values are those of
+    /// [`Self::sum_range`] whichever way they come.
+    pub fn shared_sum(&self, frames: Range<usize>) -> Array2<u32> {
+        let key = (frames.start, frames.end);
+        let (h, w) = (self.height, self.width);
+        if let Some(kept) = self.lock_shared().sums.get(&key) {
+            let values = kept.iter().map(|&v| v as u32).collect();
+            return Array2::from_shape_vec((h, w), values).expect("kept sums match the shape");
+        }
+        let sums = self.sum_range(frames);
+        let bytes = 2 * h * w;
+        if let Some(narrow) = sums
+            .iter()
+            .map(|&v| u16::try_from(v).ok())
+            .collect::<Option<Vec<u16>>>()
+        {
+            let mut shared = self.lock_shared();
+            if shared.bytes + bytes <= SHARED_SUM_BYTES && !shared.sums.contains_key(&key) {
+                shared.sums.insert(key, narrow);
+                shared.bytes += bytes;
+            }
+        }
+        sums
+    }
+
+    /// Drops the sums kept by [`Self::shared_sum`] (a reconstruction calls it when its merge is
+    /// done).
+    pub fn forget_shared_sums(&self) {
+        *self.lock_shared() = SharedSums::default();
+    }
+
+    fn lock_shared(&self) -> std::sync::MutexGuard<'_, SharedSums> {
+        // The kept sums are complete whenever the lock is released: a poisoned lock still
+        // guards consistent data.
+        self.shared.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     /// Hands the memory-mapped pages of `frames` back to the operating system (`madvise`
     /// `MADV_DONTNEED`; Unix only, a no-op for frames held in memory). Passes over the frames
     /// call it behind them so that the resident memory of a capture larger than RAM stays
@@ -407,6 +468,7 @@ impl BinaryFrames {
         Ok(BinaryFrames {
             storage,
             frame_count: window.len(),
+            shared: Mutex::default(),
             ..self
         })
     }
