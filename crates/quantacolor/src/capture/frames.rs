@@ -585,6 +585,34 @@ mod tests {
     }
 
     #[test]
+    fn shared_and_released_sums_match_plain_counts() {
+        // 1300 frames cross the 1024-frame chunk of a sum; the file is memory-mapped.
+        let (t, h, w) = (1300, 4, 21);
+        let bits = random_bits(t, h, w, 3);
+        let packed = pack_bits(&bits);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frames.npy");
+        ndarray_npy::write_npy(&path, &packed).unwrap();
+        let mapped = BinaryFrames::open(&path, w).unwrap();
+        let owned = BinaryFrames::from_packed(packed, w).unwrap();
+        for range in [0..t, 100..1200, 7..40, 7..40, 3..3] {
+            let expected = Array2::from_shape_fn((h, w), |(y, x)| {
+                range.clone().map(|f| bits[[f, y, x]] as u32).sum::<u32>()
+            });
+            assert_eq!(mapped.sum_range(range.clone()), expected, "{range:?}");
+            for _ in 0..2 {
+                assert_eq!(mapped.shared_sum(range.clone()), expected, "{range:?}");
+                assert_eq!(owned.shared_sum(range.clone()), expected, "{range:?}");
+            }
+            mapped.release(range.clone());
+            owned.release(range.clone());
+            assert_eq!(mapped.sum_range(range.clone()), expected, "{range:?}");
+            mapped.forget_shared_sums();
+            assert_eq!(mapped.shared_sum(range.clone()), expected, "{range:?}");
+        }
+    }
+
+    #[test]
     fn msb_first_bit_order() {
         let mut bits = Array3::<u8>::zeros((1, 1, 10));
         bits[[0, 0, 0]] = 1;

@@ -235,10 +235,7 @@ pub fn reference_image_streamed(
     // The other blocks, a group warped in parallel, each merged into every tile in block order.
     let others: Vec<usize> = (0..k_count).filter(|&k| k != ref_index).collect();
     for group in others.chunks(WARP_GROUP) {
-        let warped: Vec<Array2<f32>> = group
-            .par_iter()
-            .map(|&k| warp(k))
-            .collect::<Result<_>>()?;
+        let warped: Vec<Array2<f32>> = group.par_iter().map(|&k| warp(k)).collect::<Result<_>>()?;
         for img in &warped {
             tiles.par_iter_mut().for_each_init(
                 || {
