@@ -401,9 +401,8 @@ pub fn align(
     // Each block's robust affine fit (camera motion), for the centre-frame correction.
     let mut camera = Flow::zeros(flow.dim());
     progress.start("patch alignment", plan.len() as u64);
-    for b in 0..plan.len() {
+    for (b, block) in grey.iter().enumerate() {
         if b != plan.reference_block {
-            let block = &grey[b];
             let (f, valid) = aligner.align_with_validity(block)?;
             let f = median_filter_valid_flow(&f, &valid, config.median_radius);
             let mut f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
