@@ -425,7 +425,7 @@ fn median_epe(
     border: usize,
 ) -> (f64, f64) {
     const SAMPLES: usize = 16;
-    let (_, h, w) = burst.alignment.grey.dim();
+    let (h, w) = burst.alignment.grey[0].dim();
     let mut errors: Vec<f32> = Vec::new();
     let mut magnitudes: Vec<f32> = Vec::new();
     for k in 0..SAMPLES {

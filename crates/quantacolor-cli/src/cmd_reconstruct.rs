@@ -172,7 +172,11 @@ fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()
         staged.path("block_sums.npy"),
         &ndarray::stack(ndarray::Axis(0), &views)?,
     )?;
-    io::write_npy(staged.path("grey_blocks.npy"), &burst.alignment.grey)?;
+    let greys: Vec<_> = burst.alignment.grey.iter().map(|g| g.view()).collect();
+    io::write_npy(
+        staged.path("grey_blocks.npy"),
+        &ndarray::stack(ndarray::Axis(0), &greys)?,
+    )?;
     io::write_npy(staged.path("flow.npy"), &burst.alignment.flow)?;
     io::write_npy(staged.path("reference.npy"), &burst.merged.reference)?;
     io::write_npy(
@@ -186,7 +190,8 @@ fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()
     if let Some(merged) = &rec.merged_linear {
         io::write_npy(staged.path("merged_linear.npy"), merged)?;
     }
-    let robustness: Vec<_> = burst.merged.robustness.iter().map(|r| r.view()).collect();
+    let maps = burst.robustness_maps()?;
+    let robustness: Vec<_> = maps.iter().map(|r| r.view()).collect();
     io::write_npy(
         staged.path("robustness.npy"),
         &ndarray::stack(ndarray::Axis(0), &robustness)?,

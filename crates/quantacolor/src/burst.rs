@@ -14,7 +14,11 @@
 //!    combination (Eq. 8).
 //!
 //! Frames are never visited one at a time with a kernel: a sub-block's bits are summed straight
-//! from the packed words and splatted once; the kernel regression runs once per image.
+//! from the packed words and splatted once; the kernel regression runs once per image. A range
+//! that is both a block and a sub-block is summed once for alignment, refinement and merge
+//! ([`crate::capture::BinaryFrames::shared_sum`]). Memory is bounded in T: the frames' mapped
+//! pages are released behind each sum, the only per-block images kept are the grey blocks, and
+//! the reference image and robustness maps are made block by block.
 //!
 //! Multi-bit frames of a conventional sensor run through the same stages as the paper does it
 //! (§6.1): every frame is its own block (and sub-block), there is no motion interpolation or
@@ -30,12 +34,12 @@ use crate::align::{
 use crate::capture::Capture;
 use crate::error::Result;
 use crate::merge::{
-    merge_guide, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide, MergedBurst, SubBlock,
-    SubBlockMotion, SubBlockRobustness,
+    block_robustness, merge_guide_streamed, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide,
+    MergedBurst, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
 };
 use crate::pipeline::StageTiming;
 use crate::progress::Progress;
-use ndarray::{s, Array2, Array3};
+use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -66,6 +70,10 @@ pub struct BurstReconstruction {
     pub sub_blocks: Vec<Range<usize>>,
     /// Wall-clock time of each stage.
     pub timings: Vec<StageTiming>,
+    /// The noise of a grey block value and the robustness settings the merge used
+    /// ([`Self::robustness_maps`]).
+    grey_noise: GreyNoise,
+    robustness: RobustnessConfig,
 }
 
 impl BurstReconstruction {
@@ -74,6 +82,27 @@ impl BurstReconstruction {
     /// [`crate::simulate::Motion::dense_flow`], so the two compare directly).
     pub fn merge_flow(&self, t: f64) -> Array3<f32> {
         self.motion.flow_at_frame(t)
+    }
+
+    /// The (H, W) robustness map of every block (supplement Eq. 4–6), made again as the merge
+    /// made them (which drops each once its block is merged: they would grow with T), from
+    /// the grey blocks, the reference and the estimated block motion; a merge driven by a
+    /// motion oracle used the oracle's flows instead.
+    pub fn robustness_maps(&self) -> Result<Vec<Array2<f32>>> {
+        (0..self.alignment.plan.len())
+            .into_par_iter()
+            .map(|b| {
+                block_robustness(
+                    &self.merged.reference,
+                    &self.alignment.grey,
+                    &self.motion.block_flow(b),
+                    b,
+                    self.alignment.plan.reference_block,
+                    self.grey_noise,
+                    &self.robustness,
+                )
+            })
+            .collect()
     }
 }
 
@@ -144,6 +173,8 @@ pub fn reconstruct_burst_with_motion(
     let frames = &capture.frames;
     let hot = capture.hot_pixels.as_ref();
     let mut laps = Laps::new();
+    // Block and sub-block sums are made once and shared by alignment, refinement and merge.
+    frames.forget_shared_sums();
     let alignment = align(
         frames,
         &capture.cfa,
@@ -162,26 +193,13 @@ pub fn reconstruct_burst_with_motion(
     if !config.refine.keep_local_motion {
         motion.drop_local_motion();
     }
-    let grey_blocks: Vec<Array2<f32>> = alignment.grey.outer_iter().map(|g| g.to_owned()).collect();
-    let block_centres = alignment.plan.center_frames();
-    let block_flows = |motion: &FrameMotion| -> Vec<Array3<f32>> {
-        (0..alignment.plan.len())
-            .map(|b| match oracle {
-                Some(oracle) => oracle(block_centres[b]),
-                None => motion.block_flow(b),
-            })
-            .collect()
-    };
+    let grey_blocks = &alignment.grey;
     let grey_noise = GreyNoise {
         trials: alignment.plan.block_size as f32,
         model,
     };
     let reference_block = alignment.plan.reference_block;
-    let detections_per_frame = alignment
-        .grey
-        .slice(s![reference_block, .., ..])
-        .mean()
-        .unwrap_or(0.0) as f64;
+    let detections_per_frame = grey_blocks[reference_block].mean().unwrap_or(0.0) as f64;
     plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
     if let Some(oracle) = oracle {
         split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px);
@@ -215,24 +233,44 @@ pub fn reconstruct_burst_with_motion(
         refine_camera_motion(
             capture,
             alignment.grey_method,
-            &grey_blocks,
+            grey_blocks,
             &mut motion,
             &config.refine,
             progress,
         )?;
         laps.lap("motion refinement");
     }
-    let guide = merge_guide(
-        &grey_blocks,
-        &block_flows(&motion),
+    let block_centres = alignment.plan.center_frames();
+    let block_flow = |b: usize| match oracle {
+        Some(oracle) => oracle(block_centres[b]),
+        None => motion.block_flow(b),
+    };
+    let guide = merge_guide_streamed(
+        grey_blocks,
+        &block_flow,
         reference_block,
         grey_noise,
         &config.merge,
     )?;
-    drop(grey_blocks);
     laps.lap("reference, kernels, robustness");
 
-    let merged = merge_sub_blocks(capture, &motion, oracle, guide, &config.merge, progress)?;
+    let robustness = BlockRobustness {
+        grey_blocks,
+        block_flow: &block_flow,
+        reference_block,
+        noise: grey_noise,
+        config: &config.merge.robustness,
+    };
+    let merged = merge_sub_blocks(
+        capture,
+        &motion,
+        oracle,
+        &robustness,
+        guide,
+        &config.merge,
+        progress,
+    )?;
+    frames.forget_shared_sums();
     laps.lap("demosaic-merge");
     Ok(BurstReconstruction {
         alignment,
@@ -240,6 +278,8 @@ pub fn reconstruct_burst_with_motion(
         motion,
         merged,
         timings: laps.timings,
+        grey_noise,
+        robustness: config.merge.robustness.clone(),
     })
 }
 
@@ -272,13 +312,40 @@ fn split_at_oracle_motion(motion: &mut FrameMotion, oracle: MotionOracle<'_>, ma
     );
 }
 
+/// What a block's robustness map is made from ([`block_robustness`]), for the merge to make
+/// each map when it reaches the block's sub-blocks.
+struct BlockRobustness<'a> {
+    grey_blocks: &'a [Array2<f32>],
+    block_flow: &'a (dyn Fn(usize) -> Array3<f32> + Sync),
+    reference_block: usize,
+    noise: GreyNoise,
+    config: &'a RobustnessConfig,
+}
+
+impl BlockRobustness<'_> {
+    fn map(&self, reference: &Array2<f32>, b: usize) -> Result<Array2<f32>> {
+        block_robustness(
+            reference,
+            self.grey_blocks,
+            &(self.block_flow)(b),
+            b,
+            self.reference_block,
+            self.noise,
+            self.config,
+        )
+    }
+}
+
 /// Joint demosaic-merge of every sub-block of `motion` at its own flow (or the `oracle`'s at
 /// its centre frame), streamed in chunks through the phase-bin accumulator; hot pixels are
-/// left out. Then MLE flux and Eq. 8.
+/// left out. Then MLE flux and Eq. 8. Each block's robustness map is made when the first
+/// chunk that needs it comes and dropped after the last (sub-blocks run in time order, so a
+/// chunk needs at most a few blocks' maps).
 fn merge_sub_blocks(
     capture: &Capture,
     motion: &FrameMotion,
     oracle: Option<MotionOracle<'_>>,
+    robustness: &BlockRobustness<'_>,
     guide: MergeGuide,
     config: &MergeConfig,
     progress: &dyn Progress,
@@ -293,8 +360,39 @@ fn merge_sub_blocks(
         accumulator.exclude_sites(hot)?;
     }
     let indices: Vec<usize> = (0..motion.sub_blocks.len()).collect();
+    // Robustness maps of the blocks the current chunk needs (`maps[i]` is block
+    // `map_blocks[i]`'s).
+    let mut map_blocks: Vec<usize> = Vec::new();
+    let mut maps: Vec<Array2<f32>> = Vec::new();
     progress.start("merge", indices.len() as u64);
     for chunk in indices.chunks(SUB_BLOCK_CHUNK) {
+        let mut needed: Vec<usize> = chunk.iter().map(|&k| motion.block_of[k]).collect();
+        needed.sort_unstable();
+        needed.dedup();
+        let kept: Vec<(usize, Array2<f32>)> = map_blocks
+            .drain(..)
+            .zip(maps.drain(..))
+            .filter(|(b, _)| needed.contains(b))
+            .collect();
+        let missing: Vec<usize> = needed
+            .iter()
+            .copied()
+            .filter(|b| !kept.iter().any(|(have, _)| have == b))
+            .collect();
+        let made: Vec<Array2<f32>> = missing
+            .par_iter()
+            .map(|&b| robustness.map(&guide.reference, b))
+            .collect::<Result<_>>()?;
+        for (b, map) in kept.into_iter().chain(missing.into_iter().zip(made)) {
+            map_blocks.push(b);
+            maps.push(map);
+        }
+        let slot = |b: usize| {
+            map_blocks
+                .iter()
+                .position(|&have| have == b)
+                .expect("every needed map is made")
+        };
         let sub_blocks: Vec<SubBlock> = chunk
             .par_iter()
             .with_max_len(1)
@@ -302,18 +400,18 @@ fn merge_sub_blocks(
                 let range = motion.sub_blocks[k].clone();
                 let centre = (range.start + range.end - 1) as f64 / 2.0;
                 SubBlock {
-                    counts: capture.frames.sum_range(range.clone()),
+                    counts: capture.frames.shared_sum(range.clone()),
                     frames: range.len() as u32,
                     flow: match (oracle, motion.sub_block_reference_map(k)) {
                         (Some(oracle), _) => SubBlockMotion::Dense(oracle(centre)),
                         (None, Some((matrix, offset))) => SubBlockMotion::Affine { matrix, offset },
                         (None, None) => SubBlockMotion::Dense(motion.sub_block_flow(k)),
                     },
-                    robustness: SubBlockRobustness::Block(motion.block_of[k]),
+                    robustness: SubBlockRobustness::Block(slot(motion.block_of[k])),
                 }
             })
             .collect();
-        accumulator.add(&sub_blocks, &guide.robustness)?;
+        accumulator.add(&sub_blocks, &maps)?;
         progress.advance(chunk.len() as u64);
     }
     progress.finish();

@@ -74,13 +74,7 @@ fn diagnose() {
             }
         }
     }
-    let aligner = ReferenceAligner::new(
-        &al.grey
-            .slice(s![al.plan.reference_block, .., ..])
-            .to_owned(),
-        &cfg.patch,
-    )
-    .unwrap();
+    let aligner = ReferenceAligner::new(&al.grey[al.plan.reference_block], &cfg.patch).unwrap();
     let m = &sim.motion;
     let mean_disp = |r: std::ops::Range<usize>, y: f64, x: f64| {
         let n = r.len() as f64;
@@ -99,9 +93,7 @@ fn diagnose() {
     );
     for (b, range) in al.plan.blocks.iter().enumerate() {
         let c = al.plan.center_frames()[b];
-        let raw = aligner
-            .align(&al.grey.slice(s![b, .., ..]).to_owned())
-            .unwrap();
+        let raw = aligner.align(&al.grey[b]).unwrap();
         let medf = median_filter_flow(&raw, 1);
         let ints = raw.iter().filter(|v| v.fract() == 0.0).count() as f64 / raw.len() as f64;
         let ints_tex = textured
@@ -354,7 +346,7 @@ fn gain() {
     let al = align(&bits, &sim.cfa, hot, reference, &cfg, &Silent).unwrap();
     let mut grey = al.grey.clone();
     if env("PREFILTER").is_some() {
-        for mut g in grey.outer_iter_mut() {
+        for g in grey.iter_mut() {
             let (h, w) = g.dim();
             let src = g.to_owned();
             let at = |y: isize, x: isize| {
@@ -397,11 +389,7 @@ fn gain() {
             }
         }
     }
-    let aligner = ReferenceAligner::new(
-        &grey.slice(s![al.plan.reference_block, .., ..]).to_owned(),
-        &cfg.patch,
-    )
-    .unwrap();
+    let aligner = ReferenceAligner::new(&grey[al.plan.reference_block], &cfg.patch).unwrap();
     let m = &sim.motion;
     let mean_disp = |r: std::ops::Range<usize>, y: f64, x: f64| {
         let n = r.len() as f64;
@@ -423,9 +411,7 @@ fn gain() {
         if b == al.plan.reference_block {
             continue;
         }
-        let (raw, valid) = aligner
-            .align_with_validity(&grey.slice(s![b, .., ..]).to_owned())
-            .unwrap();
+        let (raw, valid) = aligner.align_with_validity(&grey[b]).unwrap();
         let medf = median_filter_valid_flow(&raw, &valid, cfg.median_radius);
         let fit = affine_fit_field(&medf, grid, cfg.affine_tolerance_px).unwrap();
         for &(ty, tx, cy, cx) in &textured {

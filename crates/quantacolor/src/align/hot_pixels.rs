@@ -143,7 +143,7 @@ impl HotPixelCorrector {
             (self.height, self.width),
             "frames and hot-pixel corrector disagree in size"
         );
-        let mut sums = frames.sum_range(range.clone());
+        let mut sums = frames.shared_sum(range.clone());
         let replaced: Vec<u32> = self
             .hot
             .par_iter()
@@ -160,6 +160,7 @@ impl HotPixelCorrector {
                 count
             })
             .collect();
+        frames.release(range);
         for (&idx, &c) in self.hot.iter().zip(&replaced) {
             sums[[idx / self.width, idx % self.width]] = c;
         }

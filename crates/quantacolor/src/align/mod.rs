@@ -11,7 +11,8 @@
 //!    (this project's own stage, run by [`crate::burst`] once the reference exists).
 //!
 //! [`align`] runs them in order with memory bounded in T: block sums are made one block at a
-//! time (a few in parallel) and only the grey images, `(H, W)` f32 per block, are kept.
+//! time (a few in parallel, the frames' mapped pages released behind them) and only the grey
+//! images, `(H, W)` f32 per block, are kept.
 
 pub mod blocks;
 pub mod grey;
@@ -326,9 +327,10 @@ pub struct Alignment {
     pub flow: Flow,
     /// How grey images were made.
     pub grey_method: GreyMethod,
-    /// Grey image of every block, `(n_blocks, H, W)`, mean detections per frame (not smoothed;
-    /// hot pixels corrected when a mask was given). The reference image stage warps these.
-    pub grey: Array3<f32>,
+    /// Grey image `(H, W)` of every block, mean detections per frame (not smoothed; hot pixels
+    /// corrected when a mask was given). The reference image stage warps these. One image per
+    /// block, 4·H·W bytes (0.5 MB at 496x254): the only per-block images the burst keeps.
+    pub grey: Vec<Array2<f32>>,
 }
 
 impl Alignment {
@@ -377,40 +379,37 @@ pub fn align(
         .transpose()?;
 
     progress.start("block sums", plan.len() as u64);
-    let mut grey = Array3::<f32>::zeros((plan.len(), h, w));
-    grey.outer_iter_mut()
-        .into_par_iter()
-        .zip(plan.blocks.par_iter())
+    let grey: Vec<Array2<f32>> = plan
+        .blocks
+        .par_iter()
         .with_max_len(1)
-        .for_each(|(mut out, range)| {
+        .map(|range| {
             let sums = match &corrector {
                 Some(c) => c.corrected_block_sum(frames, range.clone()),
-                None => frames.sum_range(range.clone()),
+                None => frames.shared_sum(range.clone()),
             };
-            out.assign(&grey_image(&sums, range.len(), cfa, grey_method));
+            let image = grey_image(&sums, range.len(), cfa, grey_method);
             progress.advance(1);
-        });
+            image
+        })
+        .collect();
     progress.finish();
 
-    let aligner = ReferenceAligner::new(
-        &grey.slice(s![plan.reference_block, .., ..]).to_owned(),
-        &config.patch,
-    )?;
+    let aligner = ReferenceAligner::new(&grey[plan.reference_block], &config.patch)?;
     let grid = aligner.grid().clone();
     let mut flow = Flow::zeros((plan.len(), grid.tiles_y, grid.tiles_x, 2));
     // Each block's robust affine fit (camera motion), for the centre-frame correction.
     let mut camera = Flow::zeros(flow.dim());
     progress.start("patch alignment", plan.len() as u64);
-    for b in 0..plan.len() {
+    for (b, block) in grey.iter().enumerate() {
         if b != plan.reference_block {
-            let block = grey.slice(s![b, .., ..]).to_owned();
-            let (f, valid) = aligner.align_with_validity(&block)?;
+            let (f, valid) = aligner.align_with_validity(block)?;
             let f = median_filter_valid_flow(&f, &valid, config.median_radius);
             let mut f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
             if let Some(fit) = affine_fit_field(&f, &grid, config.affine_tolerance_px) {
                 if config.second_motion_radius_px > 0 {
                     f = aligner.follow_second_motion(
-                        &block,
+                        block,
                         &f,
                         &fit,
                         config.affine_tolerance_px,

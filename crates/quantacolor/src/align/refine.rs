@@ -356,7 +356,7 @@ impl FrameMotion {
         tolerance_px: f32,
         min_local_tiles: usize,
     ) -> FrameMotion {
-        let (_, h, w) = alignment.grey.dim();
+        let (h, w) = alignment.grey[alignment.plan.reference_block].dim();
         let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
         let grid = alignment.grid.clone();
         let mut local = alignment.flow.clone();
@@ -983,7 +983,7 @@ fn refine_pass(
                 let templates = &templates[g];
                 let range = motion.sub_blocks[k].clone();
                 let start = motion.camera[k];
-                let counts = frames.sum_range(range.clone());
+                let counts = frames.shared_sum(range.clone());
                 let result = start.inverse().and_then(|inverse_start| {
                     fit_sub_block(
                         &counts,
@@ -1152,9 +1152,9 @@ mod diagnose {
         .unwrap();
         let (h, w) = (capture.cfa.height(), capture.cfa.width());
         let zero = vec![Array3::<f32>::zeros((h, w, 2)); alignment.plan.len()];
-        let greys: Vec<Array2<f32>> = alignment.grey.outer_iter().map(|g| g.to_owned()).collect();
+        let greys = &alignment.grey;
         let reference = crate::merge::reference_image(
-            &greys,
+            greys,
             &zero,
             alignment.plan.reference_block,
             alignment.plan.block_size as f32,

@@ -1,6 +1,7 @@
 //! Frames: binary, bit-packed uint8 (T, H, ceil(W/8)), MSB first as `np.packbits` writes them, or
 //! unpacked bool/uint8 0/1 (T, H, W); or multi-bit, uint16 (T, H, W) digital numbers of a
-//! conventional sensor. Files are memory-mapped, never copied whole into memory; block sums are
+//! conventional sensor. Files are memory-mapped, never copied whole into memory, and the passes
+//! over them release the pages behind them ([`BinaryFrames::release`]); block sums are
 //! computed straight from the stored bytes (for binary frames, from the packed words). A sum is
 //! the number of ones (binary) or the sum of digital numbers (multi-bit): the merge's "counts".
 
@@ -9,9 +10,11 @@ use crate::error::{Error, Result};
 use memmap2::Mmap;
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
+use std::collections::HashMap;
 use std::fs::File;
 use std::ops::Range;
 use std::path::Path;
+use std::sync::Mutex;
 
 /// How the bits of one frame row are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,6 +43,21 @@ pub struct BinaryFrames {
     frame_count: usize,
     height: usize,
     width: usize,
+    /// Sums kept by [`Self::shared_sum`].
+    shared: Mutex<SharedSums>,
+}
+
+/// Budget of the sums [`BinaryFrames::shared_sum`] keeps, bytes: 256 sums of 496x254 as u16
+/// (the blocks of about 100,000 frames at 0.1 photons per frame), so that a reconstruction
+/// stays within its memory bound for any T (sums beyond it are made again when asked again).
+const SHARED_SUM_BYTES: usize = 64 << 20;
+
+/// Per-pixel sums over frame ranges, as u16 (a binary sum over fewer than 65,536 frames fits),
+/// within [`SHARED_SUM_BYTES`].
+#[derive(Debug, Default)]
+struct SharedSums {
+    sums: HashMap<(usize, usize), Vec<u16>>,
+    bytes: usize,
 }
 
 /// Byte `v` spread into eight byte lanes of a u64, MSB of `v` in the lowest lane, so that lane
@@ -62,6 +80,10 @@ const fn spread_table() -> [u64; 256] {
     table
 }
 static SPREAD: [u64; 256] = spread_table();
+
+/// Frames summed at a time by [`BinaryFrames::sum_range`] before their mapped pages are
+/// released (16 MB of 496x254 packed frames).
+const SUM_CHUNK_FRAMES: usize = 1024;
 
 /// Frames added into the byte lanes of one u64 before they could overflow (255 max per lane).
 const LANE_FLUSH: usize = 255;
@@ -161,6 +183,7 @@ impl BinaryFrames {
             frame_count: t,
             height: h,
             width,
+            shared: Mutex::default(),
         })
     }
 
@@ -187,6 +210,7 @@ impl BinaryFrames {
             frame_count: t,
             height: h,
             width,
+            shared: Mutex::default(),
         })
     }
 
@@ -203,6 +227,7 @@ impl BinaryFrames {
             frame_count: t,
             height: h,
             width: w,
+            shared: Mutex::default(),
         })
     }
 
@@ -299,13 +324,87 @@ impl BinaryFrames {
         );
         let (h, w) = (self.height, self.width);
         let mut counts = Array2::<u32>::zeros((h, w));
+        let out = counts.as_slice_mut().expect("fresh array is contiguous");
+        // In chunks of frames, each released once summed: a sum over a whole capture keeps a
+        // bounded part of a memory-mapped file resident (the sums are integers, so chunking
+        // does not change them).
+        let mut start = frames.start;
+        while start < frames.end {
+            let end = (start + SUM_CHUNK_FRAMES).min(frames.end);
+            out.par_chunks_mut(w)
+                .enumerate()
+                .for_each(|(y, out)| self.sum_row(start..end, y, out));
+            self.release(start..end);
+            start = end;
+        }
         counts
-            .as_slice_mut()
-            .expect("fresh array is contiguous")
-            .par_chunks_mut(w)
-            .enumerate()
-            .for_each(|(y, out)| self.sum_row(frames.clone(), y, out));
-        counts
+    }
+
+    /// [`Self::sum_range`] over `frames`, made once and shared by the stages that ask for the
+    /// same range (alignment's block sums, the refinement's and the merge's sub-block sums:
+    /// a sub-block that is a whole block is summed once for all three). Sums are kept as u16
+    /// up to a fixed budget (64 MB; beyond it, and for sums that do not fit in u16, a sum is
+    /// made again each time), until [`Self::forget_shared_sums`]. The values are those of
+    /// [`Self::sum_range`] whichever way they come.
+    pub fn shared_sum(&self, frames: Range<usize>) -> Array2<u32> {
+        let key = (frames.start, frames.end);
+        let (h, w) = (self.height, self.width);
+        if let Some(kept) = self.lock_shared().sums.get(&key) {
+            let values = kept.iter().map(|&v| v as u32).collect();
+            return Array2::from_shape_vec((h, w), values).expect("kept sums match the shape");
+        }
+        let sums = self.sum_range(frames);
+        let bytes = 2 * h * w;
+        if let Some(narrow) = sums
+            .iter()
+            .map(|&v| u16::try_from(v).ok())
+            .collect::<Option<Vec<u16>>>()
+        {
+            let mut shared = self.lock_shared();
+            if shared.bytes + bytes <= SHARED_SUM_BYTES && !shared.sums.contains_key(&key) {
+                shared.sums.insert(key, narrow);
+                shared.bytes += bytes;
+            }
+        }
+        sums
+    }
+
+    /// Drops the sums kept by [`Self::shared_sum`] (a reconstruction calls it when its merge is
+    /// done).
+    pub fn forget_shared_sums(&self) {
+        *self.lock_shared() = SharedSums::default();
+    }
+
+    fn lock_shared(&self) -> std::sync::MutexGuard<'_, SharedSums> {
+        // The kept sums are complete whenever the lock is released: a poisoned lock still
+        // guards consistent data.
+        self.shared.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Hands the memory-mapped pages of `frames` back to the operating system (`madvise`
+    /// `MADV_DONTNEED`; Unix only, a no-op for frames held in memory). Passes over the frames
+    /// call it behind them so that the resident memory of a capture larger than RAM stays
+    /// bounded: the map is read-only, so a later read of the same frames faults the unchanged
+    /// file pages back in (from the page cache, as a rule) and sees the same bytes.
+    pub fn release(&self, frames: Range<usize>) {
+        #[cfg(unix)]
+        if let Storage::Mapped { map, offset } = &self.storage {
+            let frame_bytes = self.height * self.row_bytes();
+            let end = frames.end.min(self.frame_count);
+            if frames.start >= end {
+                return;
+            }
+            let start = offset + frames.start * frame_bytes;
+            let len = (end - frames.start) * frame_bytes;
+            // SAFETY: the map is a read-only file mapping that nothing in this process
+            // writes; dropping its pages only makes the next access read the file again.
+            // Advice is a hint: a failure changes nothing but memory use.
+            let _ = unsafe {
+                map.unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, start, len)
+            };
+        }
+        #[cfg(not(unix))]
+        let _ = frames;
     }
 
     fn sum_row(&self, frames: Range<usize>, y: usize, out: &mut [u32]) {
@@ -369,6 +468,7 @@ impl BinaryFrames {
         Ok(BinaryFrames {
             storage,
             frame_count: window.len(),
+            shared: Mutex::default(),
             ..self
         })
     }
@@ -482,6 +582,34 @@ mod tests {
             }
         }
         assert_eq!(frames.frame(42), bits.index_axis(ndarray::Axis(0), 42));
+    }
+
+    #[test]
+    fn shared_and_released_sums_match_plain_counts() {
+        // 1300 frames cross the 1024-frame chunk of a sum; the file is memory-mapped.
+        let (t, h, w) = (1300, 4, 21);
+        let bits = random_bits(t, h, w, 3);
+        let packed = pack_bits(&bits);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frames.npy");
+        ndarray_npy::write_npy(&path, &packed).unwrap();
+        let mapped = BinaryFrames::open(&path, w).unwrap();
+        let owned = BinaryFrames::from_packed(packed, w).unwrap();
+        for range in [0..t, 100..1200, 7..40, 7..40, 3..3] {
+            let expected = Array2::from_shape_fn((h, w), |(y, x)| {
+                range.clone().map(|f| bits[[f, y, x]] as u32).sum::<u32>()
+            });
+            assert_eq!(mapped.sum_range(range.clone()), expected, "{range:?}");
+            for _ in 0..2 {
+                assert_eq!(mapped.shared_sum(range.clone()), expected, "{range:?}");
+                assert_eq!(owned.shared_sum(range.clone()), expected, "{range:?}");
+            }
+            mapped.release(range.clone());
+            owned.release(range.clone());
+            assert_eq!(mapped.sum_range(range.clone()), expected, "{range:?}");
+            mapped.forget_shared_sums();
+            assert_eq!(mapped.shared_sum(range.clone()), expected, "{range:?}");
+        }
     }
 
     #[test]

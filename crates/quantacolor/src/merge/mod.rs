@@ -29,7 +29,7 @@ pub use accumulate::{
     SubBlockMotion, SubBlockRobustness,
 };
 pub use kernels::{kernel_field, KernelConfig, KernelField};
-pub use reference::{reference_image, WienerConfig};
+pub use reference::{reference_image, reference_image_streamed, WienerConfig};
 pub use robustness::{robustness, RobustnessConfig};
 pub use warp::{sample_bilinear, warp_to_reference};
 
@@ -107,7 +107,9 @@ pub struct MergedBurst {
     pub planes: MergedPlanes,
     /// (H, W) Wiener-merged grey reference.
     pub reference: Array2<f32>,
-    /// (H, W) robustness map per block (the reference block's is all ones).
+    /// (H, W) robustness map per block (the reference block's is all ones); empty from
+    /// [`crate::burst`], which makes each map while it merges that block and drops it
+    /// (`BurstReconstruction::robustness_maps` remakes them).
     pub robustness: Vec<Array2<f32>>,
     pub kernels: KernelField,
 }
@@ -119,7 +121,8 @@ pub struct MergeGuide {
     /// (H, W) Wiener-merged grey reference.
     pub reference: Array2<f32>,
     pub kernels: KernelField,
-    /// (H, W) robustness map per block (the reference block's is all ones).
+    /// (H, W) robustness map per block (the reference block's is all ones); empty from
+    /// [`merge_guide_streamed`].
     pub robustness: Vec<Array2<f32>>,
 }
 
@@ -140,10 +143,49 @@ pub fn merge_guide(
             "merge: reference block {reference_block} is outside the {blocks} blocks"
         )));
     }
-    let (h, w) = grey_blocks[reference_block].dim();
-    let reference = reference_image(
+    if block_flows.len() != blocks {
+        return Err(Error::invalid(format!(
+            "reference image: {blocks} grey blocks but {} flows",
+            block_flows.len()
+        )));
+    }
+    let mut guide = merge_guide_streamed(
         grey_blocks,
-        block_flows,
+        &|k| block_flows[k].clone(),
+        reference_block,
+        noise,
+        config,
+    )?;
+    guide.robustness = (0..blocks)
+        .map(|k| {
+            block_robustness(
+                &guide.reference,
+                grey_blocks,
+                &block_flows[k],
+                k,
+                reference_block,
+                noise,
+                &config.robustness,
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(guide)
+}
+
+/// Stages 1–2 of [`merge_guide`] with block k's dense flow made by `block_flow(k)` when it is
+/// needed ([`reference_image_streamed`]): the reference image and its kernels, with an empty
+/// robustness list; the caller makes each block's map when it merges that block
+/// ([`block_robustness`]), so that memory does not grow with the number of blocks.
+pub fn merge_guide_streamed(
+    grey_blocks: &[Array2<f32>],
+    block_flow: &(dyn Fn(usize) -> Array3<f32> + Sync),
+    reference_block: usize,
+    noise: impl Into<GreyNoise>,
+    config: &MergeConfig,
+) -> Result<MergeGuide> {
+    let reference = reference_image_streamed(
+        grey_blocks,
+        block_flow,
         reference_block,
         noise,
         &config.wiener,
@@ -152,23 +194,29 @@ pub fn merge_guide(
         &reference,
         &config.kernels.for_output_scale(config.accumulate.scale),
     )?;
-    let robustness_maps = grey_blocks
-        .iter()
-        .zip(block_flows)
-        .enumerate()
-        .map(|(k, (grey, flow))| {
-            if k == reference_block {
-                Ok(Array2::ones((h, w)))
-            } else {
-                robustness(&reference, grey, flow, noise, &config.robustness)
-            }
-        })
-        .collect::<Result<Vec<_>>>()?;
     Ok(MergeGuide {
         reference,
         kernels,
-        robustness: robustness_maps,
+        robustness: Vec::new(),
     })
+}
+
+/// Robustness map of block `k` (stage 3 of [`merge_guide`]): all ones for the reference block,
+/// else [`robustness`] of its grey image at `flow` against `reference`.
+pub fn block_robustness(
+    reference: &Array2<f32>,
+    grey_blocks: &[Array2<f32>],
+    flow: &Array3<f32>,
+    k: usize,
+    reference_block: usize,
+    noise: impl Into<GreyNoise>,
+    config: &RobustnessConfig,
+) -> Result<Array2<f32>> {
+    if k == reference_block {
+        Ok(Array2::ones(reference.dim()))
+    } else {
+        robustness(reference, &grey_blocks[k], flow, noise, config)
+    }
 }
 
 /// Merges a burst (paper §4.2, Fig. 4): [`merge_guide`], joint demosaic-merge, RGBW

@@ -79,8 +79,19 @@ fn transpose(src: &[Complex32], dst: &mut [Complex32], n: usize) {
     }
 }
 
-/// One row of merged tiles: its y origin and (x origin, n·n values) per tile.
-type TileRow = (isize, Vec<(isize, Vec<f32>)>);
+/// One tile of the Wiener merge while the blocks stream past: its origin, the DFT of the
+/// reference block's tile, that tile's mean and the running sum over blocks.
+struct TileState {
+    y0: isize,
+    x0: isize,
+    reference: Vec<Complex32>,
+    mean_ref: f32,
+    acc: Vec<Complex32>,
+}
+
+/// Blocks warped at a time (in parallel) by [`reference_image_streamed`]: bounds its memory to
+/// this many (H, W) images, whatever the number of blocks.
+const WARP_GROUP: usize = 8;
 
 /// Merges grey block images into a reference image (supplement §1.2).
 ///
@@ -105,16 +116,37 @@ pub fn reference_image(
     noise: impl Into<GreyNoise>,
     config: &WienerConfig,
 ) -> Result<Array2<f32>> {
+    if flows_dense.len() != grey_blocks.len() {
+        return Err(Error::invalid(format!(
+            "reference image: {} grey blocks but {} flows",
+            grey_blocks.len(),
+            flows_dense.len()
+        )));
+    }
+    reference_image_streamed(
+        grey_blocks,
+        &|k| flows_dense[k].clone(),
+        ref_index,
+        noise,
+        config,
+    )
+}
+
+/// [`reference_image`] with block k's dense flow made by `block_flow(k)` when it is needed:
+/// blocks are warped a few at a time and merged into every tile's running sum, in block order
+/// (the same sums, in the same order, as with all warped blocks at hand), so memory is a few
+/// (H, W) images and one set of tile spectra whatever the number of blocks.
+pub fn reference_image_streamed(
+    grey_blocks: &[Array2<f32>],
+    block_flow: &(dyn Fn(usize) -> Array3<f32> + Sync),
+    ref_index: usize,
+    noise: impl Into<GreyNoise>,
+    config: &WienerConfig,
+) -> Result<Array2<f32>> {
     let noise: GreyNoise = noise.into();
     let k_count = grey_blocks.len();
     if k_count == 0 {
         return Err(Error::invalid("reference image: no grey blocks given"));
-    }
-    if flows_dense.len() != k_count {
-        return Err(Error::invalid(format!(
-            "reference image: {k_count} grey blocks but {} flows",
-            flows_dense.len()
-        )));
     }
     if ref_index >= k_count {
         return Err(Error::invalid(format!(
@@ -141,13 +173,10 @@ pub fn reference_image(
             )));
         }
     }
-    let warped: Vec<Array2<f32>> = grey_blocks
-        .iter()
-        .zip(flows_dense)
-        .map(|(g, f)| warp_to_reference(g, f))
-        .collect::<Result<_>>()?;
+    let warp = |k: usize| warp_to_reference(&grey_blocks[k], &block_flow(k));
+    let reference_warped = warp(ref_index)?;
     if k_count == 1 {
-        return Ok(warped.into_iter().next().expect("one block"));
+        return Ok(reference_warped);
     }
 
     let n = config.tile;
@@ -163,79 +192,104 @@ pub fn reference_image(
             .collect()
     };
     let (oy, ox) = (origins(h), origins(w));
-    let at = |img: &Array2<f32>, y: isize, x: isize| -> f32 {
-        img[[
-            y.clamp(0, h as isize - 1) as usize,
-            x.clamp(0, w as isize - 1) as usize,
-        ]]
+    // Tile (y0, x0) of `img` into `buf`; returns the tile mean.
+    let load = |img: &Array2<f32>, y0: isize, x0: isize, buf: &mut [Complex32]| -> f32 {
+        let mut sum = 0.0;
+        for i in 0..n {
+            for j in 0..n {
+                let v = img[[
+                    (y0 + i as isize).clamp(0, h as isize - 1) as usize,
+                    (x0 + j as isize).clamp(0, w as isize - 1) as usize,
+                ]];
+                sum += v;
+                buf[i * n + j] = Complex32::new(v, 0.0);
+            }
+        }
+        sum * norm
     };
 
-    // Each tile row in parallel: (origin_y, Vec<(origin_x, merged tile)>).
-    let rows: Vec<TileRow> = oy
+    // Every tile's reference spectrum, row-major over the tile origins.
+    let origins_yx: Vec<(isize, isize)> = oy
+        .iter()
+        .flat_map(|&y0| ox.iter().map(move |&x0| (y0, x0)))
+        .collect();
+    let mut tiles: Vec<TileState> = origins_yx
         .par_iter()
-        .map(|&y0| {
-            let mut tiles = Vec::with_capacity(ox.len());
+        .map(|&(y0, x0)| {
             let mut reference = vec![Complex32::default(); n * n];
-            let mut other = vec![Complex32::default(); n * n];
-            let mut acc = vec![Complex32::default(); n * n];
             let mut scratch = vec![Complex32::default(); n * n];
-            for &x0 in &ox {
-                let load = |img: &Array2<f32>, buf: &mut [Complex32]| -> f32 {
-                    let mut sum = 0.0;
-                    for i in 0..n {
-                        for j in 0..n {
-                            let v = at(img, y0 + i as isize, x0 + j as isize);
-                            sum += v;
-                            buf[i * n + j] = Complex32::new(v, 0.0);
-                        }
-                    }
-                    sum * norm
-                };
-                let mean_ref = load(&warped[ref_index], &mut reference);
-                fft.run(&mut reference, &mut scratch, false);
-                acc.copy_from_slice(&reference);
-                for (k, img) in warped.iter().enumerate() {
-                    if k == ref_index {
-                        continue;
-                    }
-                    let mean_k = load(img, &mut other);
-                    fft.run(&mut other, &mut scratch, false);
+            let mean_ref = load(&reference_warped, y0, x0, &mut reference);
+            fft.run(&mut reference, &mut scratch, false);
+            let acc = reference.clone();
+            TileState {
+                y0,
+                x0,
+                reference,
+                mean_ref,
+                acc,
+            }
+        })
+        .collect();
+    drop(reference_warped);
+
+    // The other blocks, a group warped in parallel, each merged into every tile in block order.
+    let others: Vec<usize> = (0..k_count).filter(|&k| k != ref_index).collect();
+    for group in others.chunks(WARP_GROUP) {
+        let warped: Vec<Array2<f32>> = group.par_iter().map(|&k| warp(k)).collect::<Result<_>>()?;
+        for img in &warped {
+            tiles.par_iter_mut().for_each_init(
+                || {
+                    (
+                        vec![Complex32::default(); n * n],
+                        vec![Complex32::default(); n * n],
+                    )
+                },
+                |(other, scratch), tile| {
+                    let mean_k = load(img, tile.y0, tile.x0, other);
+                    fft.run(other, scratch, false);
                     let sigma2 =
-                        (n * n) as f32 * (noise.variance(mean_ref) + noise.variance(mean_k));
+                        (n * n) as f32 * (noise.variance(tile.mean_ref) + noise.variance(mean_k));
                     let noise = config.c * sigma2.max(f32::MIN_POSITIVE);
-                    for ((a, &t_ref), &t_k) in acc.iter_mut().zip(&reference).zip(&other) {
+                    for ((a, &t_ref), &t_k) in
+                        tile.acc.iter_mut().zip(&tile.reference).zip(other.iter())
+                    {
                         let d = t_ref - t_k;
                         let d2 = d.norm_sqr();
                         let shrink = d2 / (d2 + noise);
                         *a += t_k + d * shrink;
                     }
-                }
-                fft.run(&mut acc, &mut scratch, true);
-                let scale = norm / k_count as f32;
-                tiles.push((x0, acc.iter().map(|v| v.re * scale).collect()));
+                },
+            );
+        }
+    }
+
+    let scale = norm / k_count as f32;
+    tiles.par_iter_mut().for_each_init(
+        || vec![Complex32::default(); n * n],
+        |scratch, tile| {
+            fft.run(&mut tile.acc, scratch, true);
+            for v in tile.acc.iter_mut() {
+                *v = Complex32::new(v.re * scale, 0.0);
             }
-            (y0, tiles)
-        })
-        .collect();
+        },
+    );
 
     let mut num = Array2::<f32>::zeros((h, w));
     let mut den = Array2::<f32>::zeros((h, w));
-    for (y0, tiles) in rows {
-        for (x0, tile) in tiles {
-            for i in 0..n {
-                let y = y0 + i as isize;
-                if y < 0 || y >= h as isize {
+    for tile in &tiles {
+        for i in 0..n {
+            let y = tile.y0 + i as isize;
+            if y < 0 || y >= h as isize {
+                continue;
+            }
+            for j in 0..n {
+                let x = tile.x0 + j as isize;
+                if x < 0 || x >= w as isize {
                     continue;
                 }
-                for j in 0..n {
-                    let x = x0 + j as isize;
-                    if x < 0 || x >= w as isize {
-                        continue;
-                    }
-                    let wt = window[i] * window[j];
-                    num[[y as usize, x as usize]] += wt * tile[i * n + j];
-                    den[[y as usize, x as usize]] += wt;
-                }
+                let wt = window[i] * window[j];
+                num[[y as usize, x as usize]] += wt * tile.acc[i * n + j].re;
+                den[[y as usize, x as usize]] += wt;
             }
         }
     }
