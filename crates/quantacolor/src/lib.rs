@@ -18,6 +18,7 @@ pub mod denoise;
 pub mod display;
 pub mod error;
 pub mod experiments;
+pub mod filters;
 pub mod inspect;
 pub mod merge;
 pub mod metrics;

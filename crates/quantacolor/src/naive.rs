@@ -8,8 +8,9 @@
 use crate::capture::Capture;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::normalized_convolution_nan;
 use crate::model::PixelModel;
-use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
+use ndarray::{Array2, Array3, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -57,65 +58,6 @@ fn interpolation_sigma(fraction: f64) -> f64 {
     (0.6 / fraction.max(1e-6).sqrt()).max(0.5)
 }
 
-/// Normalized convolution of the samples in `values` (NaN = no sample) with a Gaussian of
-/// width `sigma`: Σ g·v / Σ g over the valid samples. Pixels without any sample within 3σ get
-/// NaN.
-pub fn normalized_convolution(values: ArrayView2<f32>, sigma: f64) -> Array2<f32> {
-    let weights = values.mapv(|v| if v.is_nan() { 0.0 } else { 1.0 });
-    let data = values.mapv(|v| if v.is_nan() { 0.0 } else { v });
-    let kernel = gaussian_kernel(sigma);
-    let num = separable_convolve(&data, &kernel);
-    let den = separable_convolve(&weights, &kernel);
-    Zip::from(&num)
-        .and(&den)
-        .map_collect(|&n, &d| if d > 1e-6 { n / d } else { f32::NAN })
-}
-
-fn gaussian_kernel(sigma: f64) -> Vec<f32> {
-    let radius = (3.0 * sigma).ceil() as isize;
-    let k: Vec<f64> = (-radius..=radius)
-        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let sum: f64 = k.iter().sum();
-    k.iter().map(|v| (v / sum) as f32).collect()
-}
-
-/// Zero-padded separable convolution (zero padding is what normalized convolution needs: the
-/// weight image is padded the same way, so borders stay unbiased).
-fn separable_convolve(image: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let (h, w) = image.dim();
-    let r = (kernel.len() / 2) as isize;
-    let mut rows = Array2::<f32>::zeros((h, w));
-    rows.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(image.axis_iter(Axis(0)))
-        .for_each(|(mut out, inp)| {
-            for x in 0..w as isize {
-                let mut acc = 0.0;
-                for (k, &kv) in kernel.iter().enumerate() {
-                    let xx = x + k as isize - r;
-                    if xx >= 0 && xx < w as isize {
-                        acc += kv * inp[xx as usize];
-                    }
-                }
-                out[x as usize] = acc;
-            }
-        });
-    let mut out = Array2::<f32>::zeros((h, w));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, mut row)| {
-            for (k, &kv) in kernel.iter().enumerate() {
-                let yy = y as isize + k as isize - r;
-                if yy >= 0 && yy < h as isize {
-                    row.scaled_add(kv, &rows.row(yy as usize));
-                }
-            }
-        });
-    out
-}
-
 /// Demosaics a per-pixel flux map (NaN = excluded pixel) into full R, G, B, W planes by
 /// normalized convolution of each channel's sites. Returns (4, H, W) in channel-code order;
 /// channels absent from the CFA are NaN.
@@ -136,14 +78,14 @@ pub fn demosaic_normalized(flux: &Array2<f32>, cfa: &Cfa) -> Array3<f32> {
             }
         });
         let mut sigma = interpolation_sigma(fraction);
-        let mut plane = normalized_convolution(samples.view(), sigma);
+        let mut plane = normalized_convolution_nan(samples.view(), sigma);
         // Sparse channels near many excluded pixels may leave holes: widen until filled.
         for _ in 0..4 {
             if !plane.iter().any(|v| v.is_nan()) {
                 break;
             }
             sigma *= 2.0;
-            let wider = normalized_convolution(samples.view(), sigma);
+            let wider = normalized_convolution_nan(samples.view(), sigma);
             Zip::from(&mut plane).and(&wider).for_each(|p, &q| {
                 if p.is_nan() {
                     *p = q;
@@ -258,7 +200,7 @@ mod tests {
                 f32::NAN
             }
         });
-        let dense = normalized_convolution(sparse.view(), 1.5);
+        let dense = normalized_convolution_nan(sparse.view(), 1.5);
         // Away from the borders a symmetric kernel reproduces a linear function closely.
         for y in 8..32 {
             for x in 8..32 {

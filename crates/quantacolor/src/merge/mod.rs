@@ -35,8 +35,9 @@ pub use warp::{sample_bilinear, warp_to_reference};
 
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::normalized_convolution_nan;
 use crate::model::PixelModel;
-use crate::naive::{combine_rgbw, normalized_convolution};
+use crate::naive::combine_rgbw;
 use ndarray::{Array2, Array3, Zip};
 use serde::{Deserialize, Serialize};
 
@@ -301,7 +302,7 @@ pub fn grey_from_counts(counts: &Array2<u32>, frames: u32, cfa: &Cfa) -> Result<
             f32::NAN
         }
     });
-    let filled = normalized_convolution(samples.view(), sigma);
+    let filled = normalized_convolution_nan(samples.view(), sigma);
     Ok(Zip::from(&samples)
         .and(&filled)
         .map_collect(|&s, &f| if s.is_nan() { f } else { s }))
