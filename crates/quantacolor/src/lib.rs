@@ -28,6 +28,7 @@ pub mod output;
 pub mod pipeline;
 pub mod progress;
 pub mod report;
+pub mod rgbw;
 pub mod simulate;
 
 pub use capture::Capture;
