@@ -30,6 +30,7 @@ pub mod progress;
 pub mod report;
 pub mod rgbw;
 pub mod simulate;
+pub mod timing;
 
 pub use capture::Capture;
 pub use cfa::{Cfa, Channel};
