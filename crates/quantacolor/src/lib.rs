@@ -13,6 +13,7 @@ pub mod align;
 pub mod burst;
 pub mod capture;
 pub mod cfa;
+pub mod color;
 pub mod convert;
 pub mod denoise;
 pub mod display;
