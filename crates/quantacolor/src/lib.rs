@@ -10,6 +10,7 @@
 //! pixel with dark counts removed (λ of paper Eq. 2–3).
 
 pub mod align;
+pub mod atomic;
 pub mod burst;
 pub mod capture;
 pub mod cfa;

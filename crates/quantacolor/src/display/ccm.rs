@@ -228,7 +228,7 @@ impl ColorMatrix {
     /// Writes the `[color_matrix]` TOML file atomically.
     pub fn write(&self, path: impl AsRef<Path>) -> Result<()> {
         let text = self.to_toml();
-        crate::capture::io::write_atomic(path, |w| w.write_all(text.as_bytes()))
+        crate::atomic::write_atomic(path, |w| w.write_all(text.as_bytes()))
     }
 }
 
