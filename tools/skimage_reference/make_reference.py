@@ -81,7 +81,7 @@ for name, h, w, c, seed, mode in CASES:
 
 
 def linear_to_srgb(v):
-    """float32 sRGB encoding, as crate::display::srgb::linear_to_srgb."""
+    """float32 sRGB encoding, as crate::color::srgb::linear_to_srgb."""
     v = np.clip(v, 0.0, 1.0).astype(np.float32)
     lo = np.float32(12.92) * v
     hi = np.float32(1.055) * v ** np.float32(1.0 / 2.4) - np.float32(0.055)

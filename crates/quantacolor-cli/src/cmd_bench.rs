@@ -692,7 +692,7 @@ fn quality(
     eprintln!("quality suite: {} captures in {total_s:.0} s", rows.len());
 
     let md = report(&cases, &rows, set, only, total_s)?;
-    quantacolor::capture::io::write_atomic_synced(out, |w| w.write_all(md.as_bytes()))?;
+    quantacolor::atomic::write_atomic_synced(out, |w| w.write_all(md.as_bytes()))?;
     print!("{md}");
     Ok(())
 }

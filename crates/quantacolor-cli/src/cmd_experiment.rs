@@ -40,7 +40,7 @@ pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<()> {
     let staged = StagedDir::new(&args.out)?;
     for (name, artifact) in &output.files {
         match artifact {
-            Artifact::Text(text) => io::write_atomic(staged.path(name), |w| {
+            Artifact::Text(text) => quantacolor::atomic::write_atomic(staged.path(name), |w| {
                 std::io::Write::write_all(w, text.as_bytes())
             })?,
             Artifact::Png(image) => io::write_png_rgb8(staged.path(name), image)?,

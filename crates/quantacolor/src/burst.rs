@@ -37,13 +37,12 @@ use crate::merge::{
     block_robustness, merge_guide_streamed, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide,
     MergedBurst, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
 };
-use crate::pipeline::StageTiming;
 use crate::progress::Progress;
+use crate::timing::{Laps, StageTiming};
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
-use std::time::Instant;
 
 /// Configuration of the burst reconstruction.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -134,29 +133,6 @@ pub fn reconstruct_burst(
 /// Dense (H, W, 2) flow of (fractional) frame `t`: the scene point at p in the reference frame
 /// is at p + flow(p) in frame t.
 pub type MotionOracle<'a> = &'a (dyn Fn(f64) -> Array3<f32> + Sync);
-
-/// Wall-clock laps of the stages.
-struct Laps {
-    last: Instant,
-    timings: Vec<StageTiming>,
-}
-
-impl Laps {
-    fn new() -> Self {
-        Laps {
-            last: Instant::now(),
-            timings: Vec::new(),
-        }
-    }
-
-    fn lap(&mut self, stage: &str) {
-        self.timings.push(StageTiming {
-            stage: stage.to_string(),
-            seconds: self.last.elapsed().as_secs_f64(),
-        });
-        self.last = Instant::now();
-    }
-}
 
 /// [`reconstruct_burst`] with the merge driven by `motion` instead of the estimated motion when
 /// given (e.g. a simulator's true motion: the quality benchmark's upper bound). Alignment still

@@ -10,14 +10,17 @@
 //! pixel with dark counts removed (λ of paper Eq. 2–3).
 
 pub mod align;
+pub mod atomic;
 pub mod burst;
 pub mod capture;
 pub mod cfa;
+pub mod color;
 pub mod convert;
 pub mod denoise;
 pub mod display;
 pub mod error;
 pub mod experiments;
+pub mod filters;
 pub mod inspect;
 pub mod merge;
 pub mod metrics;
@@ -27,7 +30,9 @@ pub mod output;
 pub mod pipeline;
 pub mod progress;
 pub mod report;
+pub mod rgbw;
 pub mod simulate;
+pub mod timing;
 
 pub use capture::Capture;
 pub use cfa::{Cfa, Channel};

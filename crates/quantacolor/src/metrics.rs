@@ -23,7 +23,7 @@ use ndarray::{
 };
 use rayon::prelude::*;
 
-use crate::display::srgb::linear_to_srgb;
+use crate::color::srgb::linear_to_srgb;
 use crate::error::{Error, Result};
 
 /// SSIM window side (pixels): scikit-image's default for uniform weights.
@@ -320,7 +320,7 @@ fn percentile(values: &mut [f32], p: f64) -> f64 {
 /// that maps the truth's `normalize_percentile` to 1 (so scores do not depend on the exposure
 /// units); clip both to [0, 1] (a display cannot show more, and highlights beyond the range
 /// would otherwise dominate the MSE); then PSNR and SSIM with `data_range = 1`, both on the linear
-/// values and after sRGB encoding (`display::srgb::linear_to_srgb`), which weights shadows
+/// values and after sRGB encoding (`color::srgb::linear_to_srgb`), which weights shadows
 /// closer to perception.
 ///
 /// Errors on a shape mismatch, a border that leaves nothing (or less than SSIM's 7×7 window), a
@@ -342,7 +342,7 @@ pub fn evaluate(
 
 /// LPIPS (AlexNet v0.1, [`lpips()`]; paper Table 2) of a linear colour reconstruction against
 /// the ground truth under the same protocol as [`evaluate`]: border crop, optional percentile
-/// normalisation, clipping to [0, 1], then sRGB encoding (`display::srgb::linear_to_srgb`) —
+/// normalisation, clipping to [0, 1], then sRGB encoding (`color::srgb::linear_to_srgb`) —
 /// LPIPS is defined on display-referred sRGB images, so it scores exactly the images whose
 /// `psnr_srgb` / `ssim_srgb` [`evaluate`] reports. Kept apart from [`evaluate`] because a
 /// network pass costs far more than PSNR and SSIM (about 0.1–0.3 s per 496x254 pair).

@@ -3,14 +3,15 @@
 //! Sums the binary frames of a window centred on the reference frame with no motion
 //! compensation, inverts the Bernoulli response per pixel (MLE, paper Eq. 6), demosaics any
 //! R/G/B/W arrangement by normalized convolution (Knutsson & Westin 1993), and applies the RGBW
-//! combination of paper Eq. 8. Every burst method must beat it.
+//! combination of paper Eq. 8 ([`crate::rgbw`]). Every burst method must beat it.
 
 use crate::capture::Capture;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::normalized_convolution_nan;
 use crate::model::PixelModel;
-use ndarray::{Array2, Array3, ArrayView2, Axis, Zip};
-use rayon::prelude::*;
+use crate::rgbw::combine_rgbw;
+use ndarray::{Array2, Array3, Axis, Zip};
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
@@ -57,65 +58,6 @@ fn interpolation_sigma(fraction: f64) -> f64 {
     (0.6 / fraction.max(1e-6).sqrt()).max(0.5)
 }
 
-/// Normalized convolution of the samples in `values` (NaN = no sample) with a Gaussian of
-/// width `sigma`: Σ g·v / Σ g over the valid samples. Pixels without any sample within 3σ get
-/// NaN.
-pub fn normalized_convolution(values: ArrayView2<f32>, sigma: f64) -> Array2<f32> {
-    let weights = values.mapv(|v| if v.is_nan() { 0.0 } else { 1.0 });
-    let data = values.mapv(|v| if v.is_nan() { 0.0 } else { v });
-    let kernel = gaussian_kernel(sigma);
-    let num = separable_convolve(&data, &kernel);
-    let den = separable_convolve(&weights, &kernel);
-    Zip::from(&num)
-        .and(&den)
-        .map_collect(|&n, &d| if d > 1e-6 { n / d } else { f32::NAN })
-}
-
-fn gaussian_kernel(sigma: f64) -> Vec<f32> {
-    let radius = (3.0 * sigma).ceil() as isize;
-    let k: Vec<f64> = (-radius..=radius)
-        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
-    let sum: f64 = k.iter().sum();
-    k.iter().map(|v| (v / sum) as f32).collect()
-}
-
-/// Zero-padded separable convolution (zero padding is what normalized convolution needs: the
-/// weight image is padded the same way, so borders stay unbiased).
-fn separable_convolve(image: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let (h, w) = image.dim();
-    let r = (kernel.len() / 2) as isize;
-    let mut rows = Array2::<f32>::zeros((h, w));
-    rows.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(image.axis_iter(Axis(0)))
-        .for_each(|(mut out, inp)| {
-            for x in 0..w as isize {
-                let mut acc = 0.0;
-                for (k, &kv) in kernel.iter().enumerate() {
-                    let xx = x + k as isize - r;
-                    if xx >= 0 && xx < w as isize {
-                        acc += kv * inp[xx as usize];
-                    }
-                }
-                out[x as usize] = acc;
-            }
-        });
-    let mut out = Array2::<f32>::zeros((h, w));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, mut row)| {
-            for (k, &kv) in kernel.iter().enumerate() {
-                let yy = y as isize + k as isize - r;
-                if yy >= 0 && yy < h as isize {
-                    row.scaled_add(kv, &rows.row(yy as usize));
-                }
-            }
-        });
-    out
-}
-
 /// Demosaics a per-pixel flux map (NaN = excluded pixel) into full R, G, B, W planes by
 /// normalized convolution of each channel's sites. Returns (4, H, W) in channel-code order;
 /// channels absent from the CFA are NaN.
@@ -136,14 +78,14 @@ pub fn demosaic_normalized(flux: &Array2<f32>, cfa: &Cfa) -> Array3<f32> {
             }
         });
         let mut sigma = interpolation_sigma(fraction);
-        let mut plane = normalized_convolution(samples.view(), sigma);
+        let mut plane = normalized_convolution_nan(samples.view(), sigma);
         // Sparse channels near many excluded pixels may leave holes: widen until filled.
         for _ in 0..4 {
             if !plane.iter().any(|v| v.is_nan()) {
                 break;
             }
             sigma *= 2.0;
-            let wider = normalized_convolution(samples.view(), sigma);
+            let wider = normalized_convolution_nan(samples.view(), sigma);
             Zip::from(&mut plane).and(&wider).for_each(|p, &q| {
                 if p.is_nan() {
                     *p = q;
@@ -155,41 +97,6 @@ pub fn demosaic_normalized(flux: &Array2<f32>, cfa: &Cfa) -> Array3<f32> {
             .assign(&plane);
     }
     planes
-}
-
-/// The RGBW combination of paper Eq. 8: scales R, G, B at each pixel so that
-/// wR·R + wG·G + wB·B equals the merged W, keeping the chromaticity of RGB and the luminance of
-/// W (whose SNR is far higher on RGBW sensors). Input (4, H, W) planes in code order; output
-/// (H, W, 3). Where W is missing (no W sites) RGB are returned unchanged; where the RGB
-/// luminance is not positive, W is spread as neutral grey.
-pub fn combine_rgbw(planes: &Array3<f32>, w_weights: [f64; 3]) -> Array3<f32> {
-    let (_, h, w) = planes.dim();
-    let wsum: f64 = w_weights.iter().sum();
-    let mut out = Array3::<f32>::zeros((h, w, 3));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, mut row)| {
-            for x in 0..w {
-                let rgb = [planes[[0, y, x]], planes[[1, y, x]], planes[[2, y, x]]];
-                let white = planes[[3, y, x]];
-                let lum: f64 = rgb
-                    .iter()
-                    .zip(w_weights)
-                    .map(|(&v, wt)| v as f64 * wt)
-                    .sum();
-                for c in 0..3 {
-                    row[[x, c]] = if white.is_nan() {
-                        rgb[c]
-                    } else if lum > 1e-9 && rgb.iter().all(|v| v.is_finite()) {
-                        (rgb[c] as f64 * white as f64 / lum) as f32
-                    } else {
-                        (white as f64 / wsum) as f32
-                    };
-                }
-            }
-        });
-    out
 }
 
 /// Result of the naive baseline.
@@ -258,30 +165,12 @@ mod tests {
                 f32::NAN
             }
         });
-        let dense = normalized_convolution(sparse.view(), 1.5);
+        let dense = normalized_convolution_nan(sparse.view(), 1.5);
         // Away from the borders a symmetric kernel reproduces a linear function closely.
         for y in 8..32 {
             for x in 8..32 {
                 assert!((dense[[y, x]] - ramp[[y, x]]).abs() < 0.02, "({y},{x})");
             }
-        }
-    }
-
-    #[test]
-    fn rgbw_combination_matches_w_and_keeps_chromaticity() {
-        let mut planes = Array3::<f32>::zeros((4, 1, 2));
-        for (c, v) in [0.2f32, 0.5, 0.1, 1.6].iter().enumerate() {
-            planes[[c, 0, 0]] = *v;
-            planes[[c, 0, 1]] = *v;
-        }
-        planes[[3, 0, 1]] = f32::NAN; // no W: RGB pass through
-        let weights = [1.0, 2.0, 0.5];
-        let out = combine_rgbw(&planes, weights);
-        let lum = 0.2 * 1.0 + 0.5 * 2.0 + 0.1 * 0.5;
-        let s = 1.6 / lum;
-        for (c, v) in [0.2f32, 0.5, 0.1].iter().enumerate() {
-            assert!((out[[0, 0, c]] - v * s as f32).abs() < 1e-6);
-            assert_eq!(out[[0, 1, c]], *v);
         }
     }
 

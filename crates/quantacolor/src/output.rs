@@ -9,7 +9,8 @@ use crate::capture::{io, Capture};
 use crate::denoise::chroma::DenoiseReport;
 use crate::display::{write_rendered, BitDepth, RenderOptions};
 use crate::error::{Error, Result};
-use crate::pipeline::{ReconstructConfig, Reconstruction, StageTiming};
+use crate::pipeline::{ReconstructConfig, Reconstruction};
+use crate::timing::StageTiming;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 

@@ -9,6 +9,7 @@ use crate::denoise::chroma::{
 use crate::error::{Error, Result};
 use crate::naive::{reconstruct_naive, NaiveConfig};
 use crate::progress::Progress;
+use crate::timing::StageTiming;
 use ndarray::Array3;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -68,13 +69,6 @@ impl Default for ReconstructConfig {
             denoise: DenoiseConfig::default(),
         }
     }
-}
-
-/// Wall-clock time of one stage.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StageTiming {
-    pub stage: String,
-    pub seconds: f64,
 }
 
 /// A finished reconstruction.
@@ -151,10 +145,7 @@ pub fn reconstruct(
             let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
             progress.advance(1);
             progress.finish();
-            let timing = StageTiming {
-                stage: "naive".into(),
-                seconds: start.elapsed().as_secs_f64(),
-            };
+            let timing = StageTiming::since("naive", start);
             (naive.linear, naive.frames.len(), None, vec![timing])
         }
         Method::Burst => {
@@ -171,10 +162,7 @@ pub fn reconstruct(
     let (denoised, denoise) = denoise_linear(linear.view(), &input, &config.denoise)?;
     let merged_linear = denoise.as_ref().map(|_| linear);
     if denoise.is_some() {
-        timings.push(StageTiming {
-            stage: "denoise".into(),
-            seconds: start.elapsed().as_secs_f64(),
-        });
+        timings.push(StageTiming::since("denoise", start));
     }
     Ok(Reconstruction {
         linear: denoised,

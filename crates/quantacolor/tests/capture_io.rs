@@ -17,12 +17,12 @@ fn no_temporaries(dir: &std::path::Path) {
 fn write_atomic_replaces_on_success_and_keeps_the_old_file_on_error() {
     let tmp = tempfile::tempdir().unwrap();
     let path = tmp.path().join("out.txt");
-    io::write_atomic(&path, |w| w.write_all(b"first")).unwrap();
+    quantacolor::atomic::write_atomic(&path, |w| w.write_all(b"first")).unwrap();
     assert_eq!(fs::read(&path).unwrap(), b"first");
-    io::write_atomic_synced(&path, |w| w.write_all(b"second")).unwrap();
+    quantacolor::atomic::write_atomic_synced(&path, |w| w.write_all(b"second")).unwrap();
     assert_eq!(fs::read(&path).unwrap(), b"second");
 
-    let err = io::write_atomic(&path, |w| {
+    let err = quantacolor::atomic::write_atomic(&path, |w| {
         w.write_all(&[7u8; 3 << 20])?; // more than the buffer: bytes reach the temporary file
         Err(std::io::Error::other("disk on fire"))
     })
@@ -36,7 +36,7 @@ fn write_atomic_replaces_on_success_and_keeps_the_old_file_on_error() {
     no_temporaries(tmp.path());
 
     let missing_dir = tmp.path().join("no/such/dir/x.bin");
-    let err = io::write_atomic(&missing_dir, |w| w.write_all(b"x")).unwrap_err();
+    let err = quantacolor::atomic::write_atomic(&missing_dir, |w| w.write_all(b"x")).unwrap_err();
     assert!(err.to_string().contains("x.bin"));
 }
 

@@ -279,8 +279,8 @@ fn saturated_w_falls_back_to_rgb() {
     println!("W fallback on {:.1} % of pixels", 100.0 * share);
     assert!(share > 0.9, "{share}");
     assert!(!without.w_fallback.iter().any(|&f| f));
-    let rgb_with = quantacolor::naive::combine_rgbw(&with.flux, W_WEIGHTS);
-    let rgb_without = quantacolor::naive::combine_rgbw(&without.flux, W_WEIGHTS);
+    let rgb_with = quantacolor::rgbw::combine_rgbw(&with.flux, W_WEIGHTS);
+    let rgb_without = quantacolor::rgbw::combine_rgbw(&without.flux, W_WEIGHTS);
     for c in 0..3 {
         let m_with = rgb_with.index_axis(Axis(2), c).mean().unwrap() as f64;
         let m_without = rgb_without.index_axis(Axis(2), c).mean().unwrap() as f64;
@@ -292,7 +292,7 @@ fn saturated_w_falls_back_to_rgb() {
 
 /// Mean of each RGB channel of Eq. 8 over merged planes.
 fn rgb_means(planes: &MergedPlanes) -> Vec<f64> {
-    let rgb = quantacolor::naive::combine_rgbw(&planes.flux, W_WEIGHTS);
+    let rgb = quantacolor::rgbw::combine_rgbw(&planes.flux, W_WEIGHTS);
     (0..3)
         .map(|c| rgb.index_axis(Axis(2), c).mean().unwrap() as f64)
         .collect()

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use ndarray::{s, Array3};
-use quantacolor::display::srgb::linear_to_srgb;
+use quantacolor::color::srgb::linear_to_srgb;
 use quantacolor::metrics::{evaluate_lpips, lpips, EvalOptions, Lpips, LPIPS_MIN_SIZE};
 
 fn data_dir() -> PathBuf {

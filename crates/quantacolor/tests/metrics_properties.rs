@@ -2,7 +2,7 @@
 //! a brute-force SSIM, and errors on bad input.
 
 use ndarray::{s, Array2, Array3, Axis};
-use quantacolor::display::srgb::linear_to_srgb;
+use quantacolor::color::srgb::linear_to_srgb;
 use quantacolor::metrics::{evaluate, psnr, ssim, ssim_color, ssim_gray, EvalOptions};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

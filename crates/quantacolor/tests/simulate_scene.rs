@@ -1,9 +1,10 @@
 //! Simulator scene tests: image files (PNG sRGB, EXR linear) from the shared data folder (skipped
 //! when absent), errors naming the file, and the built-in chart's patch values.
 
-use quantacolor::display::srgb::srgb_to_linear;
+use quantacolor::color::colorchecker::{srgb8_to_linear, COLORCHECKER_SRGB};
+use quantacolor::color::srgb::srgb_to_linear;
 use quantacolor::progress::Silent;
-use quantacolor::simulate::chart::{srgb8_to_linear, white_patch, COLORCHECKER_SRGB};
+use quantacolor::simulate::chart::white_patch;
 use quantacolor::simulate::{simulate, FluxSpec, Scene, SimulationConfig};
 use std::path::{Path, PathBuf};
 

@@ -8,6 +8,7 @@
 
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::normalized_convolution_masked;
 use ndarray::{Array2, Zip};
 use serde::{Deserialize, Serialize};
 
@@ -117,7 +118,7 @@ pub fn grey_image(
         GreyMethod::TileAverage { py, px } => tile_average(&values, py, px),
         GreyMethod::InterpolateW => {
             let w_mask = cfa.mask(Channel::W);
-            let smooth = normalized_convolution(&values, &w_mask, 0.75);
+            let smooth = normalized_convolution_masked(&values, &w_mask, 0.75);
             let mut out = values;
             Zip::from(&mut out)
                 .and(&w_mask)
@@ -139,7 +140,7 @@ pub fn grey_image(
                     continue;
                 }
                 let sigma = (0.6 / f.sqrt()) as f32;
-                let plane = normalized_convolution(&values, &cfa.mask(ch), sigma);
+                let plane = normalized_convolution_masked(&values, &cfa.mask(ch), sigma);
                 out += &plane;
                 planes += 1.0;
             }
@@ -164,61 +165,4 @@ fn tile_average(values: &Array2<f32>, py: usize, px: usize) -> Array2<f32> {
         }
         s / n
     })
-}
-
-/// Normalized convolution (Knutsson & Westin 1993): `G * (m·v) / G * m` with a separable
-/// Gaussian of standard deviation `sigma` px (radius 3σ), i.e. a Gaussian-weighted mean of the
-/// values where `mask` holds. Pixels with no masked neighbour within the radius get 0.
-pub fn normalized_convolution(
-    values: &Array2<f32>,
-    mask: &Array2<bool>,
-    sigma: f32,
-) -> Array2<f32> {
-    let radius = (3.0 * sigma).ceil().max(1.0) as usize;
-    let kernel: Vec<f32> = (0..=2 * radius)
-        .map(|i| {
-            let d = i as f32 - radius as f32;
-            (-0.5 * d * d / (sigma * sigma)).exp()
-        })
-        .collect();
-    let weighted = Zip::from(values)
-        .and(mask)
-        .map_collect(|&v, &m| if m { v } else { 0.0 });
-    let weights = mask.mapv(|m| m as u8 as f32);
-    let num = separable(&weighted, &kernel);
-    let den = separable(&weights, &kernel);
-    Zip::from(&num)
-        .and(&den)
-        .map_collect(|&n, &d| if d > 1e-6 { n / d } else { 0.0 })
-}
-
-/// Convolves with `kernel` along x then y, treating pixels outside the image as zero.
-pub(crate) fn separable(img: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let (h, w) = img.dim();
-    let r = (kernel.len() / 2) as isize;
-    let mut tmp = Array2::<f32>::zeros((h, w));
-    for y in 0..h {
-        for x in 0..w {
-            let mut s = 0.0;
-            for (k, &kv) in kernel.iter().enumerate() {
-                let xx = x as isize + k as isize - r;
-                if xx >= 0 && (xx as usize) < w {
-                    s += kv * img[[y, xx as usize]];
-                }
-            }
-            tmp[[y, x]] = s;
-        }
-    }
-    let mut out = Array2::<f32>::zeros((h, w));
-    for y in 0..h {
-        for (k, &kv) in kernel.iter().enumerate() {
-            let yy = y as isize + k as isize - r;
-            if yy >= 0 && (yy as usize) < h {
-                let src = tmp.row(yy as usize);
-                let mut dst = out.row_mut(y);
-                dst.zip_mut_with(&src, |d, &s| *d += kv * s);
-            }
-        }
-    }
-    out
 }

@@ -37,7 +37,7 @@ pub use refine::{
 pub use track::{split_for_merge, track_fast_camera_motion, TrackConfig};
 pub use trajectory::{fit_photon_trajectory, TrajectoryConfig};
 
-use crate::capture::io::write_atomic_synced;
+use crate::atomic::write_atomic_synced;
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};

@@ -7,8 +7,8 @@
 //! sub-pixel accuracy. The result for a tile is the displacement `(dy, dx)` such that the
 //! scene point at `p` in the reference image is at `p + (dy, dx)` in the block image.
 
-use super::grey::separable;
 use crate::error::{Error, Result};
+use crate::filters::gaussian_blur;
 use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -153,20 +153,6 @@ impl Pyramid {
         }
         Pyramid { levels }
     }
-}
-
-/// Gaussian blur with σ px (radius 3σ), normalised near borders so edges do not darken.
-pub fn gaussian_blur(img: &Array2<f32>, sigma: f32) -> Array2<f32> {
-    let radius = (3.0 * sigma).ceil().max(1.0) as usize;
-    let kernel: Vec<f32> = (0..=2 * radius)
-        .map(|i| {
-            let d = i as f32 - radius as f32;
-            (-0.5 * d * d / (sigma * sigma)).exp()
-        })
-        .collect();
-    let num = separable(img, &kernel);
-    let den = separable(&Array2::from_elem(img.dim(), 1.0), &kernel);
-    num / den
 }
 
 /// Mean over `f` x `f` cells (partial cells at the far edges average what they hold).

@@ -23,11 +23,12 @@
 use super::blocks::BlockPlan;
 use super::grey::GreyMethod;
 use super::motion::{flow_at, frame_flow, invert};
-use super::patch::{gaussian_blur, TileGrid};
+use super::patch::TileGrid;
 use super::{affine_fit_field, Alignment, Flow};
 use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::gaussian_blur;
 use crate::merge::warp_to_reference;
 use crate::progress::Progress;
 use ndarray::{s, Array2, Array3};

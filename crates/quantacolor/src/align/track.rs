@@ -16,13 +16,13 @@
 //! uses sub-blocks short enough for the tracked motion ([`split_for_merge`]).
 
 use super::grey::GreyMethod;
-use super::patch::gaussian_blur;
 use super::refine::{
     bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FrameMotion, RefineLevel,
 };
 use crate::capture::Capture;
 use crate::cfa::Channel;
 use crate::error::Result;
+use crate::filters::gaussian_blur;
 use crate::progress::Progress;
 use ndarray::Array2;
 use serde::{Deserialize, Serialize};

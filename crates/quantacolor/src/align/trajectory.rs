@@ -29,12 +29,12 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::grey::GreyMethod;
-use super::patch::gaussian_blur;
 use super::refine::{sample_template, template_level, AffineMotion, FrameMotion, TemplateLevel};
 use crate::capture::frames::FrameLayout;
 use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::Channel;
 use crate::error::{Error, Result};
+use crate::filters::gaussian_blur;
 use crate::progress::Progress;
 use ndarray::Array2;
 use rayon::prelude::*;

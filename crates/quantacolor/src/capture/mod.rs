@@ -18,9 +18,9 @@ pub use frames::BinaryFrames;
 pub use stream::CaptureWriter;
 pub use window::FrameWindow;
 
+use crate::atomic::{temp_sibling, TempGuard};
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
-use io::TempGuard;
 use ndarray::{Array2, Array3};
 use ndarray_npy::WriteNpyExt;
 use serde::{Deserialize, Serialize};
@@ -894,7 +894,7 @@ pub fn write_capture(dir: impl AsRef<Path>, parts: &CaptureParts<'_>) -> Result<
 
     let existing = prepare_target(dir)?;
 
-    let tmp = TempGuard::dir(io::temp_sibling(dir)?);
+    let tmp = TempGuard::dir(temp_sibling(dir)?);
     fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
     let t = tmp.path();
     match parts.frames {
@@ -956,7 +956,7 @@ pub(crate) fn commit_dir(tmp: TempGuard, dir: &Path, existing: bool) -> Result<(
     if existing {
         // Move the old capture aside, move the new one in, then delete the old one; if the
         // second rename fails, put the old capture back.
-        let old = TempGuard::dir(io::temp_sibling(&dir.with_extension("old"))?);
+        let old = TempGuard::dir(temp_sibling(&dir.with_extension("old"))?);
         fs::rename(dir, old.path()).map_err(|e| Error::io(dir, e))?;
         if let Err(e) = fs::rename(t, dir) {
             let _ = fs::rename(old.path(), dir);

@@ -3,11 +3,11 @@
 //! directory is renamed into place by [`CaptureWriter::finish`]; dropping the writer (an error,
 //! a panic) removes it, leaving nothing behind and any previous capture untouched.
 
-use super::io::{self as cio, TempGuard};
 use super::{
     commit_dir, npy, npy_writer, prepare_target, write_member, BinaryFrames, CaptureMeta,
     CFA_NPY_FILE, FRAMES_FILE, HOT_PIXELS_FILE, META_FILE,
 };
+use crate::atomic::{temp_sibling, TempGuard};
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
 use ndarray::Array2;
@@ -46,7 +46,7 @@ impl CaptureWriter {
             )));
         }
         let existing = prepare_target(dir)?;
-        let tmp = TempGuard::dir(cio::temp_sibling(dir)?);
+        let tmp = TempGuard::dir(temp_sibling(dir)?);
         fs::create_dir(tmp.path()).map_err(|e| Error::io(dir, e))?;
         let shown = dir.join(FRAMES_FILE);
         let file = File::create(tmp.path().join(FRAMES_FILE)).map_err(|e| Error::io(&shown, e))?;

@@ -3,7 +3,7 @@
 //! format of the real sensor's `rgbw_oh_bn_color_ss2_corrected.png` (paper §6, colour SPAD).
 
 use super::Cfa;
-use crate::capture::io::write_atomic_synced;
+use crate::atomic::write_atomic_synced;
 use crate::error::{Error, Result};
 use image::{Rgb, RgbImage};
 use ndarray::Array2;

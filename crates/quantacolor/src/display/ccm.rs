@@ -10,8 +10,8 @@
 //! visualisation (supplement Eq. 9, thresholds in those units) and exposure steps rely on. The
 //! gain is kept in the TOML for information only.
 
+use crate::color::colorchecker::{colorchecker_patch_rects, srgb8_to_linear, COLORCHECKER_SRGB};
 use crate::error::{Error, Result};
-use crate::simulate::chart::{colorchecker_patch_rects, srgb8_to_linear, COLORCHECKER_SRGB};
 use ndarray::{Array3, ArrayView3, Axis, Zip};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -228,7 +228,7 @@ impl ColorMatrix {
     /// Writes the `[color_matrix]` TOML file atomically.
     pub fn write(&self, path: impl AsRef<Path>) -> Result<()> {
         let text = self.to_toml();
-        crate::capture::io::write_atomic(path, |w| w.write_all(text.as_bytes()))
+        crate::atomic::write_atomic(path, |w| w.write_all(text.as_bytes()))
     }
 }
 

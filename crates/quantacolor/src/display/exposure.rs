@@ -1,6 +1,6 @@
 //! Automatic exposure and sRGB quantisation of linear RGB images.
 
-use super::srgb::linear_to_srgb;
+use crate::color::srgb::linear_to_srgb;
 use ndarray::{s, Array3, ArrayView3, Axis};
 
 /// Percentile of the per-pixel maximum channel that automatic exposure maps to white.

@@ -1,6 +1,6 @@
 //! Display of linear reconstructions (paper §7, Fig. 14 and Fig. 20; supplement §4):
 //! colour correction ([`ccm`]), noise-aware low-light visualisation ([`mesopic`]), exposure and
-//! tone mapping ([`tonemap`], [`mantiuk`]), sRGB encoding ([`srgb`], [`exposure`]), all chained by
+//! tone mapping ([`tonemap`], [`mantiuk`]), sRGB encoding ([`crate::color::srgb`], [`exposure`]), all chained by
 //! [`render`].
 
 pub mod ccm;
@@ -8,7 +8,6 @@ pub mod exposure;
 pub mod mantiuk;
 pub mod mesopic;
 pub mod render;
-pub mod srgb;
 pub mod tonemap;
 
 pub use ccm::{chart_patch_means, ColorFit, ColorMatrix, FitResidual};

@@ -3,9 +3,9 @@
 
 use super::ccm::ColorMatrix;
 use super::mesopic::{mesopic_blend, MesopicConfig, MesopicParams};
-use super::srgb::linear_to_srgb;
 use super::tonemap::{tone_map, ToneMap};
 use crate::capture::io;
+use crate::color::srgb::linear_to_srgb;
 use crate::error::{Error, Result};
 use ndarray::{Array3, Array4, ArrayView3, ArrayView4, Axis};
 use serde::{Deserialize, Serialize};

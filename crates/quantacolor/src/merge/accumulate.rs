@@ -10,8 +10,8 @@
 use super::kernels::KernelField;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::normalized_convolution_nan as normalized_convolution;
 use crate::model::PixelModel;
-use crate::naive::normalized_convolution;
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};

@@ -12,7 +12,7 @@
 //!    by kernel regression (supplement Eq. 1–3) over sub-pixel phase bins, MLE flux per channel
 //!    (paper Eq. 6), optional super-resolution grid, W-saturation fallback (supplement §7).
 //! 5. [`merge_burst`]: all of the above, then the RGBW combination of paper Eq. 8
-//!    ([`crate::naive::combine_rgbw`]). [`crate::burst`] runs the same functions, streaming
+//!    ([`crate::rgbw::combine_rgbw`]). [`crate::burst`] runs the same functions, streaming
 //!    the sub-blocks through the accumulator.
 //!
 //! Alignment is not part of this module: every stage takes dense per-pixel flows (dy, dx),
@@ -35,8 +35,9 @@ pub use warp::{sample_bilinear, warp_to_reference};
 
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::filters::normalized_convolution_nan;
 use crate::model::PixelModel;
-use crate::naive::{combine_rgbw, normalized_convolution};
+use crate::rgbw::combine_rgbw;
 use ndarray::{Array2, Array3, Zip};
 use serde::{Deserialize, Serialize};
 
@@ -301,7 +302,7 @@ pub fn grey_from_counts(counts: &Array2<u32>, frames: u32, cfa: &Cfa) -> Result<
             f32::NAN
         }
     });
-    let filled = normalized_convolution(samples.view(), sigma);
+    let filled = normalized_convolution_nan(samples.view(), sigma);
     Ok(Zip::from(&samples)
         .and(&filled)
         .map_collect(|&s, &f| if s.is_nan() { f } else { s }))

@@ -233,7 +233,7 @@ pub fn png_data_url(image: &Array3<u8>) -> Result<String> {
 
 /// Writes `text` to `dir/name` atomically.
 pub(crate) fn write_text(dir: &Path, name: &str, text: &str) -> Result<()> {
-    io::write_atomic(dir.join(name), |w| w.write_all(text.as_bytes()))
+    crate::atomic::write_atomic(dir.join(name), |w| w.write_all(text.as_bytes()))
 }
 
 /// A JavaScript file that sets `window.NAME` to `value` (JSON is valid JavaScript).

@@ -3,37 +3,8 @@
 //! smooth gradient, laid out relative to the sensor size. Values are linear RGB reflectances
 //! (white patch ≈ 0.9); the HDR variant adds a light source 1000x brighter than the white patch.
 
-use crate::display::srgb::srgb_to_linear;
-
-/// ColorChecker Classic patches in reading order (dark skin ... black), 8-bit sRGB as published
-/// by X-Rite for the post-2009 formulation (tabulated in the Wikipedia article "ColorChecker";
-/// BabelColor's "ColorChecker RGB coordinates" (Pascale 2006) agree within a few codes).
-pub const COLORCHECKER_SRGB: [[u8; 3]; 24] = [
-    [115, 82, 68],   // dark skin
-    [194, 150, 130], // light skin
-    [98, 122, 157],  // blue sky
-    [87, 108, 67],   // foliage
-    [133, 128, 177], // blue flower
-    [103, 189, 170], // bluish green
-    [214, 126, 44],  // orange
-    [80, 91, 166],   // purplish blue
-    [193, 90, 99],   // moderate red
-    [94, 60, 108],   // purple
-    [157, 188, 64],  // yellow green
-    [224, 163, 46],  // orange yellow
-    [56, 61, 150],   // blue
-    [70, 148, 73],   // green
-    [175, 54, 60],   // red
-    [231, 199, 31],  // yellow
-    [187, 86, 149],  // magenta
-    [8, 133, 161],   // cyan
-    [243, 243, 242], // white 9.5
-    [200, 200, 200], // neutral 8
-    [160, 160, 160], // neutral 6.5
-    [122, 122, 121], // neutral 5
-    [85, 85, 85],    // neutral 3.5
-    [52, 52, 52],    // black 2
-];
+use crate::color::colorchecker::{srgb8_to_linear, COLORCHECKER_AREA, COLORCHECKER_SRGB};
+use crate::color::srgb::srgb_to_linear;
 
 /// Brightness of the HDR light source relative to the white patch.
 pub const LIGHT_TO_WHITE: f32 = 1000.0;
@@ -55,11 +26,6 @@ const GLYPHS: [[&str; 5]; 14] = [
     ["#.#", "#.#", "###", "#.#", "#.#"],
     ["#.#", "#.#", ".#.", "#.#", "#.#"],
 ];
-
-/// Linear value of an 8-bit sRGB triple.
-pub fn srgb8_to_linear(c: [u8; 3]) -> [f32; 3] {
-    c.map(|v| srgb_to_linear(v as f32 / 255.0))
-}
 
 /// Linear value of the white patch (patch 19).
 pub fn white_patch() -> f32 {
@@ -85,7 +51,8 @@ pub fn chart_value(y: f64, x: f64, height: usize, width: usize, hdr: bool) -> [f
     let mut out = BACKGROUND;
 
     // ColorChecker: 6 x 4 patches on a dark frame, left half, top.
-    let (cx0, cx1, cy0, cy1) = (0.02 * w, 0.46 * w, 0.04 * h, 0.56 * h);
+    let [cx0, cx1, cy0, cy1] = COLORCHECKER_AREA;
+    let (cx0, cx1, cy0, cy1) = (cx0 * w, cx1 * w, cy0 * h, cy1 * h);
     if inside(x, cx0, cx1) && inside(y, cy0, cy1) {
         let fx = (x - cx0) / (cx1 - cx0) * 6.0;
         let fy = (y - cy0) / (cy1 - cy0) * 4.0;
@@ -173,25 +140,6 @@ pub fn chart_value(y: f64, x: f64, height: usize, width: usize, hdr: bool) -> [f
     out
 }
 
-/// The coloured area of each of the 24 ColorChecker patches (reading order, as
-/// [`COLORCHECKER_SRGB`]) of a `height` x `width` chart, as `[y0, y1, x0, x1]` in sensor pixel
-/// coordinates (half-open, pixel centres at integers): the inner 10-90 % of each cell of the
-/// 6 x 4 grid laid out by [`chart_value`]; the rest of the cell is the dark frame.
-pub fn colorchecker_patch_rects(height: usize, width: usize) -> [[f64; 4]; 24] {
-    let (h, w) = (height as f64, width as f64);
-    let (cx0, cx1, cy0, cy1) = (0.02 * w, 0.46 * w, 0.04 * h, 0.56 * h);
-    let (cw, ch) = ((cx1 - cx0) / 6.0, (cy1 - cy0) / 4.0);
-    std::array::from_fn(|i| {
-        let (row, col) = ((i / 6) as f64, (i % 6) as f64);
-        [
-            cy0 + (row + 0.1) * ch,
-            cy0 + (row + 0.9) * ch,
-            cx0 + (col + 0.1) * cw,
-            cx0 + (col + 0.9) * cw,
-        ]
-    })
-}
-
 /// Texture of the moving object: a chequerboard of saturated colours with 3 px squares, at
 /// offset `(y, x)` from the object's centre.
 pub fn object_texture(y: f64, x: f64) -> [f32; 3] {
@@ -208,6 +156,7 @@ pub fn object_texture(y: f64, x: f64) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::color::colorchecker::colorchecker_patch_rects;
 
     #[test]
     fn patches_sit_where_the_layout_puts_them() {

@@ -12,7 +12,7 @@
 //! sub-pixel samples instead.
 
 use super::chart;
-use crate::display::srgb::srgb_to_linear;
+use crate::color::srgb::srgb_to_linear;
 use crate::error::{Error, Result};
 use ndarray::{s, Array2, Array3, Axis};
 use rayon::prelude::*;
