@@ -770,11 +770,16 @@ pub(super) fn fit_sub_block(
                         continue;
                     };
                     let residual = observed[b] - t;
-                    // Binomial variance of the bin mean, and a Huber weight at 3 std (moving
-                    // objects, occlusions).
-                    let variance = (t * (1.0 - t)).max(0.01) / trials[b];
-                    let z = residual.abs() / variance.sqrt();
-                    let weight = if z > 3.0 { 3.0 / z } else { 1.0 } / variance;
+                    // Inverse binomial variance of the bin mean, and a Huber weight at 3 std
+                    // (moving objects, occlusions): z = |r|·√(1/var), weight (1 or 3/z)/var,
+                    // with the square root and a second division only past 3 std.
+                    let inv_variance = trials[b] / (t * (1.0 - t)).max(0.01);
+                    let z2 = residual * residual * inv_variance;
+                    let weight = if z2 > 9.0 {
+                        3.0 * inv_variance.sqrt() / residual.abs()
+                    } else {
+                        inv_variance
+                    };
                     let (wgy, wgx) = (weight * gy, weight * gx);
                     let pairs = [wgy * gy, wgy * gx, wgx * gx];
                     let x = rel[1];

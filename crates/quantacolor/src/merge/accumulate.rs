@@ -243,6 +243,58 @@ pub fn reference_position(flow: &[f32], h: usize, w: usize, q: [f32; 2]) -> [f32
     p
 }
 
+/// What [`MergeAccumulator::add`] needs to find the target bin of every site.
+struct TargetGrid<'s> {
+    h: usize,
+    w: usize,
+    /// Bins per reference px.
+    u: f32,
+    /// Margin of the bin grid (reference px).
+    margin: f32,
+    bins_h: usize,
+    bins_w: usize,
+    excluded: Option<&'s [bool]>,
+    /// Robustness map on the reference grid (`None`: weight 1).
+    robust: Option<&'s [f32]>,
+}
+
+impl TargetGrid<'_> {
+    /// Target bin and robustness weight of every site (row-major), `(u32::MAX, 0)` for sites
+    /// left out (excluded, zero weight, outside the bins); `position` maps a site to its
+    /// reference-grid position. In parallel by rows.
+    fn fill(&self, targets: &mut [(u32, f32)], position: impl Fn([f32; 2]) -> [f32; 2] + Sync) {
+        let (h, w, u, margin) = (self.h, self.w, self.u, self.margin);
+        let (bins_h, bins_w) = (self.bins_h, self.bins_w);
+        targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, target) in row.iter_mut().enumerate() {
+                let i = y * w + x;
+                *target = if self.excluded.is_some_and(|e| e[i]) {
+                    (u32::MAX, 0.0)
+                } else {
+                    let p = position([y as f32, x as f32]);
+                    let r = self.robust.map_or(1.0, |m| {
+                        let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
+                        let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
+                        m[ry * w + rx]
+                    });
+                    let by = round_half_away((p[0] + margin) * u);
+                    let bx = round_half_away((p[1] + margin) * u);
+                    if r <= 0.0
+                        || by < 0.0
+                        || bx < 0.0
+                        || by >= bins_h as f32
+                        || bx >= bins_w as f32
+                    {
+                        (u32::MAX, 0.0)
+                    } else {
+                        ((by as usize * bins_w + bx as usize) as u32, r)
+                    }
+                };
+            }
+        });
+    }
+}
+
 impl<'a> MergeAccumulator<'a> {
     /// Empty accumulators for `cfa` with the kernels of the reference, for frames whose
     /// samples follow `model` (a plain number: binary frames with that many dark counts per
@@ -325,29 +377,14 @@ impl<'a> MergeAccumulator<'a> {
             .map(|m| m.as_standard_layout())
             .collect();
         let mut targets = vec![(u32::MAX, 0.0f32); h * w];
+        // Bins are split into bands of rows, one band per task: every task scans all sites in
+        // order and adds those landing in its band, so each bin receives its samples in site
+        // order whatever the number of threads (the same sums as one serial pass).
+        let bands = rayon::current_num_threads().clamp(1, 16);
+        let band_bins = (bins_h.div_ceil(bands) * bins_w).max(1);
         for sub in sub_blocks {
             let counts = sub.counts.as_standard_layout();
             let counts = counts.as_slice().expect("standard layout");
-            let dense = match &sub.flow {
-                SubBlockMotion::Dense(flow) => Some(flow.as_standard_layout()),
-                SubBlockMotion::Affine { .. } => None,
-            };
-            let dense = dense
-                .as_ref()
-                .map(|f| f.as_slice().expect("standard layout"));
-            let position = |q: [f32; 2]| -> [f32; 2] {
-                match (&sub.flow, dense) {
-                    (SubBlockMotion::Affine { matrix, offset }, _) => {
-                        let (y, x) = (q[0] as f64, q[1] as f64);
-                        [
-                            (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
-                            (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
-                        ]
-                    }
-                    (_, Some(flow)) => reference_position(flow, h, w, q),
-                    (_, None) => unreachable!("a dense flow has its slice"),
-                }
-            };
             let own = match &sub.robustness {
                 SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
                 _ => None,
@@ -357,46 +394,54 @@ impl<'a> MergeAccumulator<'a> {
                 SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
                 SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
             };
-            let excluded = self.excluded.as_deref();
-            // Target bin and robustness weight of every site, in parallel by rows.
-            targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                for (x, target) in row.iter_mut().enumerate() {
-                    let i = y * w + x;
-                    *target = if excluded.is_some_and(|e| e[i]) {
-                        (u32::MAX, 0.0)
-                    } else {
-                        let p = position([y as f32, x as f32]);
-                        let r = robust.map_or(1.0, |m| {
-                            let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
-                            let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
-                            m[ry * w + rx]
-                        });
-                        let by = round_half_away((p[0] + margin) * u);
-                        let bx = round_half_away((p[1] + margin) * u);
-                        if r <= 0.0
-                            || by < 0.0
-                            || bx < 0.0
-                            || by >= bins_h as f32
-                            || bx >= bins_w as f32
-                        {
-                            (u32::MAX, 0.0)
-                        } else {
-                            ((by as usize * bins_w + bx as usize) as u32, r)
-                        }
-                    };
+            let grid = TargetGrid {
+                h,
+                w,
+                u,
+                margin,
+                bins_h,
+                bins_w,
+                excluded: self.excluded.as_deref(),
+                robust,
+            };
+            match &sub.flow {
+                SubBlockMotion::Affine { matrix, offset } => {
+                    grid.fill(&mut targets, |q: [f32; 2]| {
+                        let (y, x) = (q[0] as f64, q[1] as f64);
+                        [
+                            (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
+                            (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
+                        ]
+                    })
                 }
-            });
-            let frames = sub.frames as f32;
-            for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(&self.codes) {
-                if bin == u32::MAX {
-                    continue;
+                SubBlockMotion::Dense(flow) => {
+                    let flow = flow.as_standard_layout();
+                    let flow = flow.as_slice().expect("standard layout");
+                    grid.fill(&mut targets, |q: [f32; 2]| {
+                        reference_position(flow, h, w, q)
+                    })
                 }
-                let slot = bin as usize * 12 + (code as usize & 3) * 3;
-                let cell = &mut self.bins[slot..slot + 3];
-                cell[0] += r * count as f32;
-                cell[1] += r * frames;
-                cell[2] += r * r * frames;
             }
+            let frames = sub.frames as f32;
+            let (targets, codes) = (&targets, &self.codes);
+            self.bins
+                .par_chunks_mut(band_bins * 12)
+                .enumerate()
+                .for_each(|(band, cells)| {
+                    let first = band * band_bins;
+                    let end = first + cells.len() / 12;
+                    for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(codes) {
+                        let bin = bin as usize;
+                        if bin < first || bin >= end {
+                            continue;
+                        }
+                        let slot = (bin - first) * 12 + (code as usize & 3) * 3;
+                        let cell = &mut cells[slot..slot + 3];
+                        cell[0] += r * count as f32;
+                        cell[1] += r * frames;
+                        cell[2] += r * r * frames;
+                    }
+                });
         }
         Ok(())
     }
