@@ -369,11 +369,16 @@ impl ReferenceAligner {
                         ),
                     };
                     let cost = |d: (isize, isize)| tile_cost(r_img, a_img, origin, ts, d, norm);
+                    // Each seed's cost once; the first of equal minima wins (as `min_by`).
                     let seed = seeds
                         .iter()
-                        .map(|&(dy, dx)| (dy.round() as isize, dx.round() as isize))
-                        .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
-                        .expect("at least one seed");
+                        .map(|&(dy, dx)| {
+                            let d = (dy.round() as isize, dx.round() as isize);
+                            (cost(d), d)
+                        })
+                        .min_by(|a, b| a.0.total_cmp(&b.0))
+                        .expect("at least one seed")
+                        .1;
                     let mut best = (f32::INFINITY, seed);
                     for dy in -radius..=radius {
                         for dx in -radius..=radius {

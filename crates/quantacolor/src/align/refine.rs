@@ -607,12 +607,8 @@ pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[
     let (y0, x0) = ((y as usize).min(h - 2), (x as usize).min(w - 2));
     let (fy, fx) = ((y - y0 as f64) as f32, (x - x0 as f64) as f32);
     let i = y0 * w + x0;
-    let (a, b, c, d) = (
-        level.samples[i],
-        level.samples[i + 1],
-        level.samples[i + w],
-        level.samples[i + w + 1],
-    );
+    let (top, bottom) = (&level.samples[i..i + 2], &level.samples[i + w..i + w + 2]);
+    let (a, b, c, d) = (top[0], top[1], bottom[0], bottom[1]);
     let mut out = [0.0f64; 3];
     for (k, o) in out.iter_mut().enumerate() {
         let top = a[k] * (1.0 - fx) + b[k] * fx;
@@ -737,17 +733,15 @@ pub(super) fn fit_sub_block(
     let mut params = start.params();
     for (layout, template) in layouts.iter().zip(templates) {
         // Mean bit rate and number of trials (sites x frames) of every bin.
-        let trials: Vec<f64> = (0..layout.len())
-            .map(|b| layout.sites(b).len() as f64 * frames as f64)
-            .collect();
-        let observed: Vec<f64> = (0..layout.len())
+        let bins: Vec<(f64, f64)> = (0..layout.len())
             .map(|b| {
+                let trials = layout.sites(b).len() as f64 * frames as f64;
                 let sum: u64 = layout
                     .sites(b)
                     .iter()
                     .map(|&i| counts[i as usize] as u64)
                     .sum();
-                sum as f64 / trials[b].max(1.0)
+                (sum as f64 / trials.max(1.0), trials)
             })
             .collect();
         for iteration in 0..iterations {
@@ -759,8 +753,8 @@ pub(super) fn fit_sub_block(
                 // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
                 // [9 + g + 2·p].
                 let mut sums = [0.0f64; 13];
-                for b in run.clone() {
-                    let rel = layout.centroid[b];
+                let run_bins = layout.centroid[run.clone()].iter().zip(&bins[run.clone()]);
+                for (&rel, &(observed, trials)) in run_bins {
                     let d = motion.at(rel);
                     let Some([t, gy, gx]) = sample_template(
                         template,
@@ -769,11 +763,11 @@ pub(super) fn fit_sub_block(
                     ) else {
                         continue;
                     };
-                    let residual = observed[b] - t;
+                    let residual = observed - t;
                     // Inverse binomial variance of the bin mean, and a Huber weight at 3 std
                     // (moving objects, occlusions): z = |r|·√(1/var), weight (1 or 3/z)/var,
                     // with the square root and a second division only past 3 std.
-                    let inv_variance = trials[b] / (t * (1.0 - t)).max(0.01);
+                    let inv_variance = trials / (t * (1.0 - t)).max(0.01);
                     let z2 = residual * residual * inv_variance;
                     let weight = if z2 > 9.0 {
                         3.0 * inv_variance.sqrt() / residual.abs()
