@@ -14,8 +14,7 @@ use quantacolor::capture::Capture;
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::denoise::bm3d::{bm3d_grey, Bm3dConfig};
 use quantacolor::merge::{
-    merge_guide, robustness, GreyNoise, MergeAccumulator, SubBlock, SubBlockMotion,
-    SubBlockRobustness,
+    merge_guide, robustness, GreyNoise, MergeAccumulator, SubBlock, SubBlockRobustness,
 };
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
@@ -130,10 +129,7 @@ fn pipeline_kernels(c: &mut Criterion) {
         .map(|k| SubBlock {
             counts: capture.frames.sum_range(motion.sub_blocks[k].clone()),
             frames: motion.sub_blocks[k].len() as u32,
-            flow: match motion.sub_block_reference_map(k) {
-                Some((matrix, offset)) => SubBlockMotion::Affine { matrix, offset },
-                None => SubBlockMotion::Dense(motion.sub_block_flow(k)),
-            },
+            flow: motion.sub_block_motion(k),
             robustness: SubBlockRobustness::Block(motion.block_of[k]),
         })
         .collect();

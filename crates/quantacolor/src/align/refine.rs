@@ -28,7 +28,7 @@ use super::{affine_fit_field, Alignment, Flow};
 use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
-use crate::merge::warp_to_reference;
+use crate::merge::{warp_to_reference, SubBlockMotion};
 use crate::progress::Progress;
 use ndarray::{s, Array2, Array3};
 use rayon::prelude::*;
@@ -303,6 +303,18 @@ fn coherent_residual(residual: &Array3<f32>, min_tiles: usize) -> Array3<f32> {
     out
 }
 
+/// Tiles of the local flow `local` (tiles_y, tiles_x, 2) whose 3x3 neighbourhood holds a
+/// local residual: elsewhere the bilinear interpolation between tile centres is zero.
+fn near_local_tiles(local: &Array3<f32>) -> Array2<bool> {
+    let (ty, tx, _) = local.dim();
+    Array2::from_shape_fn((ty, tx), |(i, j)| {
+        (i.saturating_sub(1)..(i + 2).min(ty)).any(|a| {
+            (j.saturating_sub(1)..(j + 2).min(tx))
+                .any(|b| local[[a, b, 0]] != 0.0 || local[[a, b, 1]] != 0.0)
+        })
+    })
+}
+
 /// Least-squares affine displacement through the tile flows `field` (tiles_y, tiles_x, 2).
 fn affine_from_tiles(field: &Array3<f32>, grid: &TileGrid, centre: [f64; 2]) -> AffineMotion {
     let mut params = [[0.0f64; 3]; 2];
@@ -422,17 +434,7 @@ impl FrameMotion {
         let local = self
             .has_local
             .then(|| frame_flow(&self.local, &self.plan, t));
-        // Tiles whose 3x3 neighbourhood holds a local residual: elsewhere the bilinear
-        // interpolation between tile centres is zero and is skipped.
-        let near_local = local.as_ref().map(|l| {
-            let (ty, tx, _) = l.dim();
-            Array2::from_shape_fn((ty, tx), |(i, j)| {
-                (i.saturating_sub(1)..(i + 2).min(ty)).any(|a| {
-                    (j.saturating_sub(1)..(j + 2).min(tx))
-                        .any(|b| l[[a, b, 0]] != 0.0 || l[[a, b, 1]] != 0.0)
-                })
-            })
-        });
+        let near_local = local.as_ref().map(near_local_tiles);
         let stride = self.grid.tile_stride.max(1);
         let mut out = Array3::<f32>::zeros((h, w, 2));
         out.outer_iter_mut()
@@ -457,6 +459,37 @@ impl FrameMotion {
                 }
             });
         out
+    }
+
+    /// Sub-block `k`'s motion as the merge takes it: its affine reference map
+    /// ([`FrameMotion::sub_block_reference_map`]) without a local residual, else that map with
+    /// the dense flow and the pixels where the residual may act
+    /// ([`SubBlockMotion::CameraAndLocal`]: most sites skip the dense flow's inversion); the
+    /// dense flow alone when the camera motion cannot be inverted.
+    pub fn sub_block_motion(&self, k: usize) -> SubBlockMotion {
+        if let Some((matrix, offset)) = self.sub_block_reference_map(k) {
+            return SubBlockMotion::Affine { matrix, offset };
+        }
+        let flow = self.sub_block_flow(k);
+        match self.camera_reference_map(k) {
+            Some((matrix, offset)) if self.has_local => {
+                let r = &self.sub_blocks[k];
+                let t = (r.start + r.end - 1) as f64 / 2.0;
+                let near = near_local_tiles(&frame_flow(&self.local, &self.plan, t));
+                let (ty, tx) = near.dim();
+                let stride = self.grid.tile_stride.max(1);
+                let local = Array2::from_shape_fn((self.height, self.width), |(y, x)| {
+                    near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]]
+                });
+                SubBlockMotion::CameraAndLocal {
+                    matrix,
+                    offset,
+                    flow,
+                    local,
+                }
+            }
+            _ => SubBlockMotion::Dense(flow),
+        }
     }
 
     /// Dense (H, W, 2) flow of sub-block `k` (reference → sub-block).
@@ -500,6 +533,11 @@ impl FrameMotion {
         if self.has_local {
             return None;
         }
+        self.camera_reference_map(k)
+    }
+
+    /// The map of [`FrameMotion::sub_block_reference_map`] of the camera motion alone.
+    fn camera_reference_map(&self, k: usize) -> Option<([[f64; 2]; 2], [f64; 2])> {
         let e = self.camera[k].inverse()?;
         let c = self.centre();
         let matrix = [[1.0 + e.m[0][0], e.m[0][1]], [e.m[1][0], 1.0 + e.m[1][1]]];
@@ -730,6 +768,53 @@ pub(super) fn fit_sub_block(
     iterations: usize,
 ) -> Option<AffineMotion> {
     let counts = counts.as_slice()?;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe {
+                fit_sub_block_avx2(
+                    counts, frames, layouts, templates, start, centre, iterations,
+                )
+            };
+        }
+    }
+    fit_sub_block_generic(
+        counts, frames, layouts, templates, start, centre, iterations,
+    )
+}
+
+/// [`fit_sub_block_generic`] compiled for AVX2: the same operations in the same order (no fused
+/// multiply-add), so the same result.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn fit_sub_block_avx2(
+    counts: &[u32],
+    frames: usize,
+    layouts: &[BinLayout],
+    templates: &[&TemplateLevel],
+    start: AffineMotion,
+    centre: [f64; 2],
+    iterations: usize,
+) -> Option<AffineMotion> {
+    fit_sub_block_generic(
+        counts, frames, layouts, templates, start, centre, iterations,
+    )
+}
+
+#[inline(always)]
+fn fit_sub_block_generic(
+    counts: &[u32],
+    frames: usize,
+    layouts: &[BinLayout],
+    templates: &[&TemplateLevel],
+    start: AffineMotion,
+    centre: [f64; 2],
+    iterations: usize,
+) -> Option<AffineMotion> {
     let mut params = start.params();
     for (layout, template) in layouts.iter().zip(templates) {
         // Mean bit rate and number of trials (sites x frames) of every bin.
@@ -805,13 +890,19 @@ pub(super) fn fit_sub_block(
                     rhs[p] += y_power[py] * sums[9 + gp + 2 * px];
                 }
             }
-            let mut normal: Vec<Vec<f64>> = normal.iter().map(|r| r.to_vec()).collect();
-            for r in 0..6 {
-                for c in 0..r {
-                    normal[r][c] = normal[c][r];
-                }
-                normal[r][r] *= 1.0 + 1e-6;
-            }
+            // The symmetric matrix from its upper triangle, the diagonal raised by 1e-6.
+            let upper = normal;
+            let normal: Vec<Vec<f64>> = (0..6)
+                .map(|r| {
+                    (0..6)
+                        .map(|c| match r.cmp(&c) {
+                            std::cmp::Ordering::Less => upper[r][c],
+                            std::cmp::Ordering::Equal => upper[r][r] * (1.0 + 1e-6),
+                            std::cmp::Ordering::Greater => upper[c][r],
+                        })
+                        .collect()
+                })
+                .collect();
             let inv = invert(normal)?;
             let step: Vec<f64> = (0..6)
                 .map(|r| (0..6).map(|c| inv[r][c] * rhs[c]).sum())

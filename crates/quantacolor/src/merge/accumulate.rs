@@ -55,6 +55,18 @@ pub enum SubBlockMotion {
         matrix: [[f64; 2]; 2],
         offset: [f64; 2],
     },
+    /// A camera motion (the affine map of [`SubBlockMotion::Affine`]) plus a local residual
+    /// (moving objects): `flow` is the dense flow of both, and `local` (H, W) marks the
+    /// reference pixels where the residual may be non-zero. A site whose affine reference
+    /// position lies inside the image on an unmarked pixel takes that position (there the
+    /// dense flow is the camera's, whose inverse the affine map is exactly); the others invert
+    /// `flow` as [`SubBlockMotion::Dense`] does.
+    CameraAndLocal {
+        matrix: [[f64; 2]; 2],
+        offset: [f64; 2],
+        flow: Array3<f32>,
+        local: Array2<bool>,
+    },
 }
 
 impl From<Array3<f32>> for SubBlockMotion {
@@ -68,6 +80,7 @@ impl SubBlockMotion {
     pub fn dense(&self) -> Option<&Array3<f32>> {
         match self {
             SubBlockMotion::Dense(flow) => Some(flow),
+            SubBlockMotion::CameraAndLocal { flow, .. } => Some(flow),
             SubBlockMotion::Affine { .. } => None,
         }
     }
@@ -76,17 +89,45 @@ impl SubBlockMotion {
     fn check(&self, h: usize, w: usize, what: &str) -> Result<()> {
         match self {
             SubBlockMotion::Dense(flow) => super::warp::check_flow(flow, h, w, what),
-            SubBlockMotion::Affine { matrix, offset } => {
-                if matrix.iter().flatten().chain(offset).all(|v| v.is_finite()) {
-                    Ok(())
-                } else {
-                    Err(Error::invalid(format!(
-                        "{what}: affine motion has non-finite values"
-                    )))
+            SubBlockMotion::Affine { matrix, offset } => check_affine(matrix, offset, what),
+            SubBlockMotion::CameraAndLocal {
+                matrix,
+                offset,
+                flow,
+                local,
+            } => {
+                check_affine(matrix, offset, what)?;
+                super::warp::check_flow(flow, h, w, what)?;
+                if local.dim() != (h, w) {
+                    return Err(Error::invalid(format!(
+                        "{what}: local-motion mask has shape {:?}, expected ({h}, {w})",
+                        local.dim()
+                    )));
                 }
+                Ok(())
             }
         }
     }
+}
+
+fn check_affine(matrix: &[[f64; 2]; 2], offset: &[f64; 2], what: &str) -> Result<()> {
+    if matrix.iter().flatten().chain(offset).all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(Error::invalid(format!(
+            "{what}: affine motion has non-finite values"
+        )))
+    }
+}
+
+/// Reference position p = `matrix`·q + `offset` of site q.
+#[inline]
+fn affine_position(matrix: &[[f64; 2]; 2], offset: &[f64; 2], q: [f32; 2]) -> [f32; 2] {
+    let (y, x) = (q[0] as f64, q[1] as f64);
+    [
+        (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
+        (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
+    ]
 }
 
 /// Parameters of the joint demosaic-merge (supplement §1.3, §7).
@@ -405,13 +446,32 @@ impl<'a> MergeAccumulator<'a> {
                 robust,
             };
             match &sub.flow {
-                SubBlockMotion::Affine { matrix, offset } => {
+                SubBlockMotion::Affine { matrix, offset } => grid
+                    .fill(&mut targets, |q: [f32; 2]| {
+                        affine_position(matrix, offset, q)
+                    }),
+                SubBlockMotion::CameraAndLocal {
+                    matrix,
+                    offset,
+                    flow,
+                    local,
+                } => {
+                    let flow = flow.as_standard_layout();
+                    let flow = flow.as_slice().expect("standard layout");
+                    let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
                     grid.fill(&mut targets, |q: [f32; 2]| {
-                        let (y, x) = (q[0] as f64, q[1] as f64);
-                        [
-                            (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
-                            (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
-                        ]
+                        let p = affine_position(matrix, offset, q);
+                        let inside = p[0] >= 0.0 && p[1] >= 0.0 && p[0] <= hf && p[1] <= wf;
+                        if inside
+                            && !local[[
+                                round_half_away(p[0]) as usize,
+                                round_half_away(p[1]) as usize,
+                            ]]
+                        {
+                            p
+                        } else {
+                            reference_position(flow, h, w, q)
+                        }
                     })
                 }
                 SubBlockMotion::Dense(flow) => {
