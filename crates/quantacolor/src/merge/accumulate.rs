@@ -582,6 +582,9 @@ impl<'a> MergeAccumulator<'a> {
                             continue;
                         }
                         let cell = &bins[(row_start + bx as usize) * 12..][..12];
+                        // Channels of equal site density (R, G, B of most CFAs) share the
+                        // weight: computed once (the same value).
+                        let (mut last_q, mut last_g) = (f32::NAN, 0.0f32);
                         for ch in 0..4 {
                             let s = &cell[ch * 3..ch * 3 + 3];
                             if s[1] == 0.0 {
@@ -589,7 +592,12 @@ impl<'a> MergeAccumulator<'a> {
                             }
                             let q = quad * inv_scale[ch];
                             if q < cutoff {
-                                let g = (-0.5 * q).exp();
+                                let g = if q == last_q {
+                                    last_g
+                                } else {
+                                    (last_q, last_g) = (q, (-0.5 * q).exp());
+                                    last_g
+                                };
                                 out[ch * 3] += g * s[0];
                                 out[ch * 3 + 1] += g * s[1];
                                 out[ch * 3 + 2] += g * g * s[2];
