@@ -381,7 +381,7 @@ fn merge_sub_blocks(
                     flow: match (oracle, motion.sub_block_reference_map(k)) {
                         (Some(oracle), _) => SubBlockMotion::Dense(oracle(centre)),
                         (None, Some((matrix, offset))) => SubBlockMotion::Affine { matrix, offset },
-                        (None, None) => SubBlockMotion::Dense(motion.sub_block_flow(k)),
+                        (None, None) => motion.sub_block_motion(k),
                     },
                     robustness: SubBlockRobustness::Block(slot(motion.block_of[k])),
                 }

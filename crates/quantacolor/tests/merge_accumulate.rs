@@ -669,3 +669,92 @@ fn an_affine_sub_block_motion_merges_like_its_dense_flow() {
     // Positions agree to ~1e-5 px; only samples on a phase-bin boundary may move a bin.
     assert!(mean < 1e-3, "mean {mean}");
 }
+
+#[test]
+fn a_camera_motion_with_a_local_residual_merges_like_its_dense_flow() {
+    // A camera motion plus a moving square: sites whose affine position lies outside the
+    // square's mask take the affine map, the others invert the dense flow.
+    let (h, w) = (48, 56);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(78);
+    let motions: Vec<Motion> = (0..6)
+        .map(|_| Motion::random(&mut rng, 3.0, 0.03))
+        .collect();
+    let (square_y, square_x) = (10..26, 14..32);
+    let local = Array2::from_shape_fn((h, w), |(y, x)| {
+        // The square, widened by 2 px: the bilinear flow near its edge mixes both motions.
+        (square_y.start - 2..square_y.end + 2).contains(&y)
+            && (square_x.start - 2..square_x.end + 2).contains(&x)
+    });
+    let dense: Vec<SubBlock> = sub_blocks(&textured, &cfa, &motions, 40, DARK, &mut rng)
+        .into_iter()
+        .map(|s| {
+            let mut flow = s.flow.dense().unwrap().clone();
+            for y in square_y.clone() {
+                for x in square_x.clone() {
+                    flow[[y, x, 0]] += 1.5;
+                    flow[[y, x, 1]] -= 2.0;
+                }
+            }
+            SubBlock {
+                flow: SubBlockMotion::Dense(flow),
+                robustness: SubBlockRobustness::Full,
+                ..s
+            }
+        })
+        .collect();
+    let hybrid: Vec<SubBlock> = dense
+        .iter()
+        .zip(&motions)
+        .map(|(s, m)| {
+            let SubBlockMotion::Affine { matrix, offset } = m.reference_map(h, w) else {
+                unreachable!("an affine map")
+            };
+            SubBlock {
+                flow: SubBlockMotion::CameraAndLocal {
+                    matrix,
+                    offset,
+                    flow: s.flow.dense().unwrap().clone(),
+                    local: local.clone(),
+                },
+                ..s.clone()
+            }
+        })
+        .collect();
+    let camera_only: Vec<SubBlock> = dense
+        .iter()
+        .zip(&motions)
+        .map(|(s, m)| SubBlock {
+            flow: m.reference_map(h, w),
+            ..s.clone()
+        })
+        .collect();
+    let kernels = kernel_field(&Array2::from_elem((h, w), 0.5), &KernelConfig::default()).unwrap();
+    let config = AccumulateConfig::default();
+    let merge = |subs: &[SubBlock]| {
+        let mut acc = MergeAccumulator::new(&cfa, &kernels, &config, DARK).unwrap();
+        acc.add(subs, &[]).unwrap();
+        acc.finish(W_WEIGHTS)
+    };
+    let mean_difference = |a: &MergedPlanes, b: &MergedPlanes| {
+        let (mut total, mut n) = (0.0f64, 0usize);
+        for (x, y) in a.flux.iter().zip(b.flux.iter()) {
+            if x.is_finite() && y.is_finite() && *x > 0.0 {
+                total += ((x - y) / x).abs() as f64;
+                n += 1;
+            }
+        }
+        assert!(n > 1000);
+        total / n as f64
+    };
+    let (a, b, c) = (merge(&dense), merge(&hybrid), merge(&camera_only));
+    let (same, ignored) = (mean_difference(&a, &b), mean_difference(&a, &c));
+    println!("hybrid vs dense: {same:.2e}; camera alone vs dense: {ignored:.2e}");
+    // Positions agree to ~1e-5 px; only samples on a phase-bin boundary may move a bin. The
+    // camera alone misplaces the square's samples.
+    assert!(same < 1e-3, "hybrid {same}");
+    assert!(
+        ignored > 10.0 * same.max(1e-5),
+        "camera alone {ignored}, hybrid {same}"
+    );
+}

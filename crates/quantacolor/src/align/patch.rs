@@ -211,15 +211,21 @@ fn tile_cost(
     cost / ((y1 - y0) * (x1 - x0)) as f32
 }
 
+/// The two taps and the weight of the second along one axis of length `n` of [`bilinear`] at
+/// coordinate `v` (clamped).
+#[inline]
+fn bilinear_taps(v: f32, n: usize) -> (usize, usize, f32) {
+    let v = v.clamp(0.0, (n - 1) as f32);
+    let v0 = v.floor() as usize;
+    (v0, (v0 + 1).min(n - 1), v - v0 as f32)
+}
+
 /// Bilinear sample of `img` at `(y, x)` with clamping.
 #[inline]
 pub(crate) fn bilinear(img: &Array2<f32>, y: f32, x: f32) -> f32 {
     let (h, w) = img.dim();
-    let y = y.clamp(0.0, (h - 1) as f32);
-    let x = x.clamp(0.0, (w - 1) as f32);
-    let (y0, x0) = (y.floor() as usize, x.floor() as usize);
-    let (y1, x1) = ((y0 + 1).min(h - 1), (x0 + 1).min(w - 1));
-    let (fy, fx) = (y - y0 as f32, x - x0 as f32);
+    let (y0, y1, fy) = bilinear_taps(y, h);
+    let (x0, x1, fx) = bilinear_taps(x, w);
     let top = img[[y0, x0]] * (1.0 - fx) + img[[y0, x1]] * fx;
     let bottom = img[[y1, x0]] * (1.0 - fx) + img[[y1, x1]] * fx;
     top * (1.0 - fy) + bottom * fy
@@ -349,11 +355,16 @@ impl ReferenceAligner {
                         ),
                     };
                     let cost = |d: (isize, isize)| tile_cost(r_img, a_img, origin, ts, d, norm);
+                    // Each seed's cost once; the first of equal minima wins (as `min_by`).
                     let seed = seeds
                         .iter()
-                        .map(|&(dy, dx)| (dy.round() as isize, dx.round() as isize))
-                        .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
-                        .expect("at least one seed");
+                        .map(|&(dy, dx)| {
+                            let d = (dy.round() as isize, dx.round() as isize);
+                            (cost(d), d)
+                        })
+                        .min_by(|a, b| a.0.total_cmp(&b.0))
+                        .expect("at least one seed")
+                        .1;
                     let mut best = (f32::INFINITY, seed);
                     for dy in -radius..=radius {
                         for dx in -radius..=radius {
@@ -407,12 +418,28 @@ impl ReferenceAligner {
         let (h, w) = reference.dim();
         let ts = self.grids[0].tile_size;
         let mut u = start;
+        let (ys, xs) = (oy..(oy + ts).min(h), ox..(ox + ts).min(w));
+        let (mut rows, mut cols) = (Vec::with_capacity(ys.len()), Vec::with_capacity(xs.len()));
         for _ in 0..self.config.lk_iterations {
+            // The taps of `bilinear` at (y + u.0, x + u.1) depend on the row or the column
+            // alone: computed once per row and column (the same values).
+            rows.clear();
+            rows.extend(
+                ys.clone()
+                    .map(|y| bilinear_taps(y as f32 + u.0, alt.nrows())),
+            );
+            cols.clear();
+            cols.extend(
+                xs.clone()
+                    .map(|x| bilinear_taps(x as f32 + u.1, alt.ncols())),
+            );
             let (mut by, mut bx) = (0.0f32, 0.0f32);
             let mut n = 0;
-            for y in oy..(oy + ts).min(h) {
-                for x in ox..(ox + ts).min(w) {
-                    let e = bilinear(alt, y as f32 + u.0, x as f32 + u.1) - reference[[y, x]];
+            for (y, &(y0, y1, fy)) in ys.clone().zip(&rows) {
+                for (x, &(x0, x1, fx)) in xs.clone().zip(&cols) {
+                    let top = alt[[y0, x0]] * (1.0 - fx) + alt[[y0, x1]] * fx;
+                    let bottom = alt[[y1, x0]] * (1.0 - fx) + alt[[y1, x1]] * fx;
+                    let e = (top * (1.0 - fy) + bottom * fy) - reference[[y, x]];
                     let (gy, gx) = tile.grad[n];
                     by += gy * e;
                     bx += gx * e;

@@ -438,8 +438,21 @@ impl Transforms {
     }
 
     /// `out = D · block · Dᵀ` (row-major `n × n`); `tmp` is scratch of `n²`.
+    #[inline(always)]
     pub(crate) fn forward(&self, block: &[f32], tmp: &mut [f32], out: &mut [f32]) {
         let n = self.n;
+        if n == 8 {
+            // The default block size, with sizes known to the compiler (unrolled and
+            // vectorised): the same products summed in the same order.
+            let d: &[f32; 64] = self.dct[..64].try_into().expect("8 x 8");
+            let dt: &[f32; 64] = self.dct_t[..64].try_into().expect("8 x 8");
+            let block: &[f32; 64] = block[..64].try_into().expect("8 x 8 block");
+            let out: &mut [f32; 64] = (&mut out[..64]).try_into().expect("8 x 8 block");
+            let mut t = [0.0f32; 64];
+            matmul8(d, block, &mut t);
+            matmul8(&t, dt, out);
+            return;
+        }
         // tmp[k][·] = Σ_i D[k][i] · block[i][·]
         tmp[..n * n].fill(0.0);
         for k in 0..n {
@@ -459,8 +472,20 @@ impl Transforms {
     }
 
     /// `out = Dᵀ · coeffs · D`, the inverse of [`Transforms::forward`].
+    #[inline(always)]
     pub(crate) fn inverse(&self, coeffs: &[f32], tmp: &mut [f32], out: &mut [f32]) {
         let n = self.n;
+        if n == 8 {
+            // As in `forward`: Dᵀ·coeffs is Σ_k D[k][i]·coeffs[k][·], then (·)·D.
+            let d: &[f32; 64] = self.dct[..64].try_into().expect("8 x 8");
+            let dt: &[f32; 64] = self.dct_t[..64].try_into().expect("8 x 8");
+            let coeffs: &[f32; 64] = coeffs[..64].try_into().expect("8 x 8 block");
+            let out: &mut [f32; 64] = (&mut out[..64]).try_into().expect("8 x 8 block");
+            let mut t = [0.0f32; 64];
+            matmul8(dt, coeffs, &mut t);
+            matmul8(&t, d, out);
+            return;
+        }
         // tmp[i][·] = Σ_k D[k][i] · coeffs[k][·]
         tmp[..n * n].fill(0.0);
         for i in 0..n {
@@ -477,6 +502,22 @@ impl Transforms {
                 axpy(dst, tmp[i * n + l], &self.dct[l * n..(l + 1) * n]);
             }
         }
+    }
+}
+
+/// `out = a · b` for row-major 8 x 8 matrices, each row of `out` accumulated as
+/// `0 + a[r][0]·b[0][·] + a[r][1]·b[1][·] + …` (the order of [`axpy`] in the general path).
+#[inline(always)]
+fn matmul8(a: &[f32; 64], b: &[f32; 64], out: &mut [f32; 64]) {
+    for r in 0..8 {
+        let mut row = [0.0f32; 8];
+        for i in 0..8 {
+            let s = a[r * 8 + i];
+            for j in 0..8 {
+                row[j] += s * b[i * 8 + j];
+            }
+        }
+        out[r * 8..r * 8 + 8].copy_from_slice(&row);
     }
 }
 
@@ -563,7 +604,7 @@ impl BlockCoeffs {
 }
 
 /// Squared L2 distance with eight partial sums (vectorises; fixed order, so deterministic).
-#[inline]
+#[cfg(test)]
 fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
     let mut acc = [0.0f32; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
@@ -579,6 +620,33 @@ fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
         tail += (x - y) * (x - y);
     }
     acc.iter().sum::<f32>() + tail
+}
+
+/// [`squared_distance`] when it is at most `limit`, else `None`, possibly without summing
+/// every coefficient: the eight partial sums only grow (non-negative terms, and rounding is
+/// monotone), so once their total over the first half of the chunks exceeds `limit`, so does
+/// the full distance. Distances at or below `limit` are the same bits as [`squared_distance`].
+#[inline(always)]
+fn squared_distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
+    let mut acc = [0.0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    let check_after = a.len() / 16;
+    for (chunk, (x, y)) in ca.zip(cb).enumerate() {
+        if chunk == check_after && check_after > 0 && acc.iter().sum::<f32>() > limit {
+            return None;
+        }
+        for j in 0..8 {
+            let d = x[j] - y[j];
+            acc[j] += d * d;
+        }
+    }
+    let mut tail = 0.0f32;
+    for (x, y) in ra.iter().zip(rb) {
+        tail += (x - y) * (x - y);
+    }
+    let d = acc.iter().sum::<f32>() + tail;
+    (d <= limit).then_some(d)
 }
 
 /// What differs between the two steps.
@@ -656,9 +724,7 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
                         num: vec![0.0; channels * rows * w],
                         den: vec![0.0; channels * rows * w],
                     };
-                    for &xr in &geo.ref_xs {
-                        process_reference(p, geo, tr, yr, xr, scratch, &mut strip);
-                    }
+                    process_row(p, geo, tr, yr, scratch, &mut strip);
                     strip
                 },
             )
@@ -693,8 +759,64 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
         .collect()
 }
 
+/// Every reference block of row `yr` ([`process_reference`]), with AVX2 where the CPU has it.
+///
+/// The AVX2 build of the same code is bit-identical: the kernels' sums are laid out lane by lane
+/// in a fixed order (eight partial sums, rows of eight), wider registers only hold more lanes,
+/// and no multiply-add is fused.
+fn process_row(
+    p: &StepParams,
+    geo: &Geometry,
+    tr: &Transforms,
+    yr: usize,
+    s: &mut Scratch,
+    strip: &mut Strip,
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { process_row_avx2(p, geo, tr, yr, s, strip) };
+            return;
+        }
+    }
+    process_row_generic(p, geo, tr, yr, s, strip);
+}
+
+#[inline(always)]
+fn process_row_generic(
+    p: &StepParams,
+    geo: &Geometry,
+    tr: &Transforms,
+    yr: usize,
+    s: &mut Scratch,
+    strip: &mut Strip,
+) {
+    for &xr in &geo.ref_xs {
+        process_reference(p, geo, tr, yr, xr, s, strip);
+    }
+}
+
+/// [`process_row_generic`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn process_row_avx2(
+    p: &StepParams,
+    geo: &Geometry,
+    tr: &Transforms,
+    yr: usize,
+    s: &mut Scratch,
+    strip: &mut Strip,
+) {
+    process_row_generic(p, geo, tr, yr, s, strip);
+}
+
 /// Groups the blocks similar to reference `(yr, xr)`, filters the group in every channel with
 /// σ > 0, and aggregates the block estimates into `strip`.
+#[inline(always)]
 fn process_reference(
     p: &StepParams,
     geo: &Geometry,
@@ -792,6 +914,7 @@ fn process_reference(
 
 /// Fills `s.group` with the reference position followed by its best matches (distance ≤ τ,
 /// ascending distance, ties by position), truncated to a power of two ≤ `max_group`.
+#[inline(always)]
 fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scratch) {
     let hw = geo.half_window;
     let ref_pos = yr * geo.pw + xr;
@@ -805,8 +928,7 @@ fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scra
             if pos == ref_pos {
                 continue;
             }
-            let d = squared_distance(reference, p.matching.block(pos));
-            if d <= p.tau_sum {
+            if let Some(d) = squared_distance_at_most(reference, p.matching.block(pos), p.tau_sum) {
                 s.candidates.push((d, pos as u32));
             }
         }
@@ -838,6 +960,7 @@ fn prev_power_of_two(k: usize) -> usize {
 /// Orthonormal 1D Haar transform along the group (full decomposition) of `m` (a power of two)
 /// stacked `n2`-coefficient blocks: `g[b·n2 + k]`. Output order: approximation, then details
 /// from coarse to fine.
+#[inline(always)]
 pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let mut len = m;
     while len > 1 {
@@ -856,6 +979,7 @@ pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) 
 }
 
 /// Inverse of [`haar_forward`].
+#[inline(always)]
 pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let mut len = 2;
     while len <= m {
@@ -882,6 +1006,68 @@ mod tests {
     fn random(len: usize, seed: u64) -> Vec<f32> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         (0..len).map(|_| rng.gen_range(-1.0..1.0)).collect()
+    }
+
+    #[test]
+    fn bounded_distance_is_the_full_distance_or_none() {
+        for (len, seed) in [(64usize, 1u64), (16, 2), (9, 3), (1, 4)] {
+            for k in 0..50u64 {
+                let a = random(len, seed * 100 + k);
+                let b = random(len, seed * 1000 + k);
+                let full = squared_distance(&a, &b);
+                for limit in [0.0, full * 0.5, full, full * 1.0001, full * 2.0] {
+                    let bounded = squared_distance_at_most(&a, &b, limit);
+                    if full <= limit {
+                        assert_eq!(bounded.map(f32::to_bits), Some(full.to_bits()));
+                    } else {
+                        assert_eq!(bounded, None);
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn transforms_of_8x8_blocks_match_the_general_path() {
+        // The unrolled 8 x 8 transforms against the general one, bit for bit.
+        let tr = Transforms::new(8, 2.0);
+        let general = |block: &[f32], inverse: bool| {
+            let n = 8;
+            let (m1, m2): (&[f32], &[f32]) = if inverse {
+                (&tr.dct_t, &tr.dct)
+            } else {
+                (&tr.dct, &tr.dct_t)
+            };
+            let mut tmp = vec![0.0f32; 64];
+            for k in 0..n {
+                for i in 0..n {
+                    axpy(
+                        &mut tmp[k * n..(k + 1) * n],
+                        m1[k * n + i],
+                        &block[i * n..(i + 1) * n],
+                    );
+                }
+            }
+            let mut out = vec![0.0f32; 64];
+            for k in 0..n {
+                for j in 0..n {
+                    axpy(
+                        &mut out[k * n..(k + 1) * n],
+                        tmp[k * n + j],
+                        &m2[j * n..(j + 1) * n],
+                    );
+                }
+            }
+            out
+        };
+        for seed in 0..20 {
+            let block = random(64, 700 + seed);
+            let (mut tmp, mut out) = (vec![0.0f32; 64], vec![0.0f32; 64]);
+            tr.forward(&block, &mut tmp, &mut out);
+            assert_eq!(out, general(&block, false));
+            tr.inverse(&block, &mut tmp, &mut out);
+            assert_eq!(out, general(&block, true));
+        }
     }
 
     #[test]

@@ -55,6 +55,18 @@ pub enum SubBlockMotion {
         matrix: [[f64; 2]; 2],
         offset: [f64; 2],
     },
+    /// A camera motion (the affine map of [`SubBlockMotion::Affine`]) plus a local residual
+    /// (moving objects): `flow` is the dense flow of both, and `local` (H, W) marks the
+    /// reference pixels where the residual may be non-zero. A site whose affine reference
+    /// position lies inside the image on an unmarked pixel takes that position (there the
+    /// dense flow is the camera's, whose inverse the affine map is exactly); the others invert
+    /// `flow` as [`SubBlockMotion::Dense`] does.
+    CameraAndLocal {
+        matrix: [[f64; 2]; 2],
+        offset: [f64; 2],
+        flow: Array3<f32>,
+        local: Array2<bool>,
+    },
 }
 
 impl From<Array3<f32>> for SubBlockMotion {
@@ -68,6 +80,7 @@ impl SubBlockMotion {
     pub fn dense(&self) -> Option<&Array3<f32>> {
         match self {
             SubBlockMotion::Dense(flow) => Some(flow),
+            SubBlockMotion::CameraAndLocal { flow, .. } => Some(flow),
             SubBlockMotion::Affine { .. } => None,
         }
     }
@@ -76,17 +89,45 @@ impl SubBlockMotion {
     fn check(&self, h: usize, w: usize, what: &str) -> Result<()> {
         match self {
             SubBlockMotion::Dense(flow) => super::warp::check_flow(flow, h, w, what),
-            SubBlockMotion::Affine { matrix, offset } => {
-                if matrix.iter().flatten().chain(offset).all(|v| v.is_finite()) {
-                    Ok(())
-                } else {
-                    Err(Error::invalid(format!(
-                        "{what}: affine motion has non-finite values"
-                    )))
+            SubBlockMotion::Affine { matrix, offset } => check_affine(matrix, offset, what),
+            SubBlockMotion::CameraAndLocal {
+                matrix,
+                offset,
+                flow,
+                local,
+            } => {
+                check_affine(matrix, offset, what)?;
+                super::warp::check_flow(flow, h, w, what)?;
+                if local.dim() != (h, w) {
+                    return Err(Error::invalid(format!(
+                        "{what}: local-motion mask has shape {:?}, expected ({h}, {w})",
+                        local.dim()
+                    )));
                 }
+                Ok(())
             }
         }
     }
+}
+
+fn check_affine(matrix: &[[f64; 2]; 2], offset: &[f64; 2], what: &str) -> Result<()> {
+    if matrix.iter().flatten().chain(offset).all(|v| v.is_finite()) {
+        Ok(())
+    } else {
+        Err(Error::invalid(format!(
+            "{what}: affine motion has non-finite values"
+        )))
+    }
+}
+
+/// Reference position p = `matrix`·q + `offset` of site q.
+#[inline]
+fn affine_position(matrix: &[[f64; 2]; 2], offset: &[f64; 2], q: [f32; 2]) -> [f32; 2] {
+    let (y, x) = (q[0] as f64, q[1] as f64);
+    [
+        (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
+        (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
+    ]
 }
 
 /// Parameters of the joint demosaic-merge (supplement §1.3, §7).
@@ -252,6 +293,58 @@ pub fn reference_position(flow: &[f32], h: usize, w: usize, q: [f32; 2]) -> [f32
     p
 }
 
+/// What [`MergeAccumulator::add`] needs to find the target bin of every site.
+struct TargetGrid<'s> {
+    h: usize,
+    w: usize,
+    /// Bins per reference px.
+    u: f32,
+    /// Margin of the bin grid (reference px).
+    margin: f32,
+    bins_h: usize,
+    bins_w: usize,
+    excluded: Option<&'s [bool]>,
+    /// Robustness map on the reference grid (`None`: weight 1).
+    robust: Option<&'s [f32]>,
+}
+
+impl TargetGrid<'_> {
+    /// Target bin and robustness weight of every site (row-major), `(u32::MAX, 0)` for sites
+    /// left out (excluded, zero weight, outside the bins); `position` maps a site to its
+    /// reference-grid position. In parallel by rows.
+    fn fill(&self, targets: &mut [(u32, f32)], position: impl Fn([f32; 2]) -> [f32; 2] + Sync) {
+        let (h, w, u, margin) = (self.h, self.w, self.u, self.margin);
+        let (bins_h, bins_w) = (self.bins_h, self.bins_w);
+        targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, target) in row.iter_mut().enumerate() {
+                let i = y * w + x;
+                *target = if self.excluded.is_some_and(|e| e[i]) {
+                    (u32::MAX, 0.0)
+                } else {
+                    let p = position([y as f32, x as f32]);
+                    let r = self.robust.map_or(1.0, |m| {
+                        let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
+                        let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
+                        m[ry * w + rx]
+                    });
+                    let by = round_half_away((p[0] + margin) * u);
+                    let bx = round_half_away((p[1] + margin) * u);
+                    if r <= 0.0
+                        || by < 0.0
+                        || bx < 0.0
+                        || by >= bins_h as f32
+                        || bx >= bins_w as f32
+                    {
+                        (u32::MAX, 0.0)
+                    } else {
+                        ((by as usize * bins_w + bx as usize) as u32, r)
+                    }
+                };
+            }
+        });
+    }
+}
+
 impl<'a> MergeAccumulator<'a> {
     /// Empty accumulators for `cfa` with the kernels of the reference, for frames whose
     /// samples follow `model` (a plain number: binary frames with that many dark counts per
@@ -334,29 +427,14 @@ impl<'a> MergeAccumulator<'a> {
             .map(|m| m.as_standard_layout())
             .collect();
         let mut targets = vec![(u32::MAX, 0.0f32); h * w];
+        // Bins are split into bands of rows, one band per task: every task scans all sites in
+        // order and adds those landing in its band, so each bin receives its samples in site
+        // order whatever the number of threads (the same sums as one serial pass).
+        let bands = rayon::current_num_threads().clamp(1, 16);
+        let band_bins = (bins_h.div_ceil(bands) * bins_w).max(1);
         for sub in sub_blocks {
             let counts = sub.counts.as_standard_layout();
             let counts = counts.as_slice().expect("standard layout");
-            let dense = match &sub.flow {
-                SubBlockMotion::Dense(flow) => Some(flow.as_standard_layout()),
-                SubBlockMotion::Affine { .. } => None,
-            };
-            let dense = dense
-                .as_ref()
-                .map(|f| f.as_slice().expect("standard layout"));
-            let position = |q: [f32; 2]| -> [f32; 2] {
-                match (&sub.flow, dense) {
-                    (SubBlockMotion::Affine { matrix, offset }, _) => {
-                        let (y, x) = (q[0] as f64, q[1] as f64);
-                        [
-                            (matrix[0][0] * y + matrix[0][1] * x + offset[0]) as f32,
-                            (matrix[1][0] * y + matrix[1][1] * x + offset[1]) as f32,
-                        ]
-                    }
-                    (_, Some(flow)) => reference_position(flow, h, w, q),
-                    (_, None) => unreachable!("a dense flow has its slice"),
-                }
-            };
             let own = match &sub.robustness {
                 SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
                 _ => None,
@@ -366,46 +444,73 @@ impl<'a> MergeAccumulator<'a> {
                 SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
                 SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
             };
-            let excluded = self.excluded.as_deref();
-            // Target bin and robustness weight of every site, in parallel by rows.
-            targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-                for (x, target) in row.iter_mut().enumerate() {
-                    let i = y * w + x;
-                    *target = if excluded.is_some_and(|e| e[i]) {
-                        (u32::MAX, 0.0)
-                    } else {
-                        let p = position([y as f32, x as f32]);
-                        let r = robust.map_or(1.0, |m| {
-                            let ry = (round_half_away(p[0]).max(0.0) as usize).min(h - 1);
-                            let rx = (round_half_away(p[1]).max(0.0) as usize).min(w - 1);
-                            m[ry * w + rx]
-                        });
-                        let by = round_half_away((p[0] + margin) * u);
-                        let bx = round_half_away((p[1] + margin) * u);
-                        if r <= 0.0
-                            || by < 0.0
-                            || bx < 0.0
-                            || by >= bins_h as f32
-                            || bx >= bins_w as f32
+            let grid = TargetGrid {
+                h,
+                w,
+                u,
+                margin,
+                bins_h,
+                bins_w,
+                excluded: self.excluded.as_deref(),
+                robust,
+            };
+            match &sub.flow {
+                SubBlockMotion::Affine { matrix, offset } => grid
+                    .fill(&mut targets, |q: [f32; 2]| {
+                        affine_position(matrix, offset, q)
+                    }),
+                SubBlockMotion::CameraAndLocal {
+                    matrix,
+                    offset,
+                    flow,
+                    local,
+                } => {
+                    let flow = flow.as_standard_layout();
+                    let flow = flow.as_slice().expect("standard layout");
+                    let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
+                    grid.fill(&mut targets, |q: [f32; 2]| {
+                        let p = affine_position(matrix, offset, q);
+                        let inside = p[0] >= 0.0 && p[1] >= 0.0 && p[0] <= hf && p[1] <= wf;
+                        if inside
+                            && !local[[
+                                round_half_away(p[0]) as usize,
+                                round_half_away(p[1]) as usize,
+                            ]]
                         {
-                            (u32::MAX, 0.0)
+                            p
                         } else {
-                            ((by as usize * bins_w + bx as usize) as u32, r)
+                            reference_position(flow, h, w, q)
                         }
-                    };
+                    })
                 }
-            });
-            let frames = sub.frames as f32;
-            for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(&self.codes) {
-                if bin == u32::MAX {
-                    continue;
+                SubBlockMotion::Dense(flow) => {
+                    let flow = flow.as_standard_layout();
+                    let flow = flow.as_slice().expect("standard layout");
+                    grid.fill(&mut targets, |q: [f32; 2]| {
+                        reference_position(flow, h, w, q)
+                    })
                 }
-                let slot = bin as usize * 12 + (code as usize & 3) * 3;
-                let cell = &mut self.bins[slot..slot + 3];
-                cell[0] += r * count as f32;
-                cell[1] += r * frames;
-                cell[2] += r * r * frames;
             }
+            let frames = sub.frames as f32;
+            let (targets, codes) = (&targets, &self.codes);
+            self.bins
+                .par_chunks_mut(band_bins * 12)
+                .enumerate()
+                .for_each(|(band, cells)| {
+                    let first = band * band_bins;
+                    let end = first + cells.len() / 12;
+                    for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(codes) {
+                        let bin = bin as usize;
+                        if bin < first || bin >= end {
+                            continue;
+                        }
+                        let slot = (bin - first) * 12 + (code as usize & 3) * 3;
+                        let cell = &mut cells[slot..slot + 3];
+                        cell[0] += r * count as f32;
+                        cell[1] += r * frames;
+                        cell[2] += r * r * frames;
+                    }
+                });
         }
         Ok(())
     }
@@ -486,6 +591,9 @@ impl<'a> MergeAccumulator<'a> {
                             continue;
                         }
                         let cell = &bins[(row_start + bx as usize) * 12..][..12];
+                        // Channels of equal site density (R, G, B of most CFAs) share the
+                        // weight: computed once (the same value).
+                        let (mut last_q, mut last_g) = (f32::NAN, 0.0f32);
                         for ch in 0..4 {
                             let s = &cell[ch * 3..ch * 3 + 3];
                             if s[1] == 0.0 {
@@ -493,7 +601,12 @@ impl<'a> MergeAccumulator<'a> {
                             }
                             let q = quad * inv_scale[ch];
                             if q < cutoff {
-                                let g = (-0.5 * q).exp();
+                                let g = if q == last_q {
+                                    last_g
+                                } else {
+                                    (last_q, last_g) = (q, (-0.5 * q).exp());
+                                    last_g
+                                };
                                 out[ch * 3] += g * s[0];
                                 out[ch * 3 + 1] += g * s[1];
                                 out[ch * 3 + 2] += g * g * s[2];

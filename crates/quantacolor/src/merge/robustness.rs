@@ -67,40 +67,85 @@ fn local_stats(image: &Array2<f32>) -> (Array2<f32>, Array2<f32>) {
     (mean, std)
 }
 
-/// Running extremum along each row over x−r..=x+r (`take_max` picks max or min).
+/// Running extremum along each row over x−r..=x+r, clipped to the row (`take_max` picks max or
+/// min), by the van Herk–Gil-Werman algorithm: three comparisons per pixel whatever `r`.
+/// The extremum of a set does not depend on the order it is taken in, so this equals the direct
+/// scan of every window.
 fn row_extreme(img: &Array2<f32>, r: usize, take_max: bool) -> Array2<f32> {
     let (h, w) = img.dim();
-    let mut out = Array2::<f32>::zeros((h, w));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(img.axis_iter(Axis(0)))
-        .for_each(|(mut lane, src)| {
-            for x in 0..w {
-                let window = src.slice(ndarray::s![x.saturating_sub(r)..(x + r + 1).min(w)]);
-                lane[x] =
-                    window.iter().copied().fold(
-                        src[x],
-                        |e, v| {
-                            if take_max {
-                                e.max(v)
-                            } else {
-                                e.min(v)
-                            }
-                        },
-                    );
+    let img = img.as_standard_layout();
+    let src = img.as_slice().expect("standard layout");
+    let mut out = vec![0.0f32; h * w];
+    if w == 0 {
+        return Array2::from_shape_vec((h, w), out).expect("h x w");
+    }
+    let pick = |a: f32, b: f32| if take_max { a.max(b) } else { a.min(b) };
+    let fill = if take_max {
+        f32::NEG_INFINITY
+    } else {
+        f32::INFINITY
+    };
+    let k = 2 * r + 1;
+    out.par_chunks_mut(w).zip(src.par_chunks(w)).for_each_init(
+        || (Vec::new(), Vec::new(), Vec::new()),
+        |(padded, prefix, suffix), (lane, row)| {
+            // The row padded with r neutral values each side: window x is padded[x..x + k].
+            padded.clear();
+            padded.resize(r, fill);
+            padded.extend_from_slice(row);
+            padded.resize(w + 2 * r, fill);
+            let n = padded.len();
+            prefix.resize(n, fill);
+            suffix.resize(n, fill);
+            for (i, &v) in padded.iter().enumerate() {
+                prefix[i] = if i % k == 0 {
+                    v
+                } else {
+                    pick(prefix[i - 1], v)
+                };
             }
-        });
-    out
+            for i in (0..n).rev() {
+                suffix[i] = if i % k == k - 1 || i == n - 1 {
+                    padded[i]
+                } else {
+                    pick(suffix[i + 1], padded[i])
+                };
+            }
+            for (x, o) in lane.iter_mut().enumerate() {
+                *o = pick(suffix[x], prefix[x + k - 1]);
+            }
+        },
+    );
+    Array2::from_shape_vec((h, w), out).expect("h x w")
 }
 
-/// Max − min of `values` over a (2r+1)² window, by separable running extrema.
+/// Running extremum along each column over y−r..=y+r, clipped to the image: whole rows at a
+/// time (the same set of values per pixel as a column scan).
+fn column_extreme(img: &Array2<f32>, r: usize, take_max: bool) -> Array2<f32> {
+    let (h, w) = img.dim();
+    let img = img.as_standard_layout();
+    let src = img.as_slice().expect("standard layout");
+    let mut out = vec![0.0f32; h * w];
+    out.par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(y, lane)| {
+            lane.copy_from_slice(&src[y * w..(y + 1) * w]);
+            for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                let row = &src[yy * w..(yy + 1) * w];
+                if take_max {
+                    lane.iter_mut().zip(row).for_each(|(o, &v)| *o = o.max(v));
+                } else {
+                    lane.iter_mut().zip(row).for_each(|(o, &v)| *o = o.min(v));
+                }
+            }
+        });
+    Array2::from_shape_vec((h, w), out).expect("h x w")
+}
+
+/// Max − min of `values` over a (2r+1)² window (clipped at the borders), by separable running
+/// extrema.
 fn local_spread(values: &Array2<f32>, r: usize) -> Array2<f32> {
-    let extreme = |take_max: bool| {
-        let rows = row_extreme(values, r, take_max);
-        row_extreme(&rows.t().to_owned(), r, take_max)
-            .t()
-            .to_owned()
-    };
+    let extreme = |take_max: bool| column_extreme(&row_extreme(values, r, take_max), r, take_max);
     extreme(true) - extreme(false)
 }
 
@@ -160,4 +205,49 @@ pub fn robustness(
             *r = (s * (-d * d / sigma2).exp() - config.t).clamp(0.0, 1.0);
         });
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Max − min over the clipped (2r+1)² window, scanned directly.
+    fn brute_spread(values: &Array2<f32>, r: usize) -> Array2<f32> {
+        let (h, w) = values.dim();
+        Array2::from_shape_fn((h, w), |(y, x)| {
+            let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+            for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                    lo = lo.min(values[[yy, xx]]);
+                    hi = hi.max(values[[yy, xx]]);
+                }
+            }
+            hi - lo
+        })
+    }
+
+    #[test]
+    fn running_extrema_match_a_direct_window_scan() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        for (h, w, r) in [(13, 29, 3), (7, 5, 8), (1, 40, 2), (20, 1, 1), (9, 17, 0)] {
+            // Coarse values: many ties.
+            let values = Array2::from_shape_fn((h, w), |_| rng.gen_range(-4..5) as f32 * 0.5);
+            assert_eq!(
+                local_spread(&values, r),
+                brute_spread(&values, r),
+                "{h}x{w} r {r}"
+            );
+        }
+    }
+
+    #[test]
+    fn spread_of_a_ramp_is_its_slope_times_the_window() {
+        let values = Array2::from_shape_fn((30, 40), |(y, x)| x as f32 + 0.0 * y as f32);
+        let spread = local_spread(&values, 4);
+        assert_eq!(spread[[10, 20]], 8.0);
+        assert_eq!(spread[[10, 0]], 4.0);
+        assert_eq!(spread[[0, 39]], 4.0);
+    }
 }
