@@ -242,24 +242,24 @@ fn robustness_suppresses_a_sub_block_with_wrong_content() {
     assert!(p_robust > p_plain + 6.0, "{p_robust} vs {p_plain}");
 }
 
-#[test]
-fn saturated_w_falls_back_to_rgb() {
+/// Five still sub-blocks of `frames` frames each of a flat grey scene of flux `flux` per colour
+/// (W sees the sum) through a 24 x 24 75 % W CFA, full robustness, with the kernels of a flat
+/// area: the set-up of the W saturation tests.
+fn flat_still_burst(
+    flux: f64,
+    frames: u32,
+    seed: u64,
+) -> (quantacolor::Cfa, Vec<SubBlock>, KernelField) {
     let (h, w) = (24, 24);
     let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
-    // λ_W = 9 (bit rate 0.99988: every W frame fires), colours at 3 (bit rate 0.95); 50
-    // frames, so the W estimate is clamped near −ln(0.5/N_eff) ≈ 6.3.
-    let truth_rgb = [3.0f64, 3.0, 3.0];
-    let scene = move |_: f64, _: f64| truth_rgb;
-    let mut rng = ChaCha8Rng::seed_from_u64(35);
-    let motions = vec![
-        Motion {
-            dy: 0.0,
-            dx: 0.0,
-            theta: 0.0
-        };
-        5
-    ];
-    let subs: Vec<_> = sub_blocks(&scene, &cfa, &motions, 10, DARK, &mut rng)
+    let scene = move |_: f64, _: f64| [flux; 3];
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let still = Motion {
+        dy: 0.0,
+        dx: 0.0,
+        theta: 0.0,
+    };
+    let subs: Vec<_> = sub_blocks(&scene, &cfa, &[still; 5], frames, DARK, &mut rng)
         .into_iter()
         .map(|s| SubBlock {
             robustness: SubBlockRobustness::Full,
@@ -267,6 +267,15 @@ fn saturated_w_falls_back_to_rgb() {
         })
         .collect();
     let kernels = kernel_field(&Array2::from_elem((h, w), 0.9), &KernelConfig::default()).unwrap();
+    (cfa, subs, kernels)
+}
+
+#[test]
+fn saturated_w_falls_back_to_rgb() {
+    // λ_W = 9 (bit rate 0.99988: every W frame fires), colours at 3 (bit rate 0.95); 50
+    // frames, so the W estimate is clamped near −ln(0.5/N_eff) ≈ 6.3.
+    let (cfa, subs, kernels) = flat_still_burst(3.0, 10, 35);
+    let (h, w) = (cfa.height(), cfa.width());
     let config = AccumulateConfig::default();
     let with = demosaic_merge(&subs, &[], &cfa, &kernels, DARK, W_WEIGHTS, &config).unwrap();
     let off = AccumulateConfig {
@@ -303,24 +312,9 @@ fn a_censored_w_gives_way_to_saturating_colours() {
     // λ = 4.5 per colour (bit rate 0.989, above `w_saturation`: supplement §7's rule keeps the
     // clamped W) and λ_W = 13.5, over 200 frames: W fires in every frame and its estimate is
     // clamped far below 13.5, so Eq. 8 darkens the colours; the colours still see zero frames.
-    let (h, w) = (24, 24);
-    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
     let truth = 4.5;
-    let scene = move |_: f64, _: f64| [truth; 3];
-    let mut rng = ChaCha8Rng::seed_from_u64(36);
-    let still = Motion {
-        dy: 0.0,
-        dx: 0.0,
-        theta: 0.0,
-    };
-    let subs: Vec<_> = sub_blocks(&scene, &cfa, &[still; 5], 40, DARK, &mut rng)
-        .into_iter()
-        .map(|s| SubBlock {
-            robustness: SubBlockRobustness::Full,
-            ..s
-        })
-        .collect();
-    let kernels = kernel_field(&Array2::from_elem((h, w), 0.9), &KernelConfig::default()).unwrap();
+    let (cfa, subs, kernels) = flat_still_burst(truth, 40, 36);
+    let (h, w) = (cfa.height(), cfa.width());
     let censoring = AccumulateConfig::default();
     let section7 = AccumulateConfig {
         w_censoring_zeros: 0.0,
@@ -344,23 +338,7 @@ fn a_censored_w_gives_way_to_saturating_colours() {
 fn unsaturated_w_is_used_as_it_is() {
     // λ_W = 1.5 over 200 frames: about 45 frames without a detection per W site, thousands
     // behind a merged W pixel, so censoring never applies and Eq. 8 keeps W.
-    let (h, w) = (24, 24);
-    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
-    let scene = move |_: f64, _: f64| [0.5; 3];
-    let mut rng = ChaCha8Rng::seed_from_u64(37);
-    let still = Motion {
-        dy: 0.0,
-        dx: 0.0,
-        theta: 0.0,
-    };
-    let subs: Vec<_> = sub_blocks(&scene, &cfa, &[still; 5], 40, DARK, &mut rng)
-        .into_iter()
-        .map(|s| SubBlock {
-            robustness: SubBlockRobustness::Full,
-            ..s
-        })
-        .collect();
-    let kernels = kernel_field(&Array2::from_elem((h, w), 0.9), &KernelConfig::default()).unwrap();
+    let (cfa, subs, kernels) = flat_still_burst(0.5, 40, 37);
     let merged = demosaic_merge(
         &subs,
         &[],
