@@ -3,7 +3,10 @@
 //! end-point error of the merge's motion, on tuning captures.
 //! `cargo test --release -p quantacolor --test burst_diagnose -- --ignored --nocapture`
 //! (QC_CASES="scene:motion:frames:flux;..." overrides the captures; scenes from ../shared/data;
-//! QC_SEED sets the seed of the first capture, 900 by default, the next ones count up).
+//! QC_SEED sets the seed of the first capture, 900 by default, the next ones count up;
+//! QC_DEBUG=epe prints the flow error at the centre and corners over time, QC_DEBUG=rigid the
+//! camera's error as fitted and projected to a similarity or rigid map, any other value the
+//! motion of every sub-block).
 
 mod burst_support;
 
@@ -95,7 +98,73 @@ fn diagnose_frame_motion() {
             let b = reconstruct_burst(&capture, reference, cfg, &Silent).unwrap();
             let secs = start.elapsed().as_secs_f64();
             let p = score(&b.merged.linear);
-            if std::env::var("QC_DEBUG").is_ok() {
+            if std::env::var("QC_DEBUG").is_ok_and(|v| v == "epe") {
+                for k in 0..16 {
+                    let t = (k as f64 + 0.5) / 16.0 * sim.motion.frames as f64;
+                    let est = b.merge_flow(t);
+                    let tru = sim.motion.dense_flow(t, h, w);
+                    let at = |y: usize, x: usize| {
+                        (
+                            est[[y, x, 0]] - tru[[y, x, 0]],
+                            est[[y, x, 1]] - tru[[y, x, 1]],
+                        )
+                    };
+                    let pts = [
+                        (h / 2, w / 2),
+                        (20, 20),
+                        (20, w - 20),
+                        (h - 20, 20),
+                        (h - 20, w - 20),
+                    ];
+                    let errs: Vec<String> = pts
+                        .iter()
+                        .map(|&(y, x)| {
+                            let (dy, dx) = at(y, x);
+                            format!("({dy:+.2},{dx:+.2})")
+                        })
+                        .collect();
+                    println!(
+                        "  t {t:7.1}: true centre ({:+.2},{:+.2}) err centre/corners {}",
+                        tru[[h / 2, w / 2, 0]],
+                        tru[[h / 2, w / 2, 1]],
+                        errs.join(" ")
+                    );
+                }
+            } else if std::env::var("QC_DEBUG").is_ok_and(|v| v == "rigid") {
+                // EPE of the camera alone, as fitted and projected to a similarity or a rigid map.
+                let c = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+                let mut errs = [Vec::new(), Vec::new(), Vec::new()];
+                for k in 0..16 {
+                    let t = (k as f64 + 0.5) / 16.0 * sim.motion.frames as f64;
+                    let cam = b.motion.camera_at(t);
+                    let tru = sim.motion.dense_flow(t, h, w);
+                    let a = (cam.m[0][0] + cam.m[1][1]) / 2.0;
+                    let r = (cam.m[1][0] - cam.m[0][1]) / 2.0;
+                    let mut sim_cam = cam;
+                    sim_cam.m = [[a, -r], [r, a]];
+                    let mut rigid = cam;
+                    rigid.m = [[0.0, -r], [r, 0.0]];
+                    for y in (16..h - 16).step_by(4) {
+                        for x in (16..w - 16).step_by(4) {
+                            let rel = [y as f64 - c[0], x as f64 - c[1]];
+                            for (e, m) in errs.iter_mut().zip([cam, sim_cam, rigid]) {
+                                let d = m.at(rel);
+                                e.push(
+                                    (d[0] - tru[[y, x, 0]] as f64)
+                                        .hypot(d[1] - tru[[y, x, 1]] as f64),
+                                );
+                            }
+                        }
+                    }
+                }
+                for (name, e) in ["affine", "similarity", "rigid"]
+                    .iter()
+                    .zip(errs.iter_mut())
+                {
+                    e.sort_by(f64::total_cmp);
+                    println!("  camera {name}: median EPE {:.3}", e[e.len() / 2]);
+                }
+            } else if std::env::var("QC_DEBUG").is_ok() {
                 for (k, r) in b.motion.sub_blocks.iter().enumerate() {
                     let c = (r.start + r.end - 1) as f64 / 2.0;
                     let tru = sim.motion.dense_flow(c, h, w);
