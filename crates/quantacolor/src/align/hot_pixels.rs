@@ -10,6 +10,9 @@
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
+use crate::model::{
+    detection_probability, mle_flux, mle_variance_from_probability, SATURATION_MARGIN,
+};
 use ndarray::Array2;
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -189,10 +192,7 @@ pub fn dark_count_rate_map(frames: &BinaryFrames, exposure_s: f64) -> Result<Arr
     }
     let t = frames.frame_count() as f64;
     let sums = frames.sum_range(0..frames.frame_count());
-    Ok(sums.mapv(|k| {
-        let p = (k as f64).min(t - 0.5) / t;
-        (-(-p).ln_1p() / exposure_s) as f32
-    }))
+    Ok(sums.mapv(|k| (mle_flux(k as f64, t, 0.0) / exposure_s) as f32))
 }
 
 /// Pixels whose dark-count rate exceeds `threshold_cps` (counts per second).
@@ -305,7 +305,7 @@ pub fn detect_hot_pixels(
     }
     let t = frames.frame_count() as f64;
     let counts = frames.sum_range(0..frames.frame_count());
-    let flux = counts.mapv(|k| crate::model::mle_flux(k as f64, t, 0.0));
+    let flux = counts.mapv(|k| mle_flux(k as f64, t, 0.0));
     let codes = cfa.codes();
     let w_code = crate::cfa::Channel::W.code();
     let p_floor = (2.0 / t).min(0.5);
@@ -325,8 +325,10 @@ pub fn detect_hot_pixels(
                 let mut values: Vec<f64> = same.iter().map(|&p| flux[p]).collect();
                 values.sort_unstable_by(|a, b| b.total_cmp(a));
                 let reference = values[config.rank - 1].max(0.0);
-                let p = (-(-reference).exp_m1()).max(p_floor).min(1.0 - 0.5 / t);
-                let sigma = (p / ((1.0 - p) * t)).sqrt();
+                let p = detection_probability(reference, 0.0)
+                    .max(p_floor)
+                    .min(1.0 - SATURATION_MARGIN / t);
+                let sigma = mle_variance_from_probability(p, t).sqrt();
                 let mut threshold =
                     (config.min_ratio * reference).max(reference + config.z * sigma);
                 if code != w_code {
