@@ -80,33 +80,14 @@ impl HotPixelCorrector {
         let candidates = hot
             .par_iter()
             .map(|&idx| {
-                let (y0, x0) = ((idx / w) as isize, (idx % w) as isize);
-                let code = codes[[y0 as usize, x0 as usize]];
-                let max_r = h.max(w) as isize;
-                let mut r: isize = 2;
-                loop {
-                    // Every pixel within Euclidean distance r lies in this square.
-                    let mut found: Vec<(isize, usize, usize)> = Vec::new();
-                    for y in (y0 - r).max(0)..=(y0 + r).min(h as isize - 1) {
-                        for x in (x0 - r).max(0)..=(x0 + r).min(w as isize - 1) {
-                            let (yu, xu) = (y as usize, x as usize);
-                            if codes[[yu, xu]] == code && !mask[[yu, xu]] {
-                                let d2 = (y - y0).pow(2) + (x - x0).pow(2);
-                                found.push((d2, yu, xu));
-                            }
-                        }
-                    }
-                    found.sort_unstable();
-                    let complete = found.len() >= k && found[k - 1].0 <= r * r;
-                    if complete || r >= max_r {
-                        found.truncate(k);
-                        return found
-                            .into_iter()
-                            .map(|(_, y, x)| (y as u32, x as u32))
-                            .collect::<Vec<_>>();
-                    }
-                    r *= 2;
-                }
+                let (y0, x0) = (idx / w, idx % w);
+                let code = codes[[y0, x0]];
+                nearest_where((h, w), (y0, x0), k, |y, x| {
+                    codes[[y, x]] == code && !mask[[y, x]]
+                })
+                .into_iter()
+                .map(|(y, x)| (y as u32, x as u32))
+                .collect::<Vec<_>>()
             })
             .collect::<Vec<_>>();
         if let Some(i) = candidates.iter().position(|c| c.is_empty()) {
