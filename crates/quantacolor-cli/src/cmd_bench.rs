@@ -6,7 +6,9 @@ use clap::{Args, Subcommand};
 use ndarray::{Array3, ArrayView3};
 use quantacolor::burst::{
     reconstruct_burst, reconstruct_burst_with_motion, BurstConfig, BurstReconstruction,
+    MotionOracle,
 };
+use quantacolor::capture::Capture;
 use quantacolor::cfa::{self, colorspad_cfa, Pattern};
 use quantacolor::denoise::chroma::{denoise_linear, DenoiseConfig, DenoiseMethod};
 use quantacolor::metrics::{evaluate, evaluate_lpips, EvalOptions, Scores};
@@ -511,7 +513,9 @@ fn bicubic_upsample(image: ArrayView3<f32>, scale: usize) -> Array3<f32> {
     out
 }
 
-/// Runs every method on one capture.
+/// Runs every method on one capture: simulate it, reconstruct and score every column
+/// ([`score_methods`]), measure the alignment error, and score super-resolution on 2x-detail
+/// captures ([`super_resolution`]).
 fn run_case(
     scenes: &Path,
     index: usize,
@@ -523,16 +527,45 @@ fn run_case(
     let sim = simulate_case(scenes, case).with_context(|| format!("simulating {}", case.scene))?;
     let simulated_s = started.elapsed().as_secs_f64();
     let capture = sim.to_capture()?;
-    let reference = capture.reference_frame();
     let (h, w) = (capture.cfa.height(), capture.cfa.width());
-    let config = burst_config.clone();
-    let burst = reconstruct_burst(&capture, reference, &config, &Silent)?;
     let oracle = |t: f64| sim.motion.dense_flow(t, h, w);
-    let truth =
-        reconstruct_burst_with_motion(&capture, reference, &config, Some(&oracle), &Silent)?;
-    let long = reconstruct_naive(&capture, reference, &NaiveConfig::default())?;
+    let (burst, scored) = score_methods(&capture, &sim, case, opts, burst_config, &oracle)?;
+    let scores = scored.map(|(s, _)| s);
+    let lpips = scored.map(|(_, l)| l);
+    let (epe, motion_px) = median_epe(&burst, &sim.motion, case.frames, opts.border);
+    let sr = super_resolution(&capture, &sim, case, opts, burst_config, &oracle, &burst)?;
+    let row = Row {
+        case: index,
+        scores,
+        lpips,
+        epe,
+        motion_px,
+        sr,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    log_case(case, &row, simulated_s);
+    Ok(row)
+}
+
+/// Reconstructs `capture` by every method of [`METHODS`] (burst, burst at the true motion
+/// `oracle`, naive long and short, the denoiser's merge alone and with both denoisers) and
+/// scores each against the ground truth (PSNR / SSIM and LPIPS, one protocol); returns the
+/// burst reconstruction with the scores, in [`METHODS`] order.
+fn score_methods(
+    capture: &Capture,
+    sim: &SimulatedCapture,
+    case: &Case,
+    opts: &EvalOptions,
+    burst_config: &BurstConfig,
+    oracle: MotionOracle<'_>,
+) -> Result<(BurstReconstruction, [(Scores, f64); 7])> {
+    let reference = capture.reference_frame();
+    let config = burst_config.clone();
+    let burst = reconstruct_burst(capture, reference, &config, &Silent)?;
+    let truth = reconstruct_burst_with_motion(capture, reference, &config, Some(oracle), &Silent)?;
+    let long = reconstruct_naive(capture, reference, &NaiveConfig::default())?;
     let short = reconstruct_naive(
-        &capture,
+        capture,
         reference,
         &NaiveConfig {
             window: Some((case.frames / 16).max(1)),
@@ -545,12 +578,12 @@ fn run_case(
         ..ReconstructConfig::default()
     };
     let for_denoising = reconstruct_burst(
-        &capture,
+        capture,
         reference,
         &burst_config_for(&denoised_config),
         &Silent,
     )?;
-    let input = denoise_input(&capture, Some(&for_denoising), case.frames);
+    let input = denoise_input(capture, Some(&for_denoising), case.frames);
     // PSNR / SSIM and LPIPS of one reconstruction, under the same protocol.
     let score = |image: ArrayView3<f32>| -> Result<(Scores, f64)> {
         Ok((evaluate(image, gt, opts)?, evaluate_lpips(image, gt, opts)?))
@@ -572,60 +605,65 @@ fn run_case(
         denoised(DenoiseMethod::Bm3d)?,
         denoised(DenoiseMethod::ChromaBm3d)?,
     ];
-    let scores = scored.map(|(s, _)| s);
-    let lpips = scored.map(|(_, l)| l);
-    let (epe, motion_px) = median_epe(&burst, &sim.motion, case.frames, opts.border);
-    let sr = match &sim.ground_truth_hr {
-        None => None,
-        Some(gt_hr) => {
-            let s = case.supersampling;
-            let hr_opts = EvalOptions {
-                border: opts.border * s,
-                ..*opts
-            };
-            let mut config_s = config.clone();
-            config_s.merge.accumulate.scale = s;
-            let scaled = reconstruct_burst(&capture, reference, &config_s, &Silent)?;
-            let scaled_true = reconstruct_burst_with_motion(
-                &capture,
-                reference,
-                &config_s,
-                Some(&oracle),
-                &Silent,
-            )?;
-            let bicubic = bicubic_upsample(burst.merged.linear.view(), s);
-            Some(SuperResolution {
-                bicubic: evaluate(bicubic.view(), gt_hr.view(), &hr_opts)?,
-                scale2: evaluate(scaled.merged.linear.view(), gt_hr.view(), &hr_opts)?,
-                scale2_true: evaluate(scaled_true.merged.linear.view(), gt_hr.view(), &hr_opts)?,
-                bicubic_truth: evaluate(bicubic_upsample(gt, s).view(), gt_hr.view(), &hr_opts)?,
-            })
-        }
+    Ok((burst, scored))
+}
+
+/// Super-resolution scores of a 2x-detail capture (`None` for the others): the burst merged at
+/// the case's scale, estimated and true motion, against the 1x `burst` and the 1x ground truth
+/// upsampled by bicubic interpolation, all against the 2x ground truth.
+fn super_resolution(
+    capture: &Capture,
+    sim: &SimulatedCapture,
+    case: &Case,
+    opts: &EvalOptions,
+    burst_config: &BurstConfig,
+    oracle: MotionOracle<'_>,
+    burst: &BurstReconstruction,
+) -> Result<Option<SuperResolution>> {
+    let Some(gt_hr) = &sim.ground_truth_hr else {
+        return Ok(None);
     };
-    let seconds = started.elapsed().as_secs_f64();
+    let reference = capture.reference_frame();
+    let s = case.supersampling;
+    let hr_opts = EvalOptions {
+        border: opts.border * s,
+        ..*opts
+    };
+    let mut config_s = burst_config.clone();
+    config_s.merge.accumulate.scale = s;
+    let scaled = reconstruct_burst(capture, reference, &config_s, &Silent)?;
+    let scaled_true =
+        reconstruct_burst_with_motion(capture, reference, &config_s, Some(oracle), &Silent)?;
+    let bicubic = bicubic_upsample(burst.merged.linear.view(), s);
+    let gt = sim.ground_truth.view();
+    Ok(Some(SuperResolution {
+        bicubic: evaluate(bicubic.view(), gt_hr.view(), &hr_opts)?,
+        scale2: evaluate(scaled.merged.linear.view(), gt_hr.view(), &hr_opts)?,
+        scale2_true: evaluate(scaled_true.merged.linear.view(), gt_hr.view(), &hr_opts)?,
+        bicubic_truth: evaluate(bicubic_upsample(gt, s).view(), gt_hr.view(), &hr_opts)?,
+    }))
+}
+
+/// One line on stderr per capture: time, burst and true-motion scores, EPE, and scale 2.
+fn log_case(case: &Case, row: &Row, simulated_s: f64) {
     eprintln!(
-        "{}: {seconds:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB (LPIPS {:.3}), true \
-         motion {:.2} dB, EPE {epe:.3} px (motion {motion_px:.2} px){}",
+        "{}: {:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB (LPIPS {:.3}), true \
+         motion {:.2} dB, EPE {:.3} px (motion {:.2} px){}",
         case.id(),
-        scores[BURST].psnr_srgb,
-        lpips[BURST],
-        scores[TRUE_MOTION].psnr_srgb,
-        sr.as_ref()
+        row.seconds,
+        row.scores[BURST].psnr_srgb,
+        row.lpips[BURST],
+        row.scores[TRUE_MOTION].psnr_srgb,
+        row.epe,
+        row.motion_px,
+        row.sr
+            .as_ref()
             .map(|r| format!(
                 ", scale 2 {:.2} dB vs bicubic {:.2} dB",
                 r.scale2.psnr_srgb, r.bicubic.psnr_srgb
             ))
             .unwrap_or_default()
     );
-    Ok(Row {
-        case: index,
-        scores,
-        lpips,
-        epe,
-        motion_px,
-        sr,
-        seconds,
-    })
 }
 
 /// The burst parameters of `path` (TOML, the `[burst]` table of report.toml), or the defaults.
@@ -782,6 +820,8 @@ fn report(
     Ok(md)
 }
 
+/// One set's section of the report: the scores table, the super-resolution table (2x-detail
+/// captures) and the summary against the targets.
 fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet) -> Result<()> {
     let title = if section == SuiteSet::Tuning {
         "Tuning set"
@@ -789,6 +829,22 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
         "Validation set"
     };
     writeln!(md, "## {title}\n")?;
+    let means = write_scores_table(md, cases, rows)?;
+    let sr_rows: Vec<(&Row, &SuperResolution)> = rows
+        .iter()
+        .filter_map(|r| r.sr.as_ref().map(|sr| (*r, sr)))
+        .collect();
+    write_super_resolution_table(md, cases, &sr_rows)?;
+    write_summary(md, cases, rows, title, &means, &sr_rows)
+}
+
+/// The table of every method's PSNR / SSIM / LPIPS per capture, with EPE, motion and time, and
+/// its mean row; returns the means (PSNR, SSIM, LPIPS) per method.
+fn write_scores_table(
+    md: &mut String,
+    cases: &[Case],
+    rows: &[&Row],
+) -> Result<Vec<(f64, f64, f64)>> {
     writeln!(
         md,
         "| capture | {} | EPE (px) | motion (px) | time (s) |",
@@ -821,7 +877,6 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
             )
         })
         .collect();
-    let n = rows.len();
     writeln!(
         md,
         "| **mean** | {} | | | |",
@@ -831,11 +886,15 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
             .collect::<Vec<_>>()
             .join(" | ")
     )?;
+    Ok(means)
+}
 
-    let sr_rows: Vec<(&Row, &SuperResolution)> = rows
-        .iter()
-        .filter_map(|r| r.sr.as_ref().map(|sr| (*r, sr)))
-        .collect();
+/// The super-resolution table of the 2x-detail captures (nothing without them).
+fn write_super_resolution_table(
+    md: &mut String,
+    cases: &[Case],
+    sr_rows: &[(&Row, &SuperResolution)],
+) -> Result<()> {
     if !sr_rows.is_empty() {
         writeln!(md, "\nSuper-resolution, against the 2x ground truth:\n")?;
         writeln!(
@@ -843,7 +902,7 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
             "| capture | bicubic(burst 1x) | burst scale 2 | scale 2 − bicubic (dB) | scale 2, true motion | bicubic(1x ground truth) |"
         )?;
         writeln!(md, "|---|---|---|---|---|---|")?;
-        for (row, sr) in &sr_rows {
+        for (row, sr) in sr_rows {
             writeln!(
                 md,
                 "| {} | {:.2} / {:.3} | {:.2} / {:.3} | {:+.2} | {:.2} / {:.3} | {:.2} / {:.3} |",
@@ -860,7 +919,19 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
             )?;
         }
     }
+    Ok(())
+}
 
+/// The set's summary: each target of the benchmark against the measured means.
+fn write_summary(
+    md: &mut String,
+    cases: &[Case],
+    rows: &[&Row],
+    title: &str,
+    means: &[(f64, f64, f64)],
+    sr_rows: &[(&Row, &SuperResolution)],
+) -> Result<()> {
+    let n = rows.len();
     writeln!(md, "\nSummary ({}, {n} captures):\n", title.to_lowercase())?;
     let gap = |r: &Row| r.scores[BURST].psnr_srgb - r.scores[TRUE_MOTION].psnr_srgb;
     let worst = rows
@@ -948,7 +1019,7 @@ fn report_set(md: &mut String, cases: &[Case], rows: &[&Row], section: SuiteSet)
         "- mean LPIPS (lower is better): {}",
         METHODS
             .iter()
-            .zip(&means)
+            .zip(means)
             .map(|(name, m)| format!("{name} {:.3}", m.2))
             .collect::<Vec<_>>()
             .join("; ")

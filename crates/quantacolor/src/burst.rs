@@ -161,61 +161,13 @@ pub fn reconstruct_burst_with_motion(
     )?;
     laps.lap("align");
 
-    let mut motion = FrameMotion::from_alignment(
-        &alignment,
-        config.align.affine_tolerance_px,
-        config.refine.min_local_tiles,
-    );
-    if !config.refine.keep_local_motion {
-        motion.drop_local_motion();
-    }
+    let motion = estimate_motion(capture, &alignment, config, oracle, &mut laps, progress)?;
     let grey_blocks = &alignment.grey;
     let grey_noise = GreyNoise {
         trials: alignment.plan.block_size as f32,
         model,
     };
     let reference_block = alignment.plan.reference_block;
-    let detections_per_frame = grey_blocks[reference_block].mean().unwrap_or(0.0) as f64;
-    plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
-    if let Some(oracle) = oracle {
-        split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px);
-    }
-    let tracked = oracle.is_none()
-        && config.refine.enabled
-        && track_fast_camera_motion(
-            capture,
-            alignment.grey_method,
-            &mut motion,
-            &config.track,
-            progress,
-        )?;
-    if tracked {
-        // Block alignment under fast motion matched streaks: its local residual is not motion.
-        motion.drop_local_motion();
-        laps.lap("fast motion tracking");
-        if fit_photon_trajectory(
-            capture,
-            alignment.grey_method,
-            &mut motion,
-            &config.trajectory,
-            config.refine.max_sub_block_motion_px,
-            progress,
-        )? {
-            laps.lap("photon trajectory");
-        } else {
-            split_for_merge(&mut motion, config.refine.max_sub_block_motion_px);
-        }
-    } else if oracle.is_none() && config.refine.enabled {
-        refine_camera_motion(
-            capture,
-            alignment.grey_method,
-            grey_blocks,
-            &mut motion,
-            &config.refine,
-            progress,
-        )?;
-        laps.lap("motion refinement");
-    }
     let block_centres = alignment.plan.center_frames();
     let block_flow = |b: usize| match oracle {
         Some(oracle) => oracle(block_centres[b]),
@@ -257,6 +209,84 @@ pub fn reconstruct_burst_with_motion(
         grey_noise,
         robustness: config.merge.robustness.clone(),
     })
+}
+
+/// Stages 2–3: the block alignment as frame motion (camera plus local motion), cut into
+/// sub-blocks ([`plan_sub_blocks`]); then, with an `oracle`, the sub-blocks are only cut
+/// further where the true motion is fast ([`split_at_oracle_motion`]), and otherwise the camera
+/// motion inside them is measured again ([`remeasure_camera_motion`]) when refinement is on.
+fn estimate_motion(
+    capture: &Capture,
+    alignment: &Alignment,
+    config: &BurstConfig,
+    oracle: Option<MotionOracle<'_>>,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<FrameMotion> {
+    let mut motion = FrameMotion::from_alignment(
+        alignment,
+        config.align.affine_tolerance_px,
+        config.refine.min_local_tiles,
+    );
+    if !config.refine.keep_local_motion {
+        motion.drop_local_motion();
+    }
+    let reference_grey = &alignment.grey[alignment.plan.reference_block];
+    let detections_per_frame = reference_grey.mean().unwrap_or(0.0) as f64;
+    plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
+    match oracle {
+        Some(oracle) => {
+            split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px)
+        }
+        None if config.refine.enabled => {
+            remeasure_camera_motion(capture, alignment, &mut motion, config, laps, progress)?
+        }
+        None => {}
+    }
+    Ok(motion)
+}
+
+/// The camera motion inside the sub-blocks measured again (this project's own stages, see
+/// [`crate::align::refine`]): fast motion is tracked sub-block by sub-block and then fitted to
+/// every photon ([`track_fast_camera_motion`], [`fit_photon_trajectory`]); otherwise the camera
+/// motion of each sub-block is refined against the grey blocks ([`refine_camera_motion`]).
+fn remeasure_camera_motion(
+    capture: &Capture,
+    alignment: &Alignment,
+    motion: &mut FrameMotion,
+    config: &BurstConfig,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let grey_method = alignment.grey_method;
+    if track_fast_camera_motion(capture, grey_method, motion, &config.track, progress)? {
+        // Block alignment under fast motion matched streaks: its local residual is not motion.
+        motion.drop_local_motion();
+        laps.lap("fast motion tracking");
+        if fit_photon_trajectory(
+            capture,
+            grey_method,
+            motion,
+            &config.trajectory,
+            config.refine.max_sub_block_motion_px,
+            progress,
+        )? {
+            laps.lap("photon trajectory");
+        } else {
+            split_for_merge(motion, config.refine.max_sub_block_motion_px);
+        }
+    } else {
+        refine_camera_motion(
+            capture,
+            grey_method,
+            &alignment.grey,
+            motion,
+            &config.refine,
+            progress,
+        )?;
+        laps.lap("motion refinement");
+    }
+    Ok(())
 }
 
 /// Cuts every sub-block of `motion` so that the `oracle`'s motion travels at most

@@ -48,6 +48,14 @@ pub fn detection_probability(lambda: f64, dark: f64) -> f64 {
     -(-(lambda + dark)).exp_m1()
 }
 
+/// Derivative of the detection probability with respect to the flux,
+/// `dP(B = 1)/dλ = exp(−(λ + d)) = 1 − P(B = 1)` (paper Eq. 1–4 differentiated): the factor that
+/// carries a flux noise into a bit-rate noise by the delta method (e.g. the denoiser's
+/// variance-stabilising transform).
+pub fn detection_probability_slope(lambda: f64, dark: f64) -> f64 {
+    (-(lambda + dark)).exp()
+}
+
 /// Maximum-likelihood flux `λ̂ = −ln(1 − S/n) − d` from `ones` = S detections in `frames` = n
 /// binary frames with `dark` dark counts per frame (paper Eq. 6).
 ///
@@ -168,6 +176,15 @@ pub fn mle_flux_per_pixel<D: Dimension>(
 /// exponent.
 pub fn mle_std(lambda: f64, frames: f64, dark: f64) -> f64 {
     ((lambda + dark).exp_m1() / frames).sqrt()
+}
+
+/// Asymptotic variance of the MLE λ̂ (Eq. 6) written in the detection probability
+/// `p = 1 − exp(−(λ + d))` of the pixel (Eq. 1–4): `Var(λ̂) ≈ p / ((1 − p)·n)`, the same
+/// Cramér–Rao bound as [`mle_std`] (`p/(1 − p) = e^{λ+d} − 1`). Callers that work with bit
+/// rates (the merge's noise model, hot-pixel detection) clamp `p` below 1 first, e.g. to the
+/// saturation count `1 − 0.5/n`.
+pub fn mle_variance_from_probability(p: f64, frames: f64) -> f64 {
+    p / ((1.0 - p) * frames)
 }
 
 /// Signal-to-noise ratio of the flux estimate from n binary frames (paper Eq. 9):
@@ -558,7 +575,7 @@ impl PixelModel {
             Readout::Binary => {
                 let p = detection_probability(lambda.max(0.0), self.dark_per_frame)
                     .min(1.0 - SATURATION_MARGIN / frames);
-                p / ((1.0 - p) * frames)
+                mle_variance_from_probability(p, frames)
             }
             Readout::GaussianPoisson(g) => {
                 ((lambda + self.dark_per_frame).max(0.0) + g.floor_variance_e2()) / frames
@@ -590,6 +607,23 @@ mod tests {
         assert_eq!(dr.max_flux, 1023.0 - d);
         assert!((dr.db - ratio_to_db(dr.max_flux / dr.min_flux)).abs() < 1e-12);
         assert!(conventional_dynamic_range(n, d, r, q, 0.01, 1.0).is_err());
+    }
+
+    #[test]
+    fn slope_is_the_derivative_and_variance_matches_mle_std() {
+        for &(l, d) in &[(1e-3, 0.0), (0.2, 1e-3), (1.5, 0.01), (4.0, 0.0)] {
+            let h = 1e-6;
+            let fd =
+                (detection_probability(l + h, d) - detection_probability(l - h, d)) / (2.0 * h);
+            assert!(
+                (detection_probability_slope(l, d) - fd).abs() < 1e-8,
+                "λ {l} d {d}"
+            );
+            let n = 500.0;
+            let p = detection_probability(l, d);
+            let var = mle_variance_from_probability(p, n);
+            assert!((var.sqrt() - mle_std(l, n, d)).abs() < 1e-9 * mle_std(l, n, d));
+        }
     }
 
     #[test]

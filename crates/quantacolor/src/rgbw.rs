@@ -42,6 +42,37 @@ pub fn combine_rgbw(planes: &Array3<f32>, w_weights: [f64; 3]) -> Array3<f32> {
     out
 }
 
+/// Jacobian of the RGBW combination of paper Eq. 8 at one pixel, `∂out_c/∂λ_k` for the outputs
+/// c = R, G, B and the merged fluxes k = R, G, B, W (code order): with `out_c = λ_c·λ_W / L`,
+/// `L = Σ w_k·λ_k`,
+///
+/// ```text
+/// ∂out_c/∂λ_k = δ_ck·λ_W/L − λ_c·λ_W·w_k/L²   (k = R, G, B),     ∂out_c/∂λ_W = λ_c/L .
+/// ```
+///
+/// Carries the merge's per-channel flux noise into the combined image (the denoiser's noise
+/// model). Where there is no W (`has_w` false) or L ≤ 1e-9, the identity on R, G, B: the first is
+/// what [`combine_rgbw`] does, the second is this project's simplification of the noise model
+/// for the dark pixels where [`combine_rgbw`] spreads W as neutral grey.
+pub fn combine_rgbw_jacobian(flux: [f64; 4], w_weights: [f64; 3], has_w: bool) -> [[f64; 4]; 3] {
+    let mut jac = [[0.0f64; 4]; 3];
+    let lum: f64 = (0..3).map(|k| w_weights[k] * flux[k]).sum();
+    if has_w && lum > 1e-9 {
+        for c in 0..3 {
+            for k in 0..3 {
+                let delta = if c == k { flux[3] / lum } else { 0.0 };
+                jac[c][k] = delta - flux[c] * flux[3] * w_weights[k] / (lum * lum);
+            }
+            jac[c][3] = flux[c] / lum;
+        }
+    } else {
+        for (c, row) in jac.iter_mut().enumerate() {
+            row[c] = 1.0;
+        }
+    }
+    jac
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -61,6 +92,37 @@ mod tests {
         for (c, v) in [0.2f32, 0.5, 0.1].iter().enumerate() {
             assert!((out[[0, 0, c]] - v * s as f32).abs() < 1e-6);
             assert_eq!(out[[0, 1, c]], *v);
+        }
+    }
+
+    #[test]
+    fn jacobian_matches_finite_differences_of_the_combination() {
+        let weights = [1.0, 2.0, 0.5];
+        let flux = [0.2f64, 0.5, 0.1, 1.6];
+        let combine = |f: [f64; 4]| {
+            let planes = Array3::from_shape_fn((4, 1, 1), |(c, _, _)| f[c] as f32);
+            let out = combine_rgbw(&planes, weights);
+            [0, 1, 2].map(|c| out[[0, 0, c]] as f64)
+        };
+        let jac = combine_rgbw_jacobian(flux, weights, true);
+        let h = 1e-3;
+        for k in 0..4 {
+            let (mut up, mut down) = (flux, flux);
+            up[k] += h;
+            down[k] -= h;
+            let (a, b) = (combine(up), combine(down));
+            for c in 0..3 {
+                let fd = (a[c] - b[c]) / (2.0 * h);
+                assert!(
+                    (jac[c][k] - fd).abs() < 1e-3,
+                    "∂{c}/∂{k}: {} vs {fd}",
+                    jac[c][k]
+                );
+            }
+        }
+        let identity = combine_rgbw_jacobian(flux, weights, false);
+        for (c, row) in identity.iter().enumerate() {
+            assert_eq!(row, &[0, 1, 2, 3].map(|k| if k == c { 1.0 } else { 0.0 }));
         }
     }
 }

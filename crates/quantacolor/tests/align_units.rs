@@ -282,7 +282,7 @@ fn grey_images_remove_the_mosaic() {
         ),
     ] {
         let counts = cfa.codes().mapv(|c| gain[c as usize] * frames as u32);
-        let g = grey_image(&counts, frames, &cfa, method);
+        let g = grey_image(&counts, frames, &cfa, method).unwrap();
         let first = g[[0, 0]];
         assert!(
             g.iter().all(|&v| (v - first).abs() < 1e-5),
@@ -299,7 +299,7 @@ fn grey_images_remove_the_mosaic() {
             1
         }
     });
-    let g = grey_image(&counts, 4, &cfa, GreyMethod::InterpolateW);
+    let g = grey_image(&counts, 4, &cfa, GreyMethod::InterpolateW).unwrap();
     // Interior, where the Gaussian's 3σ support (3 px) sees a symmetric W neighbourhood.
     for y in 3..9 {
         for x in 3..9 {
@@ -314,8 +314,27 @@ fn grey_images_remove_the_mosaic() {
     let mut rng = ChaCha8Rng::seed_from_u64(5);
     let random = Cfa::new(Array2::from_shape_fn((20, 20), |_| rng.gen_range(0..3u8))).unwrap();
     let counts = random.codes().mapv(|c| gain[c as usize]);
-    let g = grey_image(&counts, 1, &random, GreyMethod::Demosaic);
+    let g = grey_image(&counts, 1, &random, GreyMethod::Demosaic).unwrap();
     assert!(g.iter().all(|&v| (v - 8.0 / 3.0).abs() < 1e-4));
+}
+
+#[test]
+fn w_interpolation_fills_colour_sites_with_the_w_bit_rate_and_bad_input_is_an_error() {
+    let (h, w) = (16, 16);
+    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+    // W sites fire 30 of 100 frames, colour sites 5: the grey image is 0.3 everywhere.
+    let counts = Array2::from_shape_fn((h, w), |(y, x)| {
+        if cfa.channel(y, x) == Channel::W {
+            30
+        } else {
+            5
+        }
+    });
+    let grey = grey_image(&counts, 100, &cfa, GreyMethod::InterpolateW).unwrap();
+    assert!(grey.iter().all(|&g| (g - 0.3).abs() < 1e-5));
+    assert!(grey_image(&counts, 0, &cfa, GreyMethod::InterpolateW).is_err());
+    let wider = Array2::zeros((h, w + 1));
+    assert!(grey_image(&wider, 100, &cfa, GreyMethod::InterpolateW).is_err());
 }
 
 /// Smooth random texture (40 sinusoids of wavelength 8–40 px) shifted by `(dy, dx)`.

@@ -29,10 +29,7 @@ fn merge_all(
             ..s.clone()
         })
         .collect();
-    let grey: Vec<Array2<f32>> = subs
-        .iter()
-        .map(|s| grey_from_counts(&s.counts, s.frames, cfa).unwrap())
-        .collect();
+    let grey: Vec<Array2<f32>> = subs.iter().map(|s| grey_block(s, cfa)).collect();
     let input = BurstInput {
         grey_blocks: &grey,
         block_flows: &flows,
@@ -405,31 +402,10 @@ fn bad_sub_blocks_are_errors() {
 }
 
 #[test]
-fn grey_from_counts_fills_colour_sites_with_the_w_bit_rate() {
-    let (h, w) = (16, 16);
-    let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
-    // W sites fire 30 of 100 frames, colour sites 5: the grey image is 0.3 everywhere.
-    let counts = Array2::from_shape_fn((h, w), |(y, x)| {
-        if cfa.channel(y, x) == quantacolor::Channel::W {
-            30
-        } else {
-            5
-        }
-    });
-    let grey = grey_from_counts(&counts, 100, &cfa).unwrap();
-    assert!(grey.iter().all(|&g| (g - 0.3).abs() < 1e-5));
-    assert!(grey_from_counts(&counts, 0, &cfa).is_err());
-    assert!(grey_from_counts(&Array2::zeros((h, w + 1)), 100, &cfa).is_err());
-}
-
-#[test]
 fn merge_burst_rejects_inconsistent_input() {
     let (h, w) = (16, 16);
     let (cfa, subs, flows) = jitter_burst(36, h, w, 2, 10);
-    let grey: Vec<_> = subs
-        .iter()
-        .map(|s| grey_from_counts(&s.counts, s.frames, &cfa).unwrap())
-        .collect();
+    let grey: Vec<_> = subs.iter().map(|s| grey_block(s, &cfa)).collect();
     let input = BurstInput {
         grey_blocks: &grey,
         block_flows: &flows,

@@ -2,6 +2,7 @@
 //! 100 frames, 496x254). Ignored by default; run in release:
 //! `cargo test --release -p quantacolor --test merge_timing -- --ignored --nocapture`.
 use ndarray::{Array2, Array3};
+use quantacolor::align::{grey_image, GreyMethod};
 use quantacolor::cfa::{generate, Pattern};
 use quantacolor::merge::*;
 use rand::{Rng, SeedableRng};
@@ -34,7 +35,15 @@ fn merge_timing_496x254_100_sub_blocks() {
         })
         .collect();
     let grey: Vec<Array2<f32>> = (0..10)
-        .map(|k| grey_from_counts(&subs[k * 10].counts, frames, &cfa).unwrap())
+        .map(|k| {
+            grey_image(
+                &subs[k * 10].counts,
+                frames as usize,
+                &cfa,
+                GreyMethod::InterpolateW,
+            )
+            .unwrap()
+        })
         .collect();
     let flows: Vec<Array3<f32>> = (0..10)
         .map(|k| subs[k * 10].flow.dense().unwrap().clone())

@@ -100,21 +100,30 @@ impl GreyMethod {
 }
 
 /// Grey image `(H, W)` of one block sum `counts` over `frames` frames, in mean detections per
-/// frame, by `method` for `cfa`.
+/// frame (the mean sample per frame: bit rate, or digital number of multi-bit frames), by
+/// `method` for `cfa`. The one grey image of the crate: alignment blocks, the Wiener reference
+/// and the robustness weights all compare these.
+///
+/// Errors if `counts` and the CFA differ in shape or `frames` is 0.
 pub fn grey_image(
     counts: &Array2<u32>,
     frames: usize,
     cfa: &Cfa,
     method: GreyMethod,
-) -> Array2<f32> {
-    assert_eq!(
-        counts.dim(),
-        cfa.codes().dim(),
-        "block sum and CFA differ in size"
-    );
-    let scale = 1.0 / frames.max(1) as f32;
+) -> Result<Array2<f32>> {
+    if counts.dim() != cfa.codes().dim() {
+        return Err(Error::invalid(format!(
+            "grey image: counts have shape {:?}, the CFA is {:?}",
+            counts.dim(),
+            cfa.codes().dim()
+        )));
+    }
+    if frames == 0 {
+        return Err(Error::invalid("grey image: zero frames"));
+    }
+    let scale = 1.0 / frames as f32;
     let values = counts.mapv(|c| c as f32 * scale);
-    match method {
+    Ok(match method {
         GreyMethod::TileAverage { py, px } => tile_average(&values, py, px),
         GreyMethod::InterpolateW => {
             let w_mask = cfa.mask(Channel::W);
@@ -146,7 +155,7 @@ pub fn grey_image(
             }
             out / planes
         }
-    }
+    })
 }
 
 /// Mean of the `py` x `px` window starting at each pixel (clamped at the far edges).

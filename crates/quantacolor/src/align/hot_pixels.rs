@@ -10,6 +10,9 @@
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
+use crate::model::{
+    detection_probability, mle_flux, mle_variance_from_probability, SATURATION_MARGIN,
+};
 use ndarray::Array2;
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -77,33 +80,14 @@ impl HotPixelCorrector {
         let candidates = hot
             .par_iter()
             .map(|&idx| {
-                let (y0, x0) = ((idx / w) as isize, (idx % w) as isize);
-                let code = codes[[y0 as usize, x0 as usize]];
-                let max_r = h.max(w) as isize;
-                let mut r: isize = 2;
-                loop {
-                    // Every pixel within Euclidean distance r lies in this square.
-                    let mut found: Vec<(isize, usize, usize)> = Vec::new();
-                    for y in (y0 - r).max(0)..=(y0 + r).min(h as isize - 1) {
-                        for x in (x0 - r).max(0)..=(x0 + r).min(w as isize - 1) {
-                            let (yu, xu) = (y as usize, x as usize);
-                            if codes[[yu, xu]] == code && !mask[[yu, xu]] {
-                                let d2 = (y - y0).pow(2) + (x - x0).pow(2);
-                                found.push((d2, yu, xu));
-                            }
-                        }
-                    }
-                    found.sort_unstable();
-                    let complete = found.len() >= k && found[k - 1].0 <= r * r;
-                    if complete || r >= max_r {
-                        found.truncate(k);
-                        return found
-                            .into_iter()
-                            .map(|(_, y, x)| (y as u32, x as u32))
-                            .collect::<Vec<_>>();
-                    }
-                    r *= 2;
-                }
+                let (y0, x0) = (idx / w, idx % w);
+                let code = codes[[y0, x0]];
+                nearest_where((h, w), (y0, x0), k, |y, x| {
+                    codes[[y, x]] == code && !mask[[y, x]]
+                })
+                .into_iter()
+                .map(|(y, x)| (y as u32, x as u32))
+                .collect::<Vec<_>>()
             })
             .collect::<Vec<_>>();
         if let Some(i) = candidates.iter().position(|c| c.is_empty()) {
@@ -189,10 +173,7 @@ pub fn dark_count_rate_map(frames: &BinaryFrames, exposure_s: f64) -> Result<Arr
     }
     let t = frames.frame_count() as f64;
     let sums = frames.sum_range(0..frames.frame_count());
-    Ok(sums.mapv(|k| {
-        let p = (k as f64).min(t - 0.5) / t;
-        (-(-p).ln_1p() / exposure_s) as f32
-    }))
+    Ok(sums.mapv(|k| (mle_flux(k as f64, t, 0.0) / exposure_s) as f32))
 }
 
 /// Pixels whose dark-count rate exceeds `threshold_cps` (counts per second).
@@ -305,7 +286,7 @@ pub fn detect_hot_pixels(
     }
     let t = frames.frame_count() as f64;
     let counts = frames.sum_range(0..frames.frame_count());
-    let flux = counts.mapv(|k| crate::model::mle_flux(k as f64, t, 0.0));
+    let flux = counts.mapv(|k| mle_flux(k as f64, t, 0.0));
     let codes = cfa.codes();
     let w_code = crate::cfa::Channel::W.code();
     let p_floor = (2.0 / t).min(0.5);
@@ -325,8 +306,10 @@ pub fn detect_hot_pixels(
                 let mut values: Vec<f64> = same.iter().map(|&p| flux[p]).collect();
                 values.sort_unstable_by(|a, b| b.total_cmp(a));
                 let reference = values[config.rank - 1].max(0.0);
-                let p = (-(-reference).exp_m1()).max(p_floor).min(1.0 - 0.5 / t);
-                let sigma = (p / ((1.0 - p) * t)).sqrt();
+                let p = detection_probability(reference, 0.0)
+                    .max(p_floor)
+                    .min(1.0 - SATURATION_MARGIN / t);
+                let sigma = mle_variance_from_probability(p, t).sqrt();
                 let mut threshold =
                     (config.min_ratio * reference).max(reference + config.z * sigma);
                 if code != w_code {

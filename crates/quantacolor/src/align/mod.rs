@@ -392,7 +392,7 @@ pub fn align(
             progress.advance(1);
             image
         })
-        .collect();
+        .collect::<Result<_>>()?;
     progress.finish();
 
     let aligner = ReferenceAligner::new(&grey[plan.reference_block], &config.patch)?;

@@ -13,7 +13,7 @@
 //! to the p with E[A(X) | p] = a, computed here from the binomial distribution on a table.
 
 use crate::error::{Error, Result};
-use crate::model::{PixelModel, Readout};
+use crate::model::{detection_probability, detection_probability_slope, PixelModel, Readout};
 
 /// Number of table points in p (uniform in asin √p, so uniform in the transformed domain).
 const TABLE_POINTS: usize = 4097;
@@ -218,9 +218,16 @@ impl Stabiliser {
         }
     }
 
-    /// Bit rate of binary frames, p = 1 − exp(−(λ + d)) clamped to [0, 1].
+    /// The flux kept where the Poisson rate λ + d is not negative (NaN is read as −d): a merged
+    /// flux estimate is unbiased, not non-negative, and can lie slightly below −d.
+    fn physical_flux(lambda: f64, dark: f64) -> f64 {
+        lambda.max(-dark)
+    }
+
+    /// Bit rate of binary frames, p = 1 − exp(−(λ + d)) in [0, 1] ([`detection_probability`],
+    /// paper Eq. 1–4).
     fn bit_rate(lambda: f64, dark: f64) -> f64 {
-        (1.0 - (-(lambda + dark).max(0.0)).exp()).clamp(0.0, 1.0)
+        detection_probability(Self::physical_flux(lambda, dark), dark)
     }
 
     /// The stabilised value of flux `lambda`.
@@ -239,8 +246,10 @@ impl Stabiliser {
     pub fn derivative(&self, lambda: f64) -> f64 {
         match self {
             Stabiliser::Binomial { anscombe, model } => {
-                let p = Self::bit_rate(lambda, model.dark_per_frame);
-                anscombe.derivative_rate(p) * (-(lambda + model.dark_per_frame).max(0.0)).exp()
+                let dark = model.dark_per_frame;
+                let p = Self::bit_rate(lambda, dark);
+                anscombe.derivative_rate(p)
+                    * detection_probability_slope(Self::physical_flux(lambda, dark), dark)
             }
             Stabiliser::GaussianPoisson { trials, floor, .. } => {
                 trials / (trials * (lambda + floor) + 0.375).max(1e-12).sqrt()
@@ -249,13 +258,12 @@ impl Stabiliser {
     }
 
     /// The flux whose stabilised value has expectation `value` (exact unbiased inverse for
-    /// binary frames, capped below saturation; asymptotically unbiased for Gaussian–Poisson).
+    /// binary frames, then the MLE of paper Eq. 6 with its saturation cap,
+    /// [`PixelModel::flux`]; asymptotically unbiased for Gaussian–Poisson).
     pub fn inverse(&self, value: f64) -> f64 {
         match self {
             Stabiliser::Binomial { anscombe, model } => {
-                let max_rate = 1.0 - 0.5 / anscombe.trials();
-                let p = anscombe.inverse_exact(value).min(max_rate);
-                -(1.0 - p).ln() - model.dark_per_frame
+                model.flux(anscombe.inverse_exact(value), anscombe.trials())
             }
             Stabiliser::GaussianPoisson { trials, floor, .. } => {
                 let y = 0.25 * value * value - 0.125;

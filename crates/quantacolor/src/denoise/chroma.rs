@@ -19,6 +19,7 @@ use super::bm3d::{bm3d_multichannel_varying, Bm3dConfig};
 use crate::align::patch::{bilinear, box_downsample};
 use crate::error::{Error, Result};
 use crate::model::PixelModel;
+use crate::rgbw::combine_rgbw_jacobian;
 use ndarray::{Array2, Array3, ArrayView3, Axis, Zip};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -613,22 +614,8 @@ fn pixel_variance(
         }
         stabiliser.model().flux_variance(lam[c], n[c])
     });
-    // ∂out_c/∂λ_k of Eq. 8, out_c = λ_c·λ_W / L with L = Σ w_k·λ_k.
-    let mut jac = [[0.0f64; 4]; 3];
-    let lum: f64 = (0..3).map(|k| w_weights[k] * lam[k]).sum();
-    if has_w && lum > 1e-9 {
-        for c in 0..3 {
-            for k in 0..3 {
-                let delta = if c == k { lam[3] / lum } else { 0.0 };
-                jac[c][k] = delta - lam[c] * lam[3] * w_weights[k] / (lum * lum);
-            }
-            jac[c][3] = lam[c] / lum;
-        }
-    } else {
-        for (c, row) in jac.iter_mut().enumerate() {
-            row[c] = 1.0;
-        }
-    }
+    // ∂out_c/∂λ_k of Eq. 8.
+    let jac = combine_rgbw_jacobian(lam, w_weights, has_w);
     // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
     let da = [0, 1, 2].map(|c| stabiliser.derivative(linear[[y, x, c]] as f64));
     // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.

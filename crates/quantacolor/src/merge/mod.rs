@@ -33,16 +33,15 @@ pub use reference::{reference_image, reference_image_streamed, WienerConfig};
 pub use robustness::{robustness, RobustnessConfig};
 pub use warp::{sample_bilinear, warp_to_reference};
 
-use crate::cfa::{Cfa, Channel};
+use crate::cfa::Cfa;
 use crate::error::{Error, Result};
-use crate::filters::normalized_convolution_nan;
 use crate::model::PixelModel;
 use crate::rgbw::combine_rgbw;
-use ndarray::{Array2, Array3, Zip};
+use ndarray::{Array2, Array3};
 use serde::{Deserialize, Serialize};
 
 /// The noise of a grey block value (the mean sample per frame over `trials` frames, see
-/// [`grey_from_counts`]): Var = v(μ)/trials with v the pixel model's per-frame sample variance
+/// [`crate::align::grey_image`]): Var = v(μ)/trials with v the pixel model's per-frame sample variance
 /// ([`PixelModel::sample_variance`]: binomial μ(1 − μ) for binary frames, Gaussian–Poisson for
 /// multi-bit ones). The Wiener reference and the robustness weights ask it. A plain number is
 /// that many Bernoulli trials of a binary pixel.
@@ -82,7 +81,7 @@ pub struct MergeConfig {
 /// Everything [`merge_burst`] needs besides its config.
 #[derive(Debug, Clone, Copy)]
 pub struct BurstInput<'a> {
-    /// (H, W) grey image per block (e.g. [`grey_from_counts`]), comparable across blocks.
+    /// (H, W) grey image per block ([`crate::align::grey_image`]), comparable across blocks.
     pub grey_blocks: &'a [Array2<f32>],
     /// (H, W, 2) dense flow per block, reference grid -> block.
     pub block_flows: &'a [Array3<f32>],
@@ -271,39 +270,4 @@ impl MergedBurst {
             kernels: guide.kernels,
         }
     }
-}
-
-/// Grey image of one block for alignment and the reference: the mean sample counts/frames (bit
-/// rate, or digital number of multi-bit frames) of the W sites, with the other sites filled by normalized convolution of their W neighbours
-/// (Gaussian σ = 0.7 px). On a CFA without W, G plays that role. The value then averages
-/// `frames` Bernoulli trials.
-pub fn grey_from_counts(counts: &Array2<u32>, frames: u32, cfa: &Cfa) -> Result<Array2<f32>> {
-    if counts.dim() != cfa.codes().dim() {
-        return Err(Error::invalid(format!(
-            "grey image: counts have shape {:?}, the CFA is {:?}",
-            counts.dim(),
-            cfa.codes().dim()
-        )));
-    }
-    if frames == 0 {
-        return Err(Error::invalid("grey image: zero frames"));
-    }
-    let fractions = cfa.fractions();
-    let channel = if fractions[Channel::W.index()] > 0.0 {
-        Channel::W
-    } else {
-        Channel::G
-    };
-    let sigma = (0.7 / fractions[channel.index()].max(1e-6).sqrt()).max(0.7);
-    let samples = Zip::from(counts).and(cfa.codes()).map_collect(|&n, &c| {
-        if c == channel.code() {
-            n as f32 / frames as f32
-        } else {
-            f32::NAN
-        }
-    });
-    let filled = normalized_convolution_nan(samples.view(), sigma);
-    Ok(Zip::from(&samples)
-        .and(&filled)
-        .map_collect(|&s, &f| if s.is_nan() { f } else { s }))
 }

@@ -144,6 +144,34 @@ pub fn reference_image_streamed(
     config: &WienerConfig,
 ) -> Result<Array2<f32>> {
     let noise: GreyNoise = noise.into();
+    let (h, w) = check_reference_input(grey_blocks, ref_index, noise, config)?;
+    let warp = |k: usize| warp_to_reference(&grey_blocks[k], &block_flow(k));
+    let reference_warped = warp(ref_index)?;
+    if grey_blocks.len() == 1 {
+        return Ok(reference_warped);
+    }
+    let layout = TileLayout::new(config.tile, h, w);
+    let mut tiles = layout.reference_tiles(&reference_warped);
+    drop(reference_warped);
+
+    // The other blocks, a group warped in parallel, each merged into every tile in block order.
+    let others: Vec<usize> = (0..grey_blocks.len()).filter(|&k| k != ref_index).collect();
+    for group in others.chunks(WARP_GROUP) {
+        let warped: Vec<Array2<f32>> = group.par_iter().map(|&k| warp(k)).collect::<Result<_>>()?;
+        for img in &warped {
+            layout.merge_block(&mut tiles, img, noise, config.c);
+        }
+    }
+    Ok(layout.blend(tiles, grey_blocks.len()))
+}
+
+/// Checks the inputs of [`reference_image_streamed`]; returns the image shape (H, W).
+fn check_reference_input(
+    grey_blocks: &[Array2<f32>],
+    ref_index: usize,
+    noise: GreyNoise,
+    config: &WienerConfig,
+) -> Result<(usize, usize)> {
     let k_count = grey_blocks.len();
     if k_count == 0 {
         return Err(Error::invalid("reference image: no grey blocks given"));
@@ -173,27 +201,50 @@ pub fn reference_image_streamed(
             )));
         }
     }
-    let warp = |k: usize| warp_to_reference(&grey_blocks[k], &block_flow(k));
-    let reference_warped = warp(ref_index)?;
-    if k_count == 1 {
-        return Ok(reference_warped);
+    Ok((h, w))
+}
+
+/// The overlapping DFT tiles of the Wiener merge over an (H, W) image: `n` x `n` tiles at stride
+/// n/2, origins from −n/2 so that every pixel is covered by two tiles per axis, blended with a
+/// raised-cosine window.
+struct TileLayout {
+    n: usize,
+    h: usize,
+    w: usize,
+    fft: Fft2,
+    /// 1/n², the DFT's normalisation (and the tile mean's).
+    norm: f32,
+}
+
+impl TileLayout {
+    fn new(n: usize, h: usize, w: usize) -> Self {
+        TileLayout {
+            n,
+            h,
+            w,
+            fft: Fft2::new(n),
+            norm: 1.0 / (n * n) as f32,
+        }
     }
 
-    let n = config.tile;
-    let stride = n / 2;
-    let window = raised_cosine(n);
-    let fft = Fft2::new(n);
-    let norm = 1.0 / (n * n) as f32;
-    // Tile origins from −stride so that every pixel is covered by two tiles per axis.
-    let origins = |len: usize| -> Vec<isize> {
-        (0..)
-            .map(|i| -(stride as isize) + (i * stride) as isize)
-            .take_while(|&o| o < len as isize)
+    /// Tile origins (y0, x0), row-major.
+    fn origins(&self) -> Vec<(isize, isize)> {
+        let stride = self.n / 2;
+        let origins = |len: usize| -> Vec<isize> {
+            (0..)
+                .map(|i| -(stride as isize) + (i * stride) as isize)
+                .take_while(|&o| o < len as isize)
+                .collect()
+        };
+        let (oy, ox) = (origins(self.h), origins(self.w));
+        oy.iter()
+            .flat_map(|&y0| ox.iter().map(move |&x0| (y0, x0)))
             .collect()
-    };
-    let (oy, ox) = (origins(h), origins(w));
-    // Tile (y0, x0) of `img` into `buf`; returns the tile mean.
-    let load = |img: &Array2<f32>, y0: isize, x0: isize, buf: &mut [Complex32]| -> f32 {
+    }
+
+    /// Tile (y0, x0) of `img` into `buf` (edges clamped); returns the tile mean.
+    fn load(&self, img: &Array2<f32>, y0: isize, x0: isize, buf: &mut [Complex32]) -> f32 {
+        let (n, h, w) = (self.n, self.h, self.w);
         let mut sum = 0.0;
         for i in 0..n {
             for j in 0..n {
@@ -205,96 +256,97 @@ pub fn reference_image_streamed(
                 buf[i * n + j] = Complex32::new(v, 0.0);
             }
         }
-        sum * norm
-    };
-
-    // Every tile's reference spectrum, row-major over the tile origins.
-    let origins_yx: Vec<(isize, isize)> = oy
-        .iter()
-        .flat_map(|&y0| ox.iter().map(move |&x0| (y0, x0)))
-        .collect();
-    let mut tiles: Vec<TileState> = origins_yx
-        .par_iter()
-        .map(|&(y0, x0)| {
-            let mut reference = vec![Complex32::default(); n * n];
-            let mut scratch = vec![Complex32::default(); n * n];
-            let mean_ref = load(&reference_warped, y0, x0, &mut reference);
-            fft.run(&mut reference, &mut scratch, false);
-            let acc = reference.clone();
-            TileState {
-                y0,
-                x0,
-                reference,
-                mean_ref,
-                acc,
-            }
-        })
-        .collect();
-    drop(reference_warped);
-
-    // The other blocks, a group warped in parallel, each merged into every tile in block order.
-    let others: Vec<usize> = (0..k_count).filter(|&k| k != ref_index).collect();
-    for group in others.chunks(WARP_GROUP) {
-        let warped: Vec<Array2<f32>> = group.par_iter().map(|&k| warp(k)).collect::<Result<_>>()?;
-        for img in &warped {
-            tiles.par_iter_mut().for_each_init(
-                || {
-                    (
-                        vec![Complex32::default(); n * n],
-                        vec![Complex32::default(); n * n],
-                    )
-                },
-                |(other, scratch), tile| {
-                    let mean_k = load(img, tile.y0, tile.x0, other);
-                    fft.run(other, scratch, false);
-                    let sigma2 =
-                        (n * n) as f32 * (noise.variance(tile.mean_ref) + noise.variance(mean_k));
-                    let noise = config.c * sigma2.max(f32::MIN_POSITIVE);
-                    for ((a, &t_ref), &t_k) in
-                        tile.acc.iter_mut().zip(&tile.reference).zip(other.iter())
-                    {
-                        let d = t_ref - t_k;
-                        let d2 = d.norm_sqr();
-                        let shrink = d2 / (d2 + noise);
-                        *a += t_k + d * shrink;
-                    }
-                },
-            );
-        }
+        sum * self.norm
     }
 
-    let scale = norm / k_count as f32;
-    tiles.par_iter_mut().for_each_init(
-        || vec![Complex32::default(); n * n],
-        |scratch, tile| {
-            fft.run(&mut tile.acc, scratch, true);
-            for v in tile.acc.iter_mut() {
-                *v = Complex32::new(v.re * scale, 0.0);
-            }
-        },
-    );
+    /// Every tile's reference spectrum, its mean, and the running sum started with it.
+    fn reference_tiles(&self, reference_warped: &Array2<f32>) -> Vec<TileState> {
+        let n = self.n;
+        self.origins()
+            .par_iter()
+            .map(|&(y0, x0)| {
+                let mut reference = vec![Complex32::default(); n * n];
+                let mut scratch = vec![Complex32::default(); n * n];
+                let mean_ref = self.load(reference_warped, y0, x0, &mut reference);
+                self.fft.run(&mut reference, &mut scratch, false);
+                let acc = reference.clone();
+                TileState {
+                    y0,
+                    x0,
+                    reference,
+                    mean_ref,
+                    acc,
+                }
+            })
+            .collect()
+    }
 
-    let mut num = Array2::<f32>::zeros((h, w));
-    let mut den = Array2::<f32>::zeros((h, w));
-    for tile in &tiles {
-        for i in 0..n {
-            let y = tile.y0 + i as isize;
-            if y < 0 || y >= h as isize {
-                continue;
-            }
-            for j in 0..n {
-                let x = tile.x0 + j as isize;
-                if x < 0 || x >= w as isize {
+    /// Adds one warped block `img` to every tile's running sum, per frequency
+    /// T_k + A_k (T_ref − T_k) with A_k = |D_k|² / (|D_k|² + c·σ²), D_k = T_ref − T_k.
+    fn merge_block(&self, tiles: &mut [TileState], img: &Array2<f32>, noise: GreyNoise, c: f32) {
+        let n = self.n;
+        tiles.par_iter_mut().for_each_init(
+            || {
+                (
+                    vec![Complex32::default(); n * n],
+                    vec![Complex32::default(); n * n],
+                )
+            },
+            |(other, scratch), tile| {
+                let mean_k = self.load(img, tile.y0, tile.x0, other);
+                self.fft.run(other, scratch, false);
+                let sigma2 =
+                    (n * n) as f32 * (noise.variance(tile.mean_ref) + noise.variance(mean_k));
+                let noise = c * sigma2.max(f32::MIN_POSITIVE);
+                for ((a, &t_ref), &t_k) in
+                    tile.acc.iter_mut().zip(&tile.reference).zip(other.iter())
+                {
+                    let d = t_ref - t_k;
+                    let d2 = d.norm_sqr();
+                    let shrink = d2 / (d2 + noise);
+                    *a += t_k + d * shrink;
+                }
+            },
+        );
+    }
+
+    /// The merged image: each tile's sum over `k_count` blocks back from the DFT and divided by
+    /// `k_count`, the tiles blended with the raised-cosine window (weights normalised).
+    fn blend(&self, mut tiles: Vec<TileState>, k_count: usize) -> Array2<f32> {
+        let (n, h, w) = (self.n, self.h, self.w);
+        let scale = self.norm / k_count as f32;
+        tiles.par_iter_mut().for_each_init(
+            || vec![Complex32::default(); n * n],
+            |scratch, tile| {
+                self.fft.run(&mut tile.acc, scratch, true);
+                for v in tile.acc.iter_mut() {
+                    *v = Complex32::new(v.re * scale, 0.0);
+                }
+            },
+        );
+        let window = raised_cosine(n);
+        let mut num = Array2::<f32>::zeros((h, w));
+        let mut den = Array2::<f32>::zeros((h, w));
+        for tile in &tiles {
+            for i in 0..n {
+                let y = tile.y0 + i as isize;
+                if y < 0 || y >= h as isize {
                     continue;
                 }
-                let wt = window[i] * window[j];
-                num[[y as usize, x as usize]] += wt * tile.acc[i * n + j].re;
-                den[[y as usize, x as usize]] += wt;
+                for j in 0..n {
+                    let x = tile.x0 + j as isize;
+                    if x < 0 || x >= w as isize {
+                        continue;
+                    }
+                    let wt = window[i] * window[j];
+                    num[[y as usize, x as usize]] += wt * tile.acc[i * n + j].re;
+                    den[[y as usize, x as usize]] += wt;
+                }
             }
         }
+        num.zip_mut_with(&den, |v, &d| *v /= d);
+        num
     }
-    num.zip_mut_with(&den, |v, &d| *v /= d);
-    Ok(num)
 }
 
 #[cfg(test)]

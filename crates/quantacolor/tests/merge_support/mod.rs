@@ -2,6 +2,7 @@
 #![allow(dead_code)]
 
 use ndarray::{Array2, Array3};
+use quantacolor::align::{grey_image, GreyMethod};
 use quantacolor::cfa::{Cfa, Channel};
 use quantacolor::merge::SubBlockRobustness;
 use quantacolor::merge::{SubBlock, SubBlockMotion};
@@ -167,4 +168,16 @@ pub fn upsample_bilinear(img: &Array3<f32>, scale: usize) -> Array3<f32> {
         let (ry, rx) = ((y as f32 + 0.5) / s - 0.5, (x as f32 + 0.5) / s - 0.5);
         quantacolor::merge::sample_bilinear(plane, ry, rx)
     })
+}
+
+/// The grey image of a sub-block's counts ([`grey_image`] with the method detected for `cfa`),
+/// as the burst pipeline builds it for alignment, the reference and robustness.
+pub fn grey_block(sub: &SubBlock, cfa: &Cfa) -> Array2<f32> {
+    grey_image(
+        &sub.counts,
+        sub.frames as usize,
+        cfa,
+        GreyMethod::detect(cfa),
+    )
+    .unwrap()
 }
