@@ -14,6 +14,7 @@ use quantacolor::pipeline::{
     reconstruct, Method, ReconstructConfig, ReconstructOverrides, Reconstruction,
 };
 use quantacolor::progress::Progress;
+use quantacolor::video::{video_reference_frames, VideoReconstructor};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -227,13 +228,20 @@ struct VideoReport<'a> {
     capture: String,
     method: String,
     reference_frames: Vec<usize>,
+    /// The frame whose motion every frame reuses, composed to its own reference frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    motion_anchor_frame: Option<usize>,
+    /// Why every frame was reconstructed on its own instead.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    per_frame_reason: Option<String>,
     preview_exposure_scale: f32,
     units: &'static str,
     config: &'a ReconstructConfig,
 }
 
 /// Reconstructions with a sliding reference frame, written as numbered PNGs with one shared
-/// exposure plus the linear stack.
+/// exposure plus the linear stack. The motion is estimated once for all of them
+/// ([`VideoReconstructor`]).
 fn write_video(
     args: &ReconstructArgs,
     capture: &Capture,
@@ -244,14 +252,19 @@ fn write_video(
         anyhow::bail!("--stride must be at least 1");
     }
     let t = capture.frames.frame_count();
-    let references: Vec<usize> = (args.stride / 2..t).step_by(args.stride).collect();
+    let references = video_reference_frames(t, args.stride)?;
+    if references.is_empty() {
+        anyhow::bail!(
+            "--stride {} leaves no reference frame in the capture's {t} frames",
+            args.stride
+        );
+    }
     let staged = StagedDir::new(&args.out)?;
+    let video = VideoReconstructor::new(capture, config, progress)?;
     let mut frames = Vec::with_capacity(references.len());
     let mut scale = None;
     for (i, &reference) in references.iter().enumerate() {
-        let mut cfg = config.clone();
-        cfg.reference_frame = Some(reference);
-        let rec = reconstruct(capture, &cfg, progress)?;
+        let rec = video.frame(reference, progress)?;
         let s = *scale.get_or_insert_with(|| auto_exposure_scale(rec.linear.view()));
         io::write_png_rgb8(
             staged.path(&format!("frame_{i:05}.png")),
@@ -268,6 +281,11 @@ fn write_video(
         capture: args.capture.display().to_string(),
         method: config.method.to_string(),
         reference_frames: references,
+        motion_anchor_frame: video
+            .fallback_reason()
+            .is_none()
+            .then(|| video.anchor_frame()),
+        per_frame_reason: video.fallback_reason().map(str::to_string),
         preview_exposure_scale: scale.unwrap_or(1.0),
         units: quantacolor::output::LINEAR_UNITS,
         config,

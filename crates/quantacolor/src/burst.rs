@@ -32,7 +32,7 @@ use crate::align::{
     TrajectoryConfig,
 };
 use crate::capture::Capture;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::merge::{
     block_robustness, merge_guide_streamed, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide,
     MergedBurst, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
@@ -61,6 +61,8 @@ pub struct BurstConfig {
 /// Result of the burst reconstruction with its intermediate stages.
 #[derive(Debug, Clone)]
 pub struct BurstReconstruction {
+    /// The block alignment the motion was estimated from (for a frame of a video, the anchor
+    /// frame's: its plan and flows are relative to that frame, see [`crate::video`]).
     pub alignment: Alignment,
     /// The motion of every sub-block the merge used (unless driven by a motion oracle).
     pub motion: FrameMotion,
@@ -96,7 +98,7 @@ impl BurstReconstruction {
                     &self.alignment.grey,
                     &self.motion.block_flow(b),
                     b,
-                    self.alignment.plan.reference_block,
+                    self.motion.plan.reference_block,
                     self.grey_noise,
                     &self.robustness,
                 )
@@ -145,16 +147,46 @@ pub fn reconstruct_burst_with_motion(
     progress: &dyn Progress,
 ) -> Result<BurstReconstruction> {
     let config = &config_for_capture(capture, config);
-    let model = capture.meta.pixel_model();
-    let frames = &capture.frames;
-    let hot = capture.hot_pixels.as_ref();
     let mut laps = Laps::new();
     // Block and sub-block sums are made once and shared by alignment, refinement and merge.
-    frames.forget_shared_sums();
+    capture.frames.forget_shared_sums();
+    let (alignment, motion) = estimate_motion(
+        capture,
+        reference_frame,
+        config,
+        oracle,
+        &mut laps,
+        progress,
+    )?;
+    let reconstruction = merge_at_motion(
+        capture,
+        alignment,
+        motion,
+        oracle,
+        config,
+        &mut laps,
+        progress,
+    );
+    capture.frames.forget_shared_sums();
+    reconstruction
+}
+
+/// Stages 1–3: alignment to `reference_frame` and the motion of every sub-block (block motion,
+/// sub-block plan, then refinement, or fast-motion tracking and the photon trajectory; with an
+/// `oracle`, only the plan). `config` is taken as it is (see [`config_for_capture`]); each
+/// stage's time is recorded in `laps`.
+pub(crate) fn estimate_motion(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &BurstConfig,
+    oracle: Option<MotionOracle<'_>>,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<(Alignment, FrameMotion)> {
     let alignment = align(
-        frames,
+        &capture.frames,
         &capture.cfa,
-        hot,
+        capture.hot_pixels.as_ref(),
         reference_frame,
         &config.align,
         progress,
@@ -170,10 +202,6 @@ pub fn reconstruct_burst_with_motion(
         motion.drop_local_motion();
     }
     let grey_blocks = &alignment.grey;
-    let grey_noise = GreyNoise {
-        trials: alignment.plan.block_size as f32,
-        model,
-    };
     let reference_block = alignment.plan.reference_block;
     let detections_per_frame = grey_blocks[reference_block].mean().unwrap_or(0.0) as f64;
     plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
@@ -216,7 +244,35 @@ pub fn reconstruct_burst_with_motion(
         )?;
         laps.lap("motion refinement");
     }
-    let block_centres = alignment.plan.center_frames();
+    Ok((alignment, motion))
+}
+
+/// Stages 4–5 at the sub-block motion `motion` (or the `oracle`'s): the merge guide from the
+/// grey blocks of `alignment` and the block motion, then the joint demosaic-merge of every
+/// sub-block. The reference block is `motion.plan`'s (the grey images are `alignment`'s,
+/// whose plan has the same blocks). Each stage's time is recorded in `laps`, whose timings the
+/// result takes.
+pub(crate) fn merge_at_motion(
+    capture: &Capture,
+    alignment: Alignment,
+    motion: FrameMotion,
+    oracle: Option<MotionOracle<'_>>,
+    config: &BurstConfig,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<BurstReconstruction> {
+    if motion.plan.blocks != alignment.plan.blocks {
+        return Err(Error::invalid(
+            "merge: the motion's blocks are not the alignment's",
+        ));
+    }
+    let grey_blocks = &alignment.grey;
+    let grey_noise = GreyNoise {
+        trials: alignment.plan.block_size as f32,
+        model: capture.meta.pixel_model(),
+    };
+    let reference_block = motion.plan.reference_block;
+    let block_centres = motion.plan.center_frames();
     let block_flow = |b: usize| match oracle {
         Some(oracle) => oracle(block_centres[b]),
         None => motion.block_flow(b),
@@ -246,14 +302,13 @@ pub fn reconstruct_burst_with_motion(
         &config.merge,
         progress,
     )?;
-    frames.forget_shared_sums();
     laps.lap("demosaic-merge");
     Ok(BurstReconstruction {
         alignment,
         sub_blocks: motion.sub_blocks.clone(),
         motion,
         merged,
-        timings: laps.timings,
+        timings: std::mem::take(&mut laps.timings),
         grey_noise,
         robustness: config.merge.robustness.clone(),
     })
