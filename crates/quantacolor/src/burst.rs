@@ -150,7 +150,9 @@ pub fn reconstruct_burst_with_motion(
     let mut laps = Laps::new();
     // Block and sub-block sums are made once and shared by alignment, refinement and merge.
     capture.frames.forget_shared_sums();
-    let (alignment, motion) = estimate_motion(
+    let EstimatedMotion {
+        alignment, motion, ..
+    } = estimate_motion(
         capture,
         reference_frame,
         config,
@@ -171,6 +173,15 @@ pub fn reconstruct_burst_with_motion(
     reconstruction
 }
 
+/// What [`estimate_motion`] found.
+pub(crate) struct EstimatedMotion {
+    pub alignment: Alignment,
+    pub motion: FrameMotion,
+    /// Whether the camera was tracked as fast motion (the block flows' local residual was
+    /// then dropped as streak matching, not motion).
+    pub tracked: bool,
+}
+
 /// Stages 1–3: alignment to `reference_frame` and the motion of every sub-block (block motion,
 /// sub-block plan, then refinement, or fast-motion tracking and the photon trajectory; with an
 /// `oracle`, only the plan). `config` is taken as it is (see [`config_for_capture`]); each
@@ -182,7 +193,7 @@ pub(crate) fn estimate_motion(
     oracle: Option<MotionOracle<'_>>,
     laps: &mut Laps,
     progress: &dyn Progress,
-) -> Result<(Alignment, FrameMotion)> {
+) -> Result<EstimatedMotion> {
     let alignment = align(
         &capture.frames,
         &capture.cfa,
@@ -244,7 +255,11 @@ pub(crate) fn estimate_motion(
         )?;
         laps.lap("motion refinement");
     }
-    Ok((alignment, motion))
+    Ok(EstimatedMotion {
+        alignment,
+        motion,
+        tracked,
+    })
 }
 
 /// Stages 4–5 at the sub-block motion `motion` (or the `oracle`'s): the merge guide from the

@@ -1,38 +1,41 @@
-//! Video: one reconstruction per reference frame of a sliding reference, with the motion
-//! estimated once for the whole capture (this project's own stage; the papers' supplementary
-//! videos reconstruct each reference frame from scratch).
+//! Video: one reconstruction per reference frame of a sliding reference, with the expensive
+//! motion estimation done once for the whole capture (this project's own stage; the papers'
+//! supplementary videos reconstruct each reference frame from scratch).
 //!
-//! A reconstruction registers the whole burst to its reference frame r (paper §4, Fig. 4): the
-//! merge needs the motion of every sub-block relative to r. Of the burst's stages
-//! ([`crate::burst`]), only the guide (the Wiener reference image, its kernels and the
-//! blocks' robustness, supplement §1.2–1.3), the joint demosaic-merge (supplement Eq. 1–3),
-//! Eq. 6 and 8 and the denoiser (§4.3) depend on r in substance. The others are done once, at an
-//! *anchor* reference frame a (the configured reference frame):
+//! A reconstruction registers the whole burst to its reference frame r (paper §4, Fig. 4). Of
+//! the burst's stages ([`crate::burst`]) these are done once, at an *anchor* reference frame a
+//! (the configured reference frame), on the anchor's block grid (r's block becomes the
+//! reference block; the grid does not move with r):
 //!
-//! - hot-pixel correction, block sums and grey block images, on the anchor's block grid (it does
-//!   not move with r; r's block becomes the reference block);
-//! - block alignment against the anchor's block and the sub-block camera motion
-//!   (refinement, or fast-motion tracking and the photon trajectory), an affine map
-//!   M_k: anchor → sub-block k per sub-block;
+//! - hot-pixel correction, block sums and grey block images;
+//! - the sub-block camera motion (block alignment's camera fit, then the refinement, or
+//!   fast-motion tracking and the photon trajectory), an affine map M_k: a → sub-block k;
 //! - the block and sub-block sums stay in [`crate::capture::BinaryFrames::shared_sum`]'s
 //!   bounded cache from one video frame to the next.
 //!
-//! The motion relative to r is then the composition M_k ∘ M(r)⁻¹ ([`reanchor_motion`]), with
+//! Per frame: the camera relative to r is the composition M_k ∘ M(r)⁻¹ ([`reanchor_cameras`]),
 //! M(r) the camera at frame r interpolated between sub-block centres exactly as the burst
-//! anchors its own motion at its reference frame ([`crate::align::refine_camera_motion`]).
-//! For affine camera maps this is exact, not an approximation: it is the motion the
-//! per-reference path measures, up to the photon noise of measuring it on a differently placed
-//! block grid. The merge is the burst's own ([`crate::burst`]'s `merge_at_motion`): there is
-//! one merge path.
+//! anchors its own motion ([`crate::align::refine_camera_motion`]). For affine camera maps this
+//! is exact: it is the motion the per-reference path measures, up to the photon noise of
+//! measuring it from another anchor. Local motion (moving objects) is block-granular tile flow
+//! that does not compose as a map, so it is measured again: the tile alignment of the shared
+//! grey blocks against r's block ([`crate::align::align_grey_blocks`], the cheap part of the
+//! alignment) gives r's local residual ([`FrameMotion::from_alignment`]), as in the
+//! per-reference path. Then the guide (Wiener reference, kernels, robustness; supplement
+//! §1.2–1.3), the joint demosaic-merge (supplement Eq. 1–3, paper Eq. 6 and 8) and the
+//! denoiser (§4.3) run at r through the burst's own merge (there is one merge path).
 //!
-//! Limitation: local motion (moving objects, [`crate::align::FrameMotion::local`]) is measured
-//! as tile flows on the anchor's grid at block granularity and does not compose as a map. When
-//! the anchor's motion has a local residual, every frame falls back to the full per-reference
-//! reconstruction ([`VideoReconstructor::fallback_reason`] says so), as does the naive method,
-//! which has no motion to reuse.
+//! Difference to the per-reference path: there r sits at the centre of its block; here at
+//! most half a block away from it. The camera motion is unaffected (each block is warped by
+//! its own motion relative to r), but the local residual is zero at the centre of r's block
+//! rather than at r, so a moving object's position is off by its motion over that time.
+//! The naive method has no motion to reuse: it runs per frame
+//! ([`VideoReconstructor::fallback_reason`]).
 
-use crate::align::{Alignment, FrameMotion};
-use crate::burst::{config_for_capture, estimate_motion, merge_at_motion, BurstConfig};
+use crate::align::{align_grey_blocks, AffineMotion, Alignment, FrameMotion};
+use crate::burst::{
+    config_for_capture, estimate_motion, merge_at_motion, BurstConfig, EstimatedMotion,
+};
 use crate::capture::Capture;
 use crate::error::{Error, Result};
 use crate::pipeline::{
@@ -51,28 +54,20 @@ pub fn video_reference_frames(frame_count: usize, stride: usize) -> Result<Vec<u
     Ok((stride / 2..frame_count).step_by(stride).collect())
 }
 
-/// `motion` (sub-block camera maps relative to its plan's reference frame a) relative to
-/// `reference_frame` r instead: every sub-block's camera M_k becomes M_k ∘ M(r)⁻¹, where M(r) is
-/// the camera at frame r ([`FrameMotion::camera_at`]); the block holding r becomes the
-/// reference block. At r = a the motion is returned as it is (it is anchored there already).
-///
-/// Errors when `motion` has a local residual (moving objects: tile flows on a's grid that do not
-/// compose as a map), when r is outside the burst or when M(r) cannot be inverted.
-pub fn reanchor_motion(motion: &FrameMotion, reference_frame: usize) -> Result<FrameMotion> {
+/// The sub-block camera maps of `motion` (relative to its plan's reference frame a) relative to
+/// `reference_frame` r instead: M_k ∘ M(r)⁻¹ for every sub-block camera M_k, where M(r) is the
+/// camera at frame r ([`FrameMotion::camera_at`]). At r = a the cameras are returned as they
+/// are (anchored there already). Errors when r is outside the burst or M(r) cannot be
+/// inverted.
+pub fn reanchor_cameras(motion: &FrameMotion, reference_frame: usize) -> Result<Vec<AffineMotion>> {
     let frames = motion.plan.blocks.last().map_or(0, |b| b.end);
     if reference_frame >= frames {
         return Err(Error::invalid(format!(
             "reference frame {reference_frame} is outside the burst's {frames} frames"
         )));
     }
-    if motion.local.iter().any(|&v| v != 0.0) {
-        return Err(Error::invalid(
-            "motion with a local residual (moving objects) cannot be re-anchored",
-        ));
-    }
-    let mut out = motion.clone();
     if reference_frame == motion.plan.reference_frame {
-        return Ok(out);
+        return Ok(motion.camera.clone());
     }
     let undo = motion
         .camera_at(reference_frame as f64)
@@ -82,17 +77,54 @@ pub fn reanchor_motion(motion: &FrameMotion, reference_frame: usize) -> Result<F
                 "the camera map at frame {reference_frame} cannot be inverted"
             ))
         })?;
-    for camera in out.camera.iter_mut() {
-        *camera = camera.after(&undo);
-    }
-    out.plan.reference_frame = reference_frame;
-    out.plan.reference_block = out
-        .plan
-        .blocks
+    Ok(compose_cameras(motion, &undo))
+}
+
+/// Every sub-block camera M_k of `motion` composed with `to_anchor` W (a map from another
+/// frame's coordinates to the anchor's): M_k ∘ W.
+pub fn compose_cameras(motion: &FrameMotion, to_anchor: &AffineMotion) -> Vec<AffineMotion> {
+    motion.camera.iter().map(|m| m.after(to_anchor)).collect()
+}
+
+/// The map W from a frame r's coordinates to the anchor's, from `block_cameras`: every block's
+/// camera at its centre frame relative to r (the camera fits of r's tile alignment, which
+/// makes them relative to r by the quadratic centre correction of
+/// [`crate::align::block_centre_flow`]). Block b gives W_b = S(c_b)⁻¹ ∘ C_b, S(c_b) the shared
+/// camera at b's centre frame; W is the component-wise median over blocks. A block image
+/// integrates hundreds of frames and the median pools every block, so W is far less noisy
+/// than the camera at the single frame r ([`reanchor_cameras`]; measured on a handheld chart
+/// capture: 0.26–0.37 px off at single frames). `None` without blocks or when no shared camera
+/// can be inverted.
+pub fn frame_to_anchor_from_blocks(
+    motion: &FrameMotion,
+    block_cameras: &[AffineMotion],
+) -> Option<AffineMotion> {
+    let centres = motion.plan.center_frames();
+    let estimates: Vec<[f64; 6]> = block_cameras
         .iter()
-        .position(|b| b.contains(&reference_frame))
-        .expect("the blocks cover the burst");
-    Ok(out)
+        .zip(&centres)
+        .filter_map(|(c, &t)| {
+            let w = motion.camera_at(t).inverse()?.after(c);
+            Some([w.b[0], w.b[1], w.m[0][0], w.m[0][1], w.m[1][0], w.m[1][1]])
+        })
+        .collect();
+    if estimates.is_empty() {
+        return None;
+    }
+    let median = |i: usize| {
+        let mut v: Vec<f64> = estimates.iter().map(|e| e[i]).collect();
+        v.sort_by(f64::total_cmp);
+        let n = v.len();
+        if n % 2 == 1 {
+            v[n / 2]
+        } else {
+            0.5 * (v[n / 2 - 1] + v[n / 2])
+        }
+    };
+    Some(AffineMotion {
+        b: [median(0), median(1)],
+        m: [[median(2), median(3)], [median(4), median(5)]],
+    })
 }
 
 /// What every video frame of a burst reconstruction shares: the alignment (grey blocks) and
@@ -102,6 +134,8 @@ struct SharedMotion {
     burst_config: BurstConfig,
     alignment: Alignment,
     motion: FrameMotion,
+    /// The camera was tracked as fast motion: block flows are streak matches, no local motion.
+    tracked: bool,
 }
 
 /// Reconstructions of one capture at many reference frames, reusing the work that does not
@@ -118,8 +152,8 @@ pub struct VideoReconstructor<'a> {
 impl<'a> VideoReconstructor<'a> {
     /// Estimates the motion of `capture` once, at the anchor frame (`config.reference_frame`,
     /// else the capture's reference frame): hot-pixel corrected block sums, grey images, block
-    /// alignment and sub-block camera motion. With the naive method, or when the capture has
-    /// local motion, nothing is kept and every frame runs the full reconstruction.
+    /// alignment and sub-block camera motion. With the naive method nothing is kept and every
+    /// frame runs the full reconstruction.
     pub fn new(
         capture: &'a Capture,
         config: &ReconstructConfig,
@@ -153,22 +187,17 @@ impl<'a> VideoReconstructor<'a> {
         let mut laps = Laps::new();
         // The sums made here stay cached (bounded) for every frame's merge, until drop.
         capture.frames.forget_shared_sums();
-        let (alignment, motion) =
-            estimate_motion(capture, anchor_frame, &burst_config, None, &mut laps, progress)?;
+        let EstimatedMotion {
+            alignment,
+            motion,
+            tracked,
+        } = estimate_motion(capture, anchor_frame, &burst_config, None, &mut laps, progress)?;
         video.timings = laps.timings;
-        if motion.local.iter().any(|&v| v != 0.0) {
-            capture.frames.forget_shared_sums();
-            video.fallback = Some(
-                "the capture has local motion (moving objects), which does not compose \
-                 between reference frames: every frame is reconstructed on its own"
-                    .into(),
-            );
-            return Ok(video);
-        }
         video.shared = Some(SharedMotion {
             burst_config,
             alignment,
             motion,
+            tracked,
         });
         Ok(video)
     }
@@ -189,11 +218,11 @@ impl<'a> VideoReconstructor<'a> {
         &self.timings
     }
 
-    /// The reconstruction registered to `reference_frame`: the merge guide, joint
-    /// demosaic-merge and denoising at the shared motion re-anchored to that frame
-    /// ([`reanchor_motion`]), or the full [`reconstruct`] when frames fall back. Its `burst`
-    /// holds the anchor's alignment (the grey blocks and block flows the motion was measured
-    /// from, relative to the anchor frame) and the re-anchored motion.
+    /// The reconstruction registered to `reference_frame`: tile alignment for the local
+    /// residual, the merge guide, joint demosaic-merge and denoising at the shared camera
+    /// motion composed to that frame ([`reanchor_cameras`]), or the full [`reconstruct`] when
+    /// frames fall back. Its `burst` holds the frame's alignment (the shared grey blocks on the
+    /// anchor's block grid, tile flows relative to this frame's block) and motion.
     pub fn frame(&self, reference_frame: usize, progress: &dyn Progress) -> Result<Reconstruction> {
         let t = self.capture.frames.frame_count();
         if reference_frame >= t {
@@ -209,10 +238,11 @@ impl<'a> VideoReconstructor<'a> {
             return reconstruct(self.capture, &config, progress);
         };
         let mut laps = Laps::new();
-        let motion = reanchor_motion(&shared.motion, reference_frame)?;
+        let (alignment, motion) = self.motion_at(shared, reference_frame, progress)?;
+        laps.lap("tile alignment");
         let burst = merge_at_motion(
             self.capture,
-            shared.alignment.clone(),
+            alignment,
             motion,
             None,
             &shared.burst_config,
@@ -229,6 +259,58 @@ impl<'a> VideoReconstructor<'a> {
             Some(burst),
             timings,
         )
+    }
+}
+
+impl VideoReconstructor<'_> {
+    /// The alignment and sub-block motion relative to `reference_frame`: the shared grey blocks
+    /// tile-aligned to its block (for the local residual) and the shared cameras composed to it.
+    fn motion_at(
+        &self,
+        shared: &SharedMotion,
+        reference_frame: usize,
+        progress: &dyn Progress,
+    ) -> Result<(Alignment, FrameMotion)> {
+        let config = &shared.burst_config;
+        let mut plan = shared.alignment.plan.clone();
+        plan.reference_frame = reference_frame;
+        plan.reference_block = plan
+            .blocks
+            .iter()
+            .position(|b| b.contains(&reference_frame))
+            .expect("the blocks cover the capture");
+        let (grid, flow) =
+            align_grey_blocks(&shared.alignment.grey, &plan, &config.align, progress)?;
+        let alignment = Alignment {
+            plan,
+            grid,
+            flow,
+            grey_method: shared.alignment.grey_method,
+            grey: shared.alignment.grey.clone(),
+        };
+        // The local residual of r's own alignment, with the shared sub-blocks and their
+        // cameras composed to r.
+        let mut motion = FrameMotion::from_alignment(
+            &alignment,
+            config.align.affine_tolerance_px,
+            config.refine.min_local_tiles,
+        );
+        if !config.refine.keep_local_motion || shared.tracked {
+            motion.drop_local_motion();
+        }
+        let to_anchor = if reference_frame == shared.motion.plan.reference_frame || shared.tracked
+        {
+            None
+        } else {
+            frame_to_anchor_from_blocks(&shared.motion, &motion.camera)
+        };
+        motion.camera = match to_anchor {
+            Some(w) => compose_cameras(&shared.motion, &w),
+            None => reanchor_cameras(&shared.motion, reference_frame)?,
+        };
+        motion.sub_blocks = shared.motion.sub_blocks.clone();
+        motion.block_of = shared.motion.block_of.clone();
+        Ok((alignment, motion))
     }
 }
 
