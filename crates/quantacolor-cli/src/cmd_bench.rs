@@ -1086,7 +1086,10 @@ fn video(
         normalize_percentile: Some(99.5),
     };
 
-    eprintln!("per-reference path: {} full reconstructions", references.len());
+    eprintln!(
+        "per-reference path: {} full reconstructions",
+        references.len()
+    );
     let start = Instant::now();
     let mut old = Vec::new();
     for &r in &references {

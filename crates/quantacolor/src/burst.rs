@@ -161,13 +161,7 @@ pub fn reconstruct_burst_with_motion(
         progress,
     )?;
     let reconstruction = merge_at_motion(
-        capture,
-        alignment,
-        motion,
-        oracle,
-        config,
-        &mut laps,
-        progress,
+        capture, alignment, motion, oracle, config, &mut laps, progress,
     );
     capture.frames.forget_shared_sums();
     reconstruction

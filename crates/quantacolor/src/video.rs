@@ -191,7 +191,14 @@ impl<'a> VideoReconstructor<'a> {
             alignment,
             motion,
             tracked,
-        } = estimate_motion(capture, anchor_frame, &burst_config, None, &mut laps, progress)?;
+        } = estimate_motion(
+            capture,
+            anchor_frame,
+            &burst_config,
+            None,
+            &mut laps,
+            progress,
+        )?;
         video.timings = laps.timings;
         video.shared = Some(SharedMotion {
             burst_config,
@@ -298,8 +305,7 @@ impl VideoReconstructor<'_> {
         if !config.refine.keep_local_motion || shared.tracked {
             motion.drop_local_motion();
         }
-        let to_anchor = if reference_frame == shared.motion.plan.reference_frame || shared.tracked
-        {
+        let to_anchor = if reference_frame == shared.motion.plan.reference_frame || shared.tracked {
             None
         } else {
             frame_to_anchor_from_blocks(&shared.motion, &motion.camera)
@@ -364,7 +370,10 @@ mod tests {
             video_reference_frames(4000, 500).unwrap(),
             [250, 750, 1250, 1750, 2250, 2750, 3250, 3750]
         );
-        assert_eq!(video_reference_frames(10, 1).unwrap(), (0..10).collect::<Vec<_>>());
+        assert_eq!(
+            video_reference_frames(10, 1).unwrap(),
+            (0..10).collect::<Vec<_>>()
+        );
         assert!(video_reference_frames(3, 8).unwrap().is_empty());
         assert!(video_reference_frames(100, 0).is_err());
     }
