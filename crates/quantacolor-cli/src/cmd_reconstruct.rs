@@ -57,7 +57,9 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub dump_stages: Option<PathBuf>,
     /// Reconstruct a video: one image per reference frame, every `--stride` frames (the paper's
-    /// supplementary videos). Writes frame_NNNNN.png, linear.npy (N, H, W, 3) and video.toml.
+    /// supplementary videos). The camera motion is estimated once, at the reference frame, and
+    /// composed to every video frame. Writes frame_NNNNN.png, linear.npy (N, H, W, 3) and
+    /// video.toml.
     #[arg(long)]
     pub video: bool,
     /// Frames between consecutive video reference frames.
