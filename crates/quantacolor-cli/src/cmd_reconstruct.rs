@@ -14,6 +14,7 @@ use quantacolor::pipeline::{
     reconstruct, Method, ReconstructConfig, ReconstructOverrides, Reconstruction,
 };
 use quantacolor::progress::Progress;
+use quantacolor::video::{video_reference_frames, VideoReconstructor};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -59,6 +60,13 @@ pub struct ReconstructArgs {
     /// supplementary videos). Writes frame_NNNNN.png, linear.npy (N, H, W, 3) and video.toml.
     #[arg(long)]
     pub video: bool,
+    /// Video: `per-frame` estimates the motion again for every reference frame (a full
+    /// reconstruction each); `shared` estimates the camera motion once, at the reference frame,
+    /// and composes it to every video frame (per frame only the moving-object alignment, the
+    /// merge and the denoiser run): 1.6x faster on 4000 frames at stride 500, 0.1–0.4 dB lower
+    /// on average (`quantacolor bench video`).
+    #[arg(long, value_enum, default_value_t = VideoMotion::PerFrame)]
+    pub video_motion: VideoMotion,
     /// Frames between consecutive video reference frames.
     #[arg(long, default_value_t = 256)]
     pub stride: usize,
@@ -222,18 +230,34 @@ pub fn write_reconstruction(
     Ok(())
 }
 
+/// How `--video` gets the motion of each frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum VideoMotion {
+    /// A full reconstruction per reference frame.
+    PerFrame,
+    /// The camera motion estimated once and composed to every frame ([`VideoReconstructor`]).
+    Shared,
+}
+
 #[derive(Serialize)]
 struct VideoReport<'a> {
     capture: String,
     method: String,
     reference_frames: Vec<usize>,
+    /// The frame whose motion every frame reuses, composed to its own reference frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    motion_anchor_frame: Option<usize>,
+    /// Why every frame was reconstructed on its own instead.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    per_frame_reason: Option<String>,
     preview_exposure_scale: f32,
     units: &'static str,
     config: &'a ReconstructConfig,
 }
 
 /// Reconstructions with a sliding reference frame, written as numbered PNGs with one shared
-/// exposure plus the linear stack.
+/// exposure plus the linear stack; with `--video-motion shared` the motion is estimated once
+/// for all of them ([`VideoReconstructor`]).
 fn write_video(
     args: &ReconstructArgs,
     capture: &Capture,
@@ -244,14 +268,29 @@ fn write_video(
         anyhow::bail!("--stride must be at least 1");
     }
     let t = capture.frames.frame_count();
-    let references: Vec<usize> = (args.stride / 2..t).step_by(args.stride).collect();
+    let references = video_reference_frames(t, args.stride)?;
+    if references.is_empty() {
+        anyhow::bail!(
+            "--stride {} leaves no reference frame in the capture's {t} frames",
+            args.stride
+        );
+    }
     let staged = StagedDir::new(&args.out)?;
+    let video = match args.video_motion {
+        VideoMotion::Shared => Some(VideoReconstructor::new(capture, config, progress)?),
+        VideoMotion::PerFrame => None,
+    };
     let mut frames = Vec::with_capacity(references.len());
     let mut scale = None;
     for (i, &reference) in references.iter().enumerate() {
-        let mut cfg = config.clone();
-        cfg.reference_frame = Some(reference);
-        let rec = reconstruct(capture, &cfg, progress)?;
+        let rec = match &video {
+            Some(video) => video.frame(reference, progress)?,
+            None => {
+                let mut cfg = config.clone();
+                cfg.reference_frame = Some(reference);
+                reconstruct(capture, &cfg, progress)?
+            }
+        };
         let s = *scale.get_or_insert_with(|| auto_exposure_scale(rec.linear.view()));
         io::write_png_rgb8(
             staged.path(&format!("frame_{i:05}.png")),
@@ -268,6 +307,13 @@ fn write_video(
         capture: args.capture.display().to_string(),
         method: config.method.to_string(),
         reference_frames: references,
+        motion_anchor_frame: video
+            .as_ref()
+            .filter(|v| v.fallback_reason().is_none())
+            .map(|v| v.anchor_frame()),
+        per_frame_reason: video
+            .as_ref()
+            .and_then(|v| v.fallback_reason().map(str::to_string)),
         preview_exposure_scale: scale.unwrap_or(1.0),
         units: quantacolor::output::LINEAR_UNITS,
         config,

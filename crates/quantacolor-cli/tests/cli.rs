@@ -241,8 +241,44 @@ fn video_mode_writes_one_frame_per_reference() {
         toml.contains("16") && toml.contains("48") && toml.contains("80"),
         "{toml}"
     );
+    // By default every frame is a full reconstruction.
+    assert!(!toml.contains("motion_anchor_frame"), "{toml}");
     let linear = read(&out.join("linear.npy"));
     assert!(String::from_utf8_lossy(&linear[..128]).contains("(3, 64, 96, 3)"));
+
+    // Shared motion: estimated once, at the capture's reference frame, and composed to each.
+    let shared = tmp.path().join("shared");
+    ok(&[
+        "reconstruct",
+        cap.to_str().unwrap(),
+        "--out",
+        shared.to_str().unwrap(),
+        "--video",
+        "--stride",
+        "32",
+        "--video-motion",
+        "shared",
+    ]);
+    let toml = std::fs::read_to_string(shared.join("video.toml")).unwrap();
+    assert!(toml.contains("motion_anchor_frame = 48"), "{toml}");
+    let linear = read(&shared.join("linear.npy"));
+    assert!(String::from_utf8_lossy(&linear[..128]).contains("(3, 64, 96, 3)"));
+
+    // A stride that leaves no reference frame is refused, with no output.
+    let none = tmp.path().join("none");
+    expect_failure(
+        &[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            none.to_str().unwrap(),
+            "--video",
+            "--stride",
+            "1000",
+        ],
+        "--stride",
+    );
+    assert!(!none.exists(), "partial output left behind");
 }
 
 #[test]

@@ -32,7 +32,7 @@ use crate::align::{
     TrajectoryConfig,
 };
 use crate::capture::Capture;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::merge::{
     block_robustness, merge_guide_streamed, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide,
     MergedBurst, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
@@ -61,6 +61,8 @@ pub struct BurstConfig {
 /// Result of the burst reconstruction with its intermediate stages.
 #[derive(Debug, Clone)]
 pub struct BurstReconstruction {
+    /// The block alignment the motion was estimated from (for a frame of a video, the anchor
+    /// frame's: its plan and flows are relative to that frame, see [`crate::video`]).
     pub alignment: Alignment,
     /// The motion of every sub-block the merge used (unless driven by a motion oracle).
     pub motion: FrameMotion,
@@ -96,7 +98,7 @@ impl BurstReconstruction {
                     &self.alignment.grey,
                     &self.motion.block_flow(b),
                     b,
-                    self.alignment.plan.reference_block,
+                    self.motion.plan.reference_block,
                     self.grey_noise,
                     &self.robustness,
                 )
@@ -145,30 +147,141 @@ pub fn reconstruct_burst_with_motion(
     progress: &dyn Progress,
 ) -> Result<BurstReconstruction> {
     let config = &config_for_capture(capture, config);
-    let model = capture.meta.pixel_model();
-    let frames = &capture.frames;
-    let hot = capture.hot_pixels.as_ref();
     let mut laps = Laps::new();
     // Block and sub-block sums are made once and shared by alignment, refinement and merge.
-    frames.forget_shared_sums();
+    capture.frames.forget_shared_sums();
+    let EstimatedMotion {
+        alignment, motion, ..
+    } = estimate_motion(
+        capture,
+        reference_frame,
+        config,
+        oracle,
+        &mut laps,
+        progress,
+    )?;
+    let reconstruction = merge_at_motion(
+        capture, alignment, motion, oracle, config, &mut laps, progress,
+    );
+    capture.frames.forget_shared_sums();
+    reconstruction
+}
+
+/// What [`estimate_motion`] found.
+pub(crate) struct EstimatedMotion {
+    pub alignment: Alignment,
+    pub motion: FrameMotion,
+    /// Whether the camera was tracked as fast motion (the block flows' local residual was
+    /// then dropped as streak matching, not motion).
+    pub tracked: bool,
+}
+
+/// Stages 1–3: alignment to `reference_frame` and the motion of every sub-block (block motion,
+/// sub-block plan, then refinement, or fast-motion tracking and the photon trajectory; with an
+/// `oracle`, only the plan). `config` is taken as it is (see [`config_for_capture`]); each
+/// stage's time is recorded in `laps`.
+pub(crate) fn estimate_motion(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &BurstConfig,
+    oracle: Option<MotionOracle<'_>>,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<EstimatedMotion> {
     let alignment = align(
-        frames,
+        &capture.frames,
         &capture.cfa,
-        hot,
+        capture.hot_pixels.as_ref(),
         reference_frame,
         &config.align,
         progress,
     )?;
     laps.lap("align");
 
-    let motion = estimate_motion(capture, &alignment, config, oracle, &mut laps, progress)?;
+    let mut motion = FrameMotion::from_alignment(
+        &alignment,
+        config.align.affine_tolerance_px,
+        config.refine.min_local_tiles,
+    );
+    if !config.refine.keep_local_motion {
+        motion.drop_local_motion();
+    }
+    let grey_blocks = &alignment.grey;
+    let reference_block = alignment.plan.reference_block;
+    let detections_per_frame = grey_blocks[reference_block].mean().unwrap_or(0.0) as f64;
+    plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
+    if let Some(oracle) = oracle {
+        split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px);
+    }
+    let tracked = oracle.is_none()
+        && config.refine.enabled
+        && track_fast_camera_motion(
+            capture,
+            alignment.grey_method,
+            &mut motion,
+            &config.track,
+            progress,
+        )?;
+    if tracked {
+        // Block alignment under fast motion matched streaks: its local residual is not motion.
+        motion.drop_local_motion();
+        laps.lap("fast motion tracking");
+        if fit_photon_trajectory(
+            capture,
+            alignment.grey_method,
+            &mut motion,
+            &config.trajectory,
+            config.refine.max_sub_block_motion_px,
+            progress,
+        )? {
+            laps.lap("photon trajectory");
+        } else {
+            split_for_merge(&mut motion, config.refine.max_sub_block_motion_px);
+        }
+    } else if oracle.is_none() && config.refine.enabled {
+        refine_camera_motion(
+            capture,
+            alignment.grey_method,
+            grey_blocks,
+            &mut motion,
+            &config.refine,
+            progress,
+        )?;
+        laps.lap("motion refinement");
+    }
+    Ok(EstimatedMotion {
+        alignment,
+        motion,
+        tracked,
+    })
+}
+
+/// Stages 4–5 at the sub-block motion `motion` (or the `oracle`'s): the merge guide from the
+/// grey blocks of `alignment` and the block motion, then the joint demosaic-merge of every
+/// sub-block. The reference block is `motion.plan`'s (the grey images are `alignment`'s,
+/// whose plan has the same blocks). Each stage's time is recorded in `laps`, whose timings the
+/// result takes.
+pub(crate) fn merge_at_motion(
+    capture: &Capture,
+    alignment: Alignment,
+    motion: FrameMotion,
+    oracle: Option<MotionOracle<'_>>,
+    config: &BurstConfig,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<BurstReconstruction> {
+    if motion.plan.blocks != alignment.plan.blocks {
+        return Err(Error::invalid(
+            "merge: the motion's blocks are not the alignment's",
+        ));
+    }
     let grey_blocks = &alignment.grey;
     let grey_noise = GreyNoise {
         trials: alignment.plan.block_size as f32,
-        model,
+        model: capture.meta.pixel_model(),
     };
-    let reference_block = alignment.plan.reference_block;
-    let block_centres = alignment.plan.center_frames();
+    let reference_block = motion.plan.reference_block;
+    let block_centres = motion.plan.center_frames();
     let block_flow = |b: usize| match oracle {
         Some(oracle) => oracle(block_centres[b]),
         None => motion.block_flow(b),
@@ -198,95 +311,16 @@ pub fn reconstruct_burst_with_motion(
         &config.merge,
         progress,
     )?;
-    frames.forget_shared_sums();
     laps.lap("demosaic-merge");
     Ok(BurstReconstruction {
         alignment,
         sub_blocks: motion.sub_blocks.clone(),
         motion,
         merged,
-        timings: laps.timings,
+        timings: std::mem::take(&mut laps.timings),
         grey_noise,
         robustness: config.merge.robustness.clone(),
     })
-}
-
-/// Stages 2–3: the block alignment as frame motion (camera plus local motion), cut into
-/// sub-blocks ([`plan_sub_blocks`]); then, with an `oracle`, the sub-blocks are only cut
-/// further where the true motion is fast ([`split_at_oracle_motion`]), and otherwise the camera
-/// motion inside them is measured again ([`remeasure_camera_motion`]) when refinement is on.
-fn estimate_motion(
-    capture: &Capture,
-    alignment: &Alignment,
-    config: &BurstConfig,
-    oracle: Option<MotionOracle<'_>>,
-    laps: &mut Laps,
-    progress: &dyn Progress,
-) -> Result<FrameMotion> {
-    let mut motion = FrameMotion::from_alignment(
-        alignment,
-        config.align.affine_tolerance_px,
-        config.refine.min_local_tiles,
-    );
-    if !config.refine.keep_local_motion {
-        motion.drop_local_motion();
-    }
-    let reference_grey = &alignment.grey[alignment.plan.reference_block];
-    let detections_per_frame = reference_grey.mean().unwrap_or(0.0) as f64;
-    plan_sub_blocks(&mut motion, detections_per_frame, &config.refine);
-    match oracle {
-        Some(oracle) => {
-            split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px)
-        }
-        None if config.refine.enabled => {
-            remeasure_camera_motion(capture, alignment, &mut motion, config, laps, progress)?
-        }
-        None => {}
-    }
-    Ok(motion)
-}
-
-/// The camera motion inside the sub-blocks measured again (this project's own stages, see
-/// [`crate::align::refine`]): fast motion is tracked sub-block by sub-block and then fitted to
-/// every photon ([`track_fast_camera_motion`], [`fit_photon_trajectory`]); otherwise the camera
-/// motion of each sub-block is refined against the grey blocks ([`refine_camera_motion`]).
-fn remeasure_camera_motion(
-    capture: &Capture,
-    alignment: &Alignment,
-    motion: &mut FrameMotion,
-    config: &BurstConfig,
-    laps: &mut Laps,
-    progress: &dyn Progress,
-) -> Result<()> {
-    let grey_method = alignment.grey_method;
-    if track_fast_camera_motion(capture, grey_method, motion, &config.track, progress)? {
-        // Block alignment under fast motion matched streaks: its local residual is not motion.
-        motion.drop_local_motion();
-        laps.lap("fast motion tracking");
-        if fit_photon_trajectory(
-            capture,
-            grey_method,
-            motion,
-            &config.trajectory,
-            config.refine.max_sub_block_motion_px,
-            progress,
-        )? {
-            laps.lap("photon trajectory");
-        } else {
-            split_for_merge(motion, config.refine.max_sub_block_motion_px);
-        }
-    } else {
-        refine_camera_motion(
-            capture,
-            grey_method,
-            &alignment.grey,
-            motion,
-            &config.refine,
-            progress,
-        )?;
-        laps.lap("motion refinement");
-    }
-    Ok(())
 }
 
 /// Cuts every sub-block of `motion` so that the `oracle`'s motion travels at most

@@ -33,6 +33,7 @@ pub mod report;
 pub mod rgbw;
 pub mod simulate;
 pub mod timing;
+pub mod video;
 
 pub use capture::Capture;
 pub use cfa::{Cfa, Channel};

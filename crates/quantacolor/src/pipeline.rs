@@ -139,7 +139,7 @@ pub fn reconstruct(
         )));
     }
     let start = Instant::now();
-    let (linear, frames_used, burst, mut timings) = match config.method {
+    let (linear, frames_used, burst, timings) = match config.method {
         Method::Naive => {
             progress.start("naive merge", 1);
             let naive = reconstruct_naive(capture, reference_frame, &config.naive)?;
@@ -156,7 +156,29 @@ pub fn reconstruct(
         }
     };
 
-    // Chrominance-focused denoising (paper §4.3).
+    denoise_and_finish(
+        capture,
+        config,
+        reference_frame,
+        linear,
+        frames_used,
+        burst,
+        timings,
+    )
+}
+
+/// The last stage of a reconstruction, chrominance-focused denoising (paper §4.3), of the
+/// merged `linear` image, and the finished [`Reconstruction`] (shared by [`reconstruct`] and
+/// [`crate::video`]).
+pub(crate) fn denoise_and_finish(
+    capture: &Capture,
+    config: &ReconstructConfig,
+    reference_frame: usize,
+    linear: Array3<f32>,
+    frames_used: usize,
+    burst: Option<BurstReconstruction>,
+    mut timings: Vec<StageTiming>,
+) -> Result<Reconstruction> {
     let start = Instant::now();
     let input = denoise_input(capture, burst.as_ref(), frames_used);
     let (denoised, denoise) = denoise_linear(linear.view(), &input, &config.denoise)?;

@@ -394,7 +394,34 @@ pub fn align(
         })
         .collect::<Result<_>>()?;
     progress.finish();
+    let (grid, flow) = align_grey_blocks(&grey, &plan, config, progress)?;
+    Ok(Alignment {
+        plan,
+        grid,
+        flow,
+        grey_method,
+        grey,
+    })
+}
 
+/// The tile alignment of [`align`] on its own: every grey block image of `plan` aligned to its
+/// reference block's (hierarchical tile search, median filter, robust camera fit, second
+/// motion, centre-frame correction). Returns the tile grid and the block-level flow.
+pub fn align_grey_blocks(
+    grey: &[Array2<f32>],
+    plan: &BlockPlan,
+    config: &AlignConfig,
+    progress: &dyn Progress,
+) -> Result<(TileGrid, Flow)> {
+    config.patch.validate()?;
+    if grey.len() != plan.len() || plan.reference_block >= plan.len() {
+        return Err(Error::invalid(format!(
+            "alignment: {} grey blocks for {} planned blocks (reference block {})",
+            grey.len(),
+            plan.len(),
+            plan.reference_block
+        )));
+    }
     let aligner = ReferenceAligner::new(&grey[plan.reference_block], &config.patch)?;
     let grid = aligner.grid().clone();
     let mut flow = Flow::zeros((plan.len(), grid.tiles_y, grid.tiles_x, 2));
@@ -430,15 +457,9 @@ pub fn align(
     if config.centre_correction {
         // The correction is a temporal sharpening filter: computed on the smooth camera fits
         // so that a mismatched tile does not leak into its temporal neighbours.
-        flow += &(block_centre_flow(&camera, &plan) - &camera);
+        flow += &(block_centre_flow(&camera, plan) - &camera);
     }
-    Ok(Alignment {
-        plan,
-        grid,
-        flow,
-        grey_method,
-        grey,
-    })
+    Ok((grid, flow))
 }
 
 /// What `flow.toml` holds beside `flow.npy`.

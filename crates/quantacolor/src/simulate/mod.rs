@@ -433,6 +433,32 @@ pub fn simulate_with_cfa(
     })
 }
 
+/// The ground truth of the capture `config` simulates of `scene` behind `cfa`, at each of
+/// `frames` instead of the reference frame: λ of R, G, B (H, W, 3) of the scene as frame t sees
+/// it (camera and object motion of frame t, the same flux gain as
+/// [`SimulatedCapture::ground_truth`]), the truth of a reconstruction registered to frame t
+/// (a video frame, [`crate::video`]). Renders no frames.
+pub fn ground_truth_at(
+    config: &SimulationConfig,
+    scene: &Scene,
+    cfa: &Cfa,
+    frames: &[usize],
+) -> Result<Vec<Array3<f32>>> {
+    let prep = prepare(config, scene, cfa)?;
+    frames
+        .iter()
+        .map(|&t| {
+            if t >= config.frames {
+                return Err(Error::invalid(format!(
+                    "ground truth: frame {t} is outside the {} simulated frames",
+                    config.frames
+                )));
+            }
+            Ok(prep.field().rgb(t, config.height, config.width))
+        })
+        .collect()
+}
+
 /// Simulates a conventional CMOS capture (`config.sensor` is taken as CMOS whatever it says).
 pub fn simulate_cmos(
     config: &SimulationConfig,
