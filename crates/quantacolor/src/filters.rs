@@ -1,5 +1,6 @@
 //! Low-level image filters shared by every stage: Gaussian kernels, zero-padded separable
-//! convolution, Gaussian blur and normalized convolution (Knutsson & Westin 1993).
+//! convolution, Gaussian blur, normalized convolution (Knutsson & Westin 1993), bilinear
+//! sampling and box downsampling.
 //!
 //! One home for these ideas. Two kernel conventions exist on purpose and give different numbers,
 //! so both are kept under distinct names rather than merged:
@@ -181,4 +182,43 @@ mod tests {
         assert_eq!(masked[[2, 39]], 0.0);
         assert!(nan[[2, 39]].is_nan());
     }
+}
+
+/// The two taps and the weight of the second along one axis of length `n` of [`bilinear`] at
+/// coordinate `v` (clamped to the axis).
+#[inline]
+pub fn bilinear_taps(v: f32, n: usize) -> (usize, usize, f32) {
+    let v = v.clamp(0.0, (n - 1) as f32);
+    let v0 = v.floor() as usize;
+    (v0, (v0 + 1).min(n - 1), v - v0 as f32)
+}
+
+/// Bilinear sample of `image` at the real position `(y, x)`, clamped to the image edges.
+#[inline]
+pub fn bilinear(image: ArrayView2<f32>, y: f32, x: f32) -> f32 {
+    let (h, w) = image.dim();
+    let (y0, y1, fy) = bilinear_taps(y, h);
+    let (x0, x1, fx) = bilinear_taps(x, w);
+    let top = image[[y0, x0]] * (1.0 - fx) + image[[y0, x1]] * fx;
+    let bottom = image[[y1, x0]] * (1.0 - fx) + image[[y1, x1]] * fx;
+    top * (1.0 - fy) + bottom * fy
+}
+
+/// Mean over `f` x `f` cells (partial cells at the far edges average what they hold).
+pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
+    if f == 1 {
+        return img.clone();
+    }
+    let (h, w) = img.dim();
+    let (oh, ow) = (h.div_ceil(f), w.div_ceil(f));
+    Array2::from_shape_fn((oh, ow), |(y, x)| {
+        let (y1, x1) = (((y + 1) * f).min(h), ((x + 1) * f).min(w));
+        let mut s = 0.0;
+        for yy in y * f..y1 {
+            for xx in x * f..x1 {
+                s += img[[yy, xx]];
+            }
+        }
+        s / ((y1 - y * f) * (x1 - x * f)) as f32
+    })
 }

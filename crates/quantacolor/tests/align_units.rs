@@ -4,11 +4,12 @@
 
 use ndarray::{Array2, Array3, Array4};
 use ndarray_npy::ReadNpyExt;
-use quantacolor::align::patch::{box_downsample, TileGrid};
+use quantacolor::align::patch::TileGrid;
 use quantacolor::align::*;
 use quantacolor::capture::frames::pack_bits;
 use quantacolor::capture::BinaryFrames;
 use quantacolor::cfa::{generate, Cfa, Channel, Pattern};
+use quantacolor::filters::box_downsample;
 use quantacolor::progress::Silent;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

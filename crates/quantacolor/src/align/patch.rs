@@ -148,30 +148,11 @@ impl Pyramid {
         let mut levels = Vec::with_capacity(config.downsample_factors.len());
         let mut current = base;
         for &f in &config.downsample_factors {
-            current = box_downsample(&current, f);
+            current = crate::filters::box_downsample(&current, f);
             levels.push(current.clone());
         }
         Pyramid { levels }
     }
-}
-
-/// Mean over `f` x `f` cells (partial cells at the far edges average what they hold).
-pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
-    if f == 1 {
-        return img.clone();
-    }
-    let (h, w) = img.dim();
-    let (oh, ow) = (h.div_ceil(f), w.div_ceil(f));
-    Array2::from_shape_fn((oh, ow), |(y, x)| {
-        let (y1, x1) = (((y + 1) * f).min(h), ((x + 1) * f).min(w));
-        let mut s = 0.0;
-        for yy in y * f..y1 {
-            for xx in x * f..x1 {
-                s += img[[yy, xx]];
-            }
-        }
-        s / ((y1 - y * f) * (x1 - x * f)) as f32
-    })
 }
 
 /// Mean patch distance between the reference tile at origin `(oy, ox)` (clipped to the image)
@@ -209,26 +190,6 @@ fn tile_cost(
         };
     }
     cost / ((y1 - y0) * (x1 - x0)) as f32
-}
-
-/// The two taps and the weight of the second along one axis of length `n` of [`bilinear`] at
-/// coordinate `v` (clamped).
-#[inline]
-fn bilinear_taps(v: f32, n: usize) -> (usize, usize, f32) {
-    let v = v.clamp(0.0, (n - 1) as f32);
-    let v0 = v.floor() as usize;
-    (v0, (v0 + 1).min(n - 1), v - v0 as f32)
-}
-
-/// Bilinear sample of `img` at `(y, x)` with clamping.
-#[inline]
-pub(crate) fn bilinear(img: &Array2<f32>, y: f32, x: f32) -> f32 {
-    let (h, w) = img.dim();
-    let (y0, y1, fy) = bilinear_taps(y, h);
-    let (x0, x1, fx) = bilinear_taps(x, w);
-    let top = img[[y0, x0]] * (1.0 - fx) + img[[y0, x1]] * fx;
-    let bottom = img[[y1, x0]] * (1.0 - fx) + img[[y1, x1]] * fx;
-    top * (1.0 - fy) + bottom * fy
 }
 
 /// Reference-side data of a Lucas–Kanade tile: gradients and the inverse of the 2x2 normal
@@ -426,12 +387,12 @@ impl ReferenceAligner {
             rows.clear();
             rows.extend(
                 ys.clone()
-                    .map(|y| bilinear_taps(y as f32 + u.0, alt.nrows())),
+                    .map(|y| crate::filters::bilinear_taps(y as f32 + u.0, alt.nrows())),
             );
             cols.clear();
             cols.extend(
                 xs.clone()
-                    .map(|x| bilinear_taps(x as f32 + u.1, alt.ncols())),
+                    .map(|x| crate::filters::bilinear_taps(x as f32 + u.1, alt.ncols())),
             );
             let (mut by, mut bx) = (0.0f32, 0.0f32);
             let mut n = 0;
@@ -579,7 +540,7 @@ impl ReferenceAligner {
         } else {
             1
         };
-        let alt1 = box_downsample(&alt0, f);
+        let alt1 = crate::filters::box_downsample(&alt0, f);
         let ref0 = &self.pyramid.levels[0];
         let ref1 = if f > 1 { &self.pyramid.levels[1] } else { ref0 };
         let ts = grid.tile_size;

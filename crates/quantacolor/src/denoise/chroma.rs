@@ -16,8 +16,8 @@
 
 use super::anscombe::Stabiliser;
 use super::bm3d::{bm3d_multichannel_varying, Bm3dConfig};
-use crate::align::patch::{bilinear, box_downsample};
 use crate::error::{Error, Result};
+use crate::filters::{bilinear, box_downsample};
 use crate::model::PixelModel;
 use crate::rgbw::combine_rgbw_jacobian;
 use ndarray::{Array2, Array3, ArrayView3, Axis, Zip};
@@ -397,7 +397,7 @@ pub fn bm3d_multiscale(
         Zip::indexed(&mut plane).for_each(|(y, x), v| {
             // Fine pixel centres in coarse cell coordinates.
             let (cy, cx) = ((y as f32 + 0.5) / 2.0 - 0.5, (x as f32 + 0.5) / 2.0 - 0.5);
-            *v += bilinear(&correction, cy, cx);
+            *v += bilinear(correction.view(), cy, cx);
         });
     }
     Ok(fine)

@@ -31,7 +31,7 @@ pub use accumulate::{
 pub use kernels::{kernel_field, KernelConfig, KernelField};
 pub use reference::{reference_image, reference_image_streamed, WienerConfig};
 pub use robustness::{robustness, RobustnessConfig};
-pub use warp::{sample_bilinear, warp_to_reference};
+pub use warp::warp_to_reference;
 
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};

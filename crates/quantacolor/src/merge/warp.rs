@@ -1,25 +1,9 @@
 //! Bilinear warping of block images onto the reference grid (supplement §1.2).
 
 use crate::error::{Error, Result};
-use ndarray::{Array2, Array3, ArrayView2, Axis};
+use crate::filters::bilinear;
+use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
-
-/// Bilinear sample of `image` at the real position `(y, x)`, clamped to the image edges.
-#[inline]
-pub fn sample_bilinear(image: ArrayView2<f32>, y: f32, x: f32) -> f32 {
-    let (h, w) = image.dim();
-    let y = y.clamp(0.0, (h - 1) as f32);
-    let x = x.clamp(0.0, (w - 1) as f32);
-    let y0 = (y.floor() as usize).min(h.saturating_sub(2));
-    let x0 = (x.floor() as usize).min(w.saturating_sub(2));
-    let y1 = (y0 + 1).min(h - 1);
-    let x1 = (x0 + 1).min(w - 1);
-    let fy = y - y0 as f32;
-    let fx = x - x0 as f32;
-    let top = image[[y0, x0]] * (1.0 - fx) + image[[y0, x1]] * fx;
-    let bottom = image[[y1, x0]] * (1.0 - fx) + image[[y1, x1]] * fx;
-    top * (1.0 - fy) + bottom * fy
-}
 
 /// True for a positive number (false for NaN): parameter validation.
 pub(crate) fn positive(v: f32) -> bool {
@@ -58,7 +42,7 @@ pub fn warp_to_reference(block: &Array2<f32>, flow: &Array3<f32>) -> Result<Arra
         .for_each(|(y, mut row)| {
             for x in 0..w {
                 let (dy, dx) = (flow[[y, x, 0]], flow[[y, x, 1]]);
-                row[x] = sample_bilinear(block.view(), y as f32 + dy, x as f32 + dx);
+                row[x] = bilinear(block.view(), y as f32 + dy, x as f32 + dx);
             }
         });
     Ok(out)

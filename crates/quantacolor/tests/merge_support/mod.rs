@@ -166,7 +166,7 @@ pub fn upsample_bilinear(img: &Array3<f32>, scale: usize) -> Array3<f32> {
     Array3::from_shape_fn((h * scale, w * scale, 3), |(y, x, c)| {
         let plane = img.index_axis(ndarray::Axis(2), c);
         let (ry, rx) = ((y as f32 + 0.5) / s - 0.5, (x as f32 + 0.5) / s - 0.5);
-        quantacolor::merge::sample_bilinear(plane, ry, rx)
+        quantacolor::filters::bilinear(plane, ry, rx)
     })
 }
 
