@@ -145,45 +145,6 @@ pub fn normalized_convolution_nan(values: ArrayView2<f32>, sigma: f64) -> Array2
         .map_collect(|&n, &d| if d > 1e-6 { n / d } else { f32::NAN })
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn serial_and_parallel_separable_agree_bit_for_bit() {
-        let img = Array2::from_shape_fn((23, 31), |(y, x)| ((y * 7 + x * 13) % 17) as f32 * 0.37);
-        for kernel in [gaussian_taps(1.3), gaussian_kernel_unit_sum(2.1)] {
-            let a = separable(&img, &kernel);
-            let b = separable_par(&img, &kernel);
-            assert!(a.iter().zip(&b).all(|(p, q)| p.to_bits() == q.to_bits()));
-        }
-    }
-
-    #[test]
-    fn unit_sum_kernel_sums_to_one_and_blur_keeps_a_constant() {
-        let k = gaussian_kernel_unit_sum(1.7);
-        assert_eq!(k.len(), 2 * 6 + 1);
-        assert!((k.iter().sum::<f32>() - 1.0).abs() < 1e-6);
-        let flat = Array2::from_elem((9, 12), 3.5f32);
-        assert!(gaussian_blur(&flat, 1.2)
-            .iter()
-            .all(|&v| (v - 3.5).abs() < 1e-5));
-    }
-
-    #[test]
-    fn masked_and_nan_variants_mark_empty_neighbourhoods_differently() {
-        let mut values = Array2::<f32>::from_elem((5, 40), f32::NAN);
-        values[[2, 1]] = 4.0;
-        let mask = values.mapv(|v| !v.is_nan());
-        let masked = normalized_convolution_masked(&values, &mask, 1.0);
-        let nan = normalized_convolution_nan(values.view(), 1.0);
-        assert_eq!(masked[[2, 1]], 4.0);
-        assert_eq!(nan[[2, 1]], 4.0);
-        assert_eq!(masked[[2, 39]], 0.0);
-        assert!(nan[[2, 39]].is_nan());
-    }
-}
-
 /// The two taps and the weight of the second along one axis of length `n` of [`bilinear`] at
 /// coordinate `v` (clamped to the axis).
 #[inline]
@@ -221,4 +182,43 @@ pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
         }
         s / ((y1 - y * f) * (x1 - x * f)) as f32
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn serial_and_parallel_separable_agree_bit_for_bit() {
+        let img = Array2::from_shape_fn((23, 31), |(y, x)| ((y * 7 + x * 13) % 17) as f32 * 0.37);
+        for kernel in [gaussian_taps(1.3), gaussian_kernel_unit_sum(2.1)] {
+            let a = separable(&img, &kernel);
+            let b = separable_par(&img, &kernel);
+            assert!(a.iter().zip(&b).all(|(p, q)| p.to_bits() == q.to_bits()));
+        }
+    }
+
+    #[test]
+    fn unit_sum_kernel_sums_to_one_and_blur_keeps_a_constant() {
+        let k = gaussian_kernel_unit_sum(1.7);
+        assert_eq!(k.len(), 2 * 6 + 1);
+        assert!((k.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+        let flat = Array2::from_elem((9, 12), 3.5f32);
+        assert!(gaussian_blur(&flat, 1.2)
+            .iter()
+            .all(|&v| (v - 3.5).abs() < 1e-5));
+    }
+
+    #[test]
+    fn masked_and_nan_variants_mark_empty_neighbourhoods_differently() {
+        let mut values = Array2::<f32>::from_elem((5, 40), f32::NAN);
+        values[[2, 1]] = 4.0;
+        let mask = values.mapv(|v| !v.is_nan());
+        let masked = normalized_convolution_masked(&values, &mask, 1.0);
+        let nan = normalized_convolution_nan(values.view(), 1.0);
+        assert_eq!(masked[[2, 1]], 4.0);
+        assert_eq!(nan[[2, 1]], 4.0);
+        assert_eq!(masked[[2, 39]], 0.0);
+        assert!(nan[[2, 39]].is_nan());
+    }
 }
