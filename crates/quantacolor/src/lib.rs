@@ -20,6 +20,7 @@ pub mod denoise;
 pub mod display;
 pub mod error;
 pub mod experiments;
+pub mod fastmath;
 pub mod filters;
 pub mod inspect;
 pub mod merge;

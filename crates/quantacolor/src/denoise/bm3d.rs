@@ -902,13 +902,30 @@ fn process_reference(
                 let row = (by + i - strip.y0) * w + bx;
                 let kai = &tr.kaiser[i * n..(i + 1) * n];
                 let px = &s.pixels[i * n..(i + 1) * n];
-                for j in 0..n {
-                    let wk = weight * kai[j];
-                    num[row + j] += wk * px[j];
-                    den[row + j] += wk;
+                let (num, den) = (&mut num[row..row + n], &mut den[row..row + n]);
+                if n == 8 {
+                    // Fixed length: unrolled and vectorised.
+                    let num: &mut [f32; 8] = num.try_into().expect("8 wide");
+                    let den: &mut [f32; 8] = den.try_into().expect("8 wide");
+                    let kai: &[f32; 8] = kai.try_into().expect("8 wide");
+                    let px: &[f32; 8] = px.try_into().expect("8 wide");
+                    aggregate_row(num, den, kai, px, weight);
+                } else {
+                    aggregate_row(num, den, kai, px, weight);
                 }
             }
         }
+    }
+}
+
+/// `num += weight·kai·px`, `den += weight·kai` along one block row (aggregation, TIP 2007
+/// Eq. 10 / Eq. 12).
+#[inline(always)]
+fn aggregate_row(num: &mut [f32], den: &mut [f32], kai: &[f32], px: &[f32], weight: f32) {
+    for (((num, den), &k), &v) in num.iter_mut().zip(den.iter_mut()).zip(kai).zip(px) {
+        let wk = weight * k;
+        *num += wk * v;
+        *den += wk;
     }
 }
 

@@ -10,6 +10,7 @@
 use super::kernels::KernelField;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::fastmath;
 use crate::filters::normalized_convolution_nan as normalized_convolution;
 use crate::model::PixelModel;
 use ndarray::{Array2, Array3, Axis};
@@ -213,8 +214,10 @@ pub struct MergedPlanes {
 /// against the kernels' ≥ 0.25 px std); the test `fast_merge_matches_the_per_sample_merge`
 /// compares it with the direct per-sample sum.
 ///
-/// Memory: 12 f32 per bin, about 25 MB for 496x254 at scale 1 and 100 MB at scale 2,
-/// whatever the number of frames.
+/// Memory: 12 f32 per bin, about 26 MB for 496x254 at scale 1 and 100 MB at scale 2,
+/// whatever the number of frames. The bins are stored as planes (structure of arrays: one row
+/// of bins per channel and sum), so the regression reads a row segment of bins as contiguous
+/// lanes and evaluates eight kernel weights at once ([`gather_row`]).
 pub struct MergeAccumulator<'a> {
     cfa: &'a Cfa,
     kernels: &'a KernelField,
@@ -234,10 +237,19 @@ pub struct MergeAccumulator<'a> {
     margin: usize,
     bins_h: usize,
     bins_w: usize,
-    /// bins[(by·bins_w + bx)·12 + c·3 + {0: Σ r·counts, 1: Σ r·F, 2: Σ r²·F}]; bin (by, bx)
-    /// sits at reference position (by/u − margin, bx/u − margin).
+    /// Floats per plane row: `bins_w` padded so that eight lanes read from any bin of a row
+    /// stay inside the row ([`LANES`]).
+    stride: usize,
+    /// bins[((by·4 + c)·3 + k)·stride + bx] with k = {0: Σ r·counts, 1: Σ r·F, 2: Σ r²·F}
+    /// (padding columns stay 0); bin (by, bx) sits at reference position
+    /// (by/u − margin, bx/u − margin).
     bins: Vec<f32>,
 }
+
+/// Lanes of the vectorised kernel regression (eight f32: one AVX2 register).
+const LANES: usize = 8;
+/// Sums per bin: 4 channels × (Σ r·counts, Σ r·F, Σ r²·F).
+const SUMS: usize = 12;
 
 /// Bilinear sample of the interleaved (H, W, 2) `flow` at real position (y, x), clamped.
 #[inline]
@@ -261,7 +273,9 @@ fn flow_bilinear(flow: &[f32], h: usize, w: usize, y: f32, x: f32) -> [f32; 2] {
 }
 
 /// `v.round()` (half away from zero) without the libm call that a target without SSE4.1
-/// makes of it: the same value for every finite `v` (up to the sign of a zero result).
+/// makes of it: the same value for every finite `v` (up to the sign of a zero result). The
+/// step away from the truncation is taken without a branch: sub-pixel positions make it a coin
+/// toss that a branch predictor misses half of the time.
 #[inline]
 fn round_half_away(v: f32) -> f32 {
     if v.is_nan() || v.abs() >= 8_388_608.0 {
@@ -270,13 +284,7 @@ fn round_half_away(v: f32) -> f32 {
     }
     let t = (v as i32) as f32;
     let frac = v - t; // exact
-    if frac >= 0.5 {
-        t + 1.0
-    } else if frac <= -0.5 {
-        t - 1.0
-    } else {
-        t
-    }
+    t + ((frac >= 0.5) as i32 - (frac <= -0.5) as i32) as f32
 }
 
 /// Reference-grid position of the sensor site `q` of a (sub-)block with forward `flow` (the
@@ -303,18 +311,21 @@ struct TargetGrid<'s> {
     margin: f32,
     bins_h: usize,
     bins_w: usize,
+    /// Floats per plane row of the bins ([`MergeAccumulator`]'s `stride`).
+    stride: usize,
     excluded: Option<&'s [bool]>,
     /// Robustness map on the reference grid (`None`: weight 1).
     robust: Option<&'s [f32]>,
 }
 
 impl TargetGrid<'_> {
-    /// Target bin and robustness weight of every site (row-major), `(u32::MAX, 0)` for sites
-    /// left out (excluded, zero weight, outside the bins); `position` maps a site to its
-    /// reference-grid position. In parallel by rows.
+    /// Target bin (the index of its first sum in the bins, (by·12)·stride + bx) and robustness
+    /// weight of every site (row-major), `(u32::MAX, 0)` for sites left out (excluded, zero
+    /// weight, outside the bins); `position` maps a site to its reference-grid position. In
+    /// parallel by rows.
     fn fill(&self, targets: &mut [(u32, f32)], position: impl Fn([f32; 2]) -> [f32; 2] + Sync) {
         let (h, w, u, margin) = (self.h, self.w, self.u, self.margin);
-        let (bins_h, bins_w) = (self.bins_h, self.bins_w);
+        let (bins_h, bins_w, row_floats) = (self.bins_h, self.bins_w, SUMS * self.stride);
         targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
             for (x, target) in row.iter_mut().enumerate() {
                 let i = y * w + x;
@@ -337,7 +348,7 @@ impl TargetGrid<'_> {
                     {
                         (u32::MAX, 0.0)
                     } else {
-                        ((by as usize * bins_w + bx as usize) as u32, r)
+                        ((by as usize * row_floats + bx as usize) as u32, r)
                     }
                 };
             }
@@ -374,6 +385,17 @@ impl<'a> MergeAccumulator<'a> {
         let margin = radius as usize;
         let bins_h = (h - 1 + 2 * margin) * bins_per_px + 1;
         let bins_w = (w - 1 + 2 * margin) * bins_per_px + 1;
+        let stride = (bins_w + LANES - 1).next_multiple_of(LANES);
+        let len = bins_h
+            .checked_mul(SUMS * stride)
+            .filter(|&n| n < u32::MAX as usize)
+            .ok_or_else(|| {
+                Error::invalid(format!(
+                    "merge: a {h}x{w} image at scale {} with {} bins per output pixel needs \
+                     more phase bins than the merge can index; lower the scale or the bins",
+                    config.scale, config.bins_per_output_px
+                ))
+            })?;
         Ok(MergeAccumulator {
             cfa,
             kernels,
@@ -388,7 +410,8 @@ impl<'a> MergeAccumulator<'a> {
             margin,
             bins_h,
             bins_w,
-            bins: vec![0.0; bins_h * bins_w * 12],
+            stride,
+            bins: vec![0.0; len],
         })
     }
 
@@ -427,11 +450,12 @@ impl<'a> MergeAccumulator<'a> {
             .map(|m| m.as_standard_layout())
             .collect();
         let mut targets = vec![(u32::MAX, 0.0f32); h * w];
+        let stride = self.stride;
         // Bins are split into bands of rows, one band per task: every task scans all sites in
         // order and adds those landing in its band, so each bin receives its samples in site
         // order whatever the number of threads (the same sums as one serial pass).
         let bands = rayon::current_num_threads().clamp(1, 16);
-        let band_bins = (bins_h.div_ceil(bands) * bins_w).max(1);
+        let band_floats = bins_h.div_ceil(bands) * SUMS * stride;
         for sub in sub_blocks {
             let counts = sub.counts.as_standard_layout();
             let counts = counts.as_slice().expect("standard layout");
@@ -451,6 +475,7 @@ impl<'a> MergeAccumulator<'a> {
                 margin,
                 bins_h,
                 bins_w,
+                stride,
                 excluded: self.excluded.as_deref(),
                 robust,
             };
@@ -494,25 +519,78 @@ impl<'a> MergeAccumulator<'a> {
             let frames = sub.frames as f32;
             let (targets, codes) = (&targets, &self.codes);
             self.bins
-                .par_chunks_mut(band_bins * 12)
+                .par_chunks_mut(band_floats)
                 .enumerate()
                 .for_each(|(band, cells)| {
-                    let first = band * band_bins;
-                    let end = first + cells.len() / 12;
+                    let first = band * band_floats;
+                    let end = first + cells.len();
                     for ((&(bin, r), &count), &code) in targets.iter().zip(counts).zip(codes) {
                         let bin = bin as usize;
                         if bin < first || bin >= end {
                             continue;
                         }
-                        let slot = (bin - first) * 12 + (code as usize & 3) * 3;
-                        let cell = &mut cells[slot..slot + 3];
-                        cell[0] += r * count as f32;
-                        cell[1] += r * frames;
-                        cell[2] += r * r * frames;
+                        let slot = bin - first + (code as usize & 3) * 3 * stride;
+                        cells[slot] += r * count as f32;
+                        cells[slot + stride] += r * frames;
+                        cells[slot + 2 * stride] += r * r * frames;
                     }
                 });
         }
         Ok(())
+    }
+
+    /// (Σ g·S0, Σ g·S1, Σ g²·S2) per channel (the sums of supplement Eq. 1–3 over the bins, g the
+    /// kernel weight) of every output pixel, row-major, in parallel by output rows.
+    fn regression(&self) -> Vec<[f32; SUMS]> {
+        let scale = self.config.scale;
+        let (h, w) = (self.cfa.height(), self.cfa.width());
+        let (hs, ws) = (h * scale, w * scale);
+        let inv_scale = self.inv_scale;
+        let cutoff = self.config.cutoff;
+        let u = self.bins_per_px as f32;
+        let inv_cov = self.kernels.inv_cov.as_standard_layout();
+        let inv_s = 1.0 / scale as f32;
+        // Every channel skips a bin whose quadratic form times the smallest channel factor is
+        // at or above the cutoff (rounding is monotone and the form is then positive), so the
+        // gather only visits the bins of each row inside that widest ellipse, widened by a bin
+        // on each side against rounding ([`ellipse_span`]).
+        let min_inv_scale = inv_scale.iter().copied().fold(f32::INFINITY, f32::min);
+        let present = self.channel_scale.map(|s| s > 0.0);
+        // A channel whose factor equals that of the last channel with sites before it reuses
+        // its weights (R, G and B of most CFAs: the same values, computed once).
+        let mut reuse = [false; 4];
+        let mut last: Option<usize> = None;
+        for ch in 0..4 {
+            if present[ch] {
+                reuse[ch] = last.is_some_and(|l| inv_scale[l] == inv_scale[ch]);
+                last = Some(ch);
+            }
+        }
+        let gather = Gather {
+            bins: &self.bins,
+            stride: self.stride,
+            bins_h: self.bins_h as isize,
+            bins_w: self.bins_w as isize,
+            inv_cov: inv_cov.as_slice().expect("standard layout"),
+            h,
+            w,
+            u,
+            inv_u: 1.0 / u,
+            margin: self.margin as f32,
+            radius: self.radius,
+            inv_s,
+            offset: 0.5 * inv_s - 0.5,
+            cutoff,
+            inv_scale,
+            present,
+            reuse,
+            ellipse_limit: (min_inv_scale > 0.0).then(|| cutoff as f64 / min_inv_scale as f64),
+        };
+        let mut sums = vec![[0.0f32; SUMS]; hs * ws];
+        sums.par_chunks_mut(ws)
+            .enumerate()
+            .for_each(|(oy, row)| gather_row(&gather, oy, row));
+        sums
     }
 
     /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel mean samples and
@@ -525,97 +603,7 @@ impl<'a> MergeAccumulator<'a> {
         let (h, w) = (self.cfa.height(), self.cfa.width());
         let (hs, ws) = (h * scale, w * scale);
         let channel_scale = self.channel_scale;
-        let inv_scale = self.inv_scale;
-        let cutoff = self.config.cutoff;
-        let u = self.bins_per_px as f32;
-        let inv_u = 1.0 / u;
-        let margin = self.margin as f32;
-        let radius = self.radius;
-        let (bins_h, bins_w) = (self.bins_h as isize, self.bins_w as isize);
-        let bins = &self.bins[..];
-        let inv_cov = self.kernels.inv_cov.as_standard_layout();
-        let inv_cov = inv_cov.as_slice().expect("standard layout");
-        let inv_s = 1.0 / scale as f32;
-        let offset = 0.5 * inv_s - 0.5;
-        // Every channel skips a bin whose quadratic form times the smallest channel factor is
-        // at or above the cutoff (rounding is monotone and the form is then positive), so the
-        // gather only visits the bins of each row inside that widest ellipse, widened by a bin
-        // on each side against rounding ([`ellipse_span`]): the same sums in the same order.
-        let min_inv_scale = inv_scale.iter().copied().fold(f32::INFINITY, f32::min);
-        let ellipse_limit = (min_inv_scale > 0.0).then(|| cutoff as f64 / min_inv_scale as f64);
-        // (Σ g·S0, Σ g·S1, Σ g²·S2) per channel of every output pixel.
-        let mut sums = vec![[0.0f32; 12]; hs * ws];
-        sums.par_chunks_mut(ws).enumerate().for_each(|(oy, row)| {
-            let py = oy as f32 * inv_s + offset;
-            let iy = (py.round().max(0.0) as usize).min(h - 1);
-            let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
-            let by1 = (((py + radius + margin) * u).floor() as isize).min(bins_h - 1);
-            for (ox, out) in row.iter_mut().enumerate() {
-                let px = ox as f32 * inv_s + offset;
-                let ix = (px.round().max(0.0) as usize).min(w - 1);
-                let k = 3 * (iy * w + ix);
-                let (a, b2, c) = (inv_cov[k], 2.0 * inv_cov[k + 1], inv_cov[k + 2]);
-                let bx0 = (((px - radius + margin) * u).ceil() as isize).max(0);
-                let bx1 = (((px + radius + margin) * u).floor() as isize).min(bins_w - 1);
-                for by in by0..=by1 {
-                    let dy = by as f32 * inv_u - margin - py;
-                    let ady2 = a * dy * dy;
-                    let bdy = b2 * dy;
-                    let row_start = (by * bins_w) as usize;
-                    let (lo, hi) = match ellipse_limit {
-                        Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
-                            Some((dx_lo, dx_hi)) => (
-                                bx0.max(
-                                    ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64)
-                                        .floor() as isize,
-                                ),
-                                bx1.min(
-                                    ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64)
-                                        .ceil() as isize,
-                                ),
-                            ),
-                            None => continue,
-                        },
-                        None => (bx0, bx1),
-                    };
-                    let lo = lo.min(bx1 + 1);
-                    // dx by the same additions as a walk from bx0 (bit-identical positions).
-                    let mut dx = bx0 as f32 * inv_u - margin - px;
-                    for _ in bx0..lo {
-                        dx += inv_u;
-                    }
-                    for bx in lo..=hi {
-                        let quad = ady2 + dx * (bdy + c * dx);
-                        dx += inv_u;
-                        if quad * min_inv_scale >= cutoff {
-                            continue;
-                        }
-                        let cell = &bins[(row_start + bx as usize) * 12..][..12];
-                        // Channels of equal site density (R, G, B of most CFAs) share the
-                        // weight: computed once (the same value).
-                        let (mut last_q, mut last_g) = (f32::NAN, 0.0f32);
-                        for ch in 0..4 {
-                            let s = &cell[ch * 3..ch * 3 + 3];
-                            if s[1] == 0.0 {
-                                continue;
-                            }
-                            let q = quad * inv_scale[ch];
-                            if q < cutoff {
-                                let g = if q == last_q {
-                                    last_g
-                                } else {
-                                    (last_q, last_g) = (q, (-0.5 * q).exp());
-                                    last_g
-                                };
-                                out[ch * 3] += g * s[0];
-                                out[ch * 3 + 1] += g * s[1];
-                                out[ch * 3 + 2] += g * g * s[2];
-                            }
-                        }
-                    }
-                }
-            }
-        });
+        let sums = self.regression();
         let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut effective_frames = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
@@ -688,6 +676,162 @@ impl<'a> MergeAccumulator<'a> {
             w_fallback,
         }
     }
+}
+
+/// What the kernel regression ([`gather_row`]) reads: the phase bins and the kernels, with the
+/// geometry of both grids (see [`MergeAccumulator`]).
+struct Gather<'g> {
+    /// The bins in [`MergeAccumulator`]'s plane layout.
+    bins: &'g [f32],
+    stride: usize,
+    bins_h: isize,
+    bins_w: isize,
+    /// (H, W, 3) inverse kernel covariances (a, b, c), row-major.
+    inv_cov: &'g [f32],
+    h: usize,
+    w: usize,
+    /// Bins per reference px and its inverse.
+    u: f32,
+    inv_u: f32,
+    /// Margin of the bin grid and gather radius (reference px).
+    margin: f32,
+    radius: f32,
+    /// Reference px per output px, and the reference position of output pixel 0.
+    inv_s: f32,
+    offset: f32,
+    cutoff: f32,
+    /// Kernel factor 1/scale_c of every channel (Ω_c⁻¹ = Ω⁻¹/scale_c).
+    inv_scale: [f32; 4],
+    /// Channels with sites in the CFA.
+    present: [bool; 4],
+    /// Channels whose weights equal those of the channel with sites before them.
+    reuse: [bool; 4],
+    /// Bound of the quadratic form inside which some channel's weight is non-zero.
+    ellipse_limit: Option<f64>,
+}
+
+/// The regression sums of output row `oy` into `row` (W·scale pixels).
+fn gather_row(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe { gather_row_avx2(g, oy, row) };
+        }
+    }
+    gather_row_generic(g, oy, row)
+}
+
+/// [`gather_row_generic`] compiled for AVX2 (its eight-lane loops become vector instructions):
+/// the same operations in the same order (no fused multiply-add), so the same result.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn gather_row_avx2(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+    gather_row_generic(g, oy, row)
+}
+
+/// Kernel regression of one output row over the phase bins (supplement Eq. 1–3): for every
+/// output pixel p and every bin within the gather radius (and inside the widest channel's
+/// ellipse), the weight g = exp(−½·dᵀΩ_c⁻¹d) of the bin's offset d for every channel c with
+/// dᵀΩ_c⁻¹d below the cutoff, accumulated as Σ g·S0, Σ g·S1, Σ g²·S2 of the bin's sums.
+///
+/// Eight bins of a row at a time: the quadratic forms, the exponentials ([`fastmath::exp`])
+/// and the products are lane-wise, with bins outside the row segment or the cutoff weighted 0
+/// (empty bins hold zeros); each lane keeps its own partial sums, added in a fixed tree at
+/// the end of the pixel. Deterministic and independent of the thread count; the order of the
+/// additions differs from one sum over the bins in row order only by rounding.
+#[inline(always)]
+fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+    let (bins, stride) = (g.bins, g.stride);
+    let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
+    let py = oy as f32 * g.inv_s + g.offset;
+    let iy = (py.round().max(0.0) as usize).min(g.h - 1);
+    let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
+    let by1 = (((py + radius + margin) * u).floor() as isize).min(g.bins_h - 1);
+    for (ox, out) in row.iter_mut().enumerate() {
+        let px = ox as f32 * g.inv_s + g.offset;
+        let ix = (px.round().max(0.0) as usize).min(g.w - 1);
+        let k = 3 * (iy * g.w + ix);
+        let (a, b2, c) = (g.inv_cov[k], 2.0 * g.inv_cov[k + 1], g.inv_cov[k + 2]);
+        let bx0 = (((px - radius + margin) * u).ceil() as isize).max(0);
+        let bx1 = (((px + radius + margin) * u).floor() as isize).min(g.bins_w - 1);
+        // acc[channel][sum][lane]
+        let mut acc = [[[0.0f32; LANES]; 3]; 4];
+        for by in by0..=by1 {
+            let dy = by as f32 * inv_u - margin - py;
+            let ady2 = a * dy * dy;
+            let bdy = b2 * dy;
+            let (lo, hi) = match g.ellipse_limit {
+                Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
+                    Some((dx_lo, dx_hi)) => (
+                        bx0.max(
+                            ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64).floor()
+                                as isize,
+                        ),
+                        bx1.min(
+                            ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64).ceil()
+                                as isize,
+                        ),
+                    ),
+                    None => continue,
+                },
+                None => (bx0, bx1),
+            };
+            let row_start = by as usize * SUMS * stride;
+            let mut bx = lo;
+            while bx <= hi {
+                let mut quad = [0.0f32; LANES];
+                let mut inside = [false; LANES];
+                for i in 0..LANES {
+                    let dx = (bx + i as isize) as f32 * inv_u - margin - px;
+                    quad[i] = ady2 + dx * (bdy + c * dx);
+                    inside[i] = bx + (i as isize) <= hi;
+                }
+                let mut weight = [0.0f32; LANES];
+                let first = row_start + bx as usize;
+                for (ch, acc) in acc.iter_mut().enumerate() {
+                    if !g.present[ch] {
+                        continue;
+                    }
+                    if !g.reuse[ch] {
+                        for i in 0..LANES {
+                            let q = quad[i] * g.inv_scale[ch];
+                            let e = fastmath::exp(-0.5 * q);
+                            weight[i] = if inside[i] && q < g.cutoff { e } else { 0.0 };
+                        }
+                    }
+                    let at = first + ch * 3 * stride;
+                    let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+                    let at = at + stride;
+                    let s1: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+                    let at = at + stride;
+                    let s2: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+                    for i in 0..LANES {
+                        acc[0][i] += weight[i] * s0[i];
+                        acc[1][i] += weight[i] * s1[i];
+                        acc[2][i] += weight[i] * weight[i] * s2[i];
+                    }
+                }
+                bx += LANES as isize;
+            }
+        }
+        for (ch, acc) in acc.iter().enumerate() {
+            for (sum, lanes) in acc.iter().enumerate() {
+                out[ch * 3 + sum] = lane_sum(lanes);
+            }
+        }
+    }
+}
+
+/// The sum of eight lanes in a fixed order (pairs of halves, then of quarters, then the two).
+#[inline(always)]
+fn lane_sum(l: &[f32; LANES]) -> f32 {
+    let (a0, a1, a2, a3) = (l[0] + l[4], l[1] + l[5], l[2] + l[6], l[3] + l[7]);
+    let (b0, b1) = (a0 + a2, a1 + a3);
+    b0 + b1
 }
 
 /// How far W's flux can be trusted at a pixel whose merged W bit rate is `bit_rate` over
