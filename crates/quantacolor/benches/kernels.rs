@@ -1,7 +1,8 @@
 //! Criterion benchmarks of the burst pipeline's hot kernels on a simulated capture of the
 //! built-in chart (496x254, colour-SPAD CFA, hand-held motion, 0.1 photons/pixel/frame): block
 //! alignment, the sub-block motion refinement, the merge guide (reference, kernels, robustness),
-//! the phase-bin accumulator of the joint demosaic-merge, and BM3D.
+//! the phase-bin accumulator of the joint demosaic-merge, BM3D, and the branch-free exponential
+//! of the merge's kernel weights against libm.
 //!
 //! `cargo bench -p quantacolor --bench kernels` (CI only builds them, with clippy). The whole
 //! pipeline against the naive sum: `quantacolor bench speed`.
@@ -13,6 +14,7 @@ use quantacolor::burst::BurstConfig;
 use quantacolor::capture::Capture;
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::denoise::bm3d::{bm3d_grey, Bm3dConfig};
+use quantacolor::fastmath;
 use quantacolor::merge::{
     merge_guide, robustness, GreyNoise, MergeAccumulator, SubBlock, SubBlockRobustness,
 };
@@ -181,9 +183,32 @@ fn bm3d(c: &mut Criterion) {
     });
 }
 
+/// The kernel weights' exponential over the range the merge uses (e^(−q/2), q below the
+/// cutoff 9), vectorisable, against libm's.
+fn exp(c: &mut Criterion) {
+    let xs: Vec<f32> = (0..4096).map(|i| -4.5 * i as f32 / 4096.0).collect();
+    let mut out = vec![0.0f32; xs.len()];
+    c.bench_function("exp 4096 (fastmath)", |b| {
+        b.iter(|| {
+            for (o, &x) in out.iter_mut().zip(black_box(&xs)) {
+                *o = fastmath::exp(x);
+            }
+            black_box(&out);
+        })
+    });
+    c.bench_function("exp 4096 (libm)", |b| {
+        b.iter(|| {
+            for (o, &x) in out.iter_mut().zip(black_box(&xs)) {
+                *o = x.exp();
+            }
+            black_box(&out);
+        })
+    });
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(10);
-    targets = pipeline_kernels, bm3d
+    targets = pipeline_kernels, bm3d, exp
 }
 criterion_main!(benches);
