@@ -1174,7 +1174,7 @@ fn video(
 
     eprintln!("reuse path: motion once, then guide + merge + denoise per frame");
     let start = Instant::now();
-    let reconstructor = VideoReconstructor::new(&capture, &rc, &Silent)?;
+    let reconstructor = VideoReconstructor::for_frames(&capture, &rc, &references, &Silent)?;
     let shared_s = start.elapsed().as_secs_f64();
     let mut new = Vec::new();
     let mut frame_stages: Vec<(String, f64)> = Vec::new();

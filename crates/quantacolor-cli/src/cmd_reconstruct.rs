@@ -277,7 +277,12 @@ fn write_video(
     }
     let staged = StagedDir::new(&args.out)?;
     let video = match args.video_motion {
-        VideoMotion::Shared => Some(VideoReconstructor::new(capture, config, progress)?),
+        VideoMotion::Shared => Some(VideoReconstructor::for_frames(
+            capture,
+            config,
+            &references,
+            progress,
+        )?),
         VideoMotion::PerFrame => None,
     };
     let mut frames = Vec::with_capacity(references.len());

@@ -199,3 +199,35 @@ fn video_frames_match_the_per_reference_reconstruction() {
     println!("mean: per-reference {mean_old:.2} dB, reuse {mean_new:.2} dB");
     assert!(mean_new > mean_old - 0.2, "{mean_new} vs {mean_old}");
 }
+
+/// `for_frames` moves the anchor to a video frame and keeps the block size when it divides the
+/// spacing (every video frame is then a block centre of the anchor's grid, the one at the anchor
+/// its reference block's), and keeps `new`'s grid when it does not.
+#[test]
+fn for_frames_centres_evenly_spaced_frames_in_their_blocks() {
+    let config = SimulationConfig {
+        frames: 1024,
+        flux: FluxSpec::Mean { flux: 0.1 },
+        motion: "handheld".parse::<MotionConfig>().unwrap(),
+        seed: 32,
+        ..SimulationConfig::default()
+    };
+    let scene = Scene::from_spec("builtin:chart").unwrap();
+    let sim = simulate_with_cfa(&config, &scene, &colorspad_cfa(), &Silent).unwrap();
+    let capture = sim.to_capture().unwrap();
+    let mut rc = ReconstructConfig::default();
+    rc.burst.align.blocks.block_size = Some(101);
+    // Spacing 202 = 2 B: frames 101 + 202 k are block centres; 505 is nearest the capture's 512.
+    let centred = [101, 303, 505, 707, 909];
+    let video = VideoReconstructor::for_frames(&capture, &rc, &centred, &Silent).unwrap();
+    assert_eq!(video.anchor_frame(), 505);
+    let plan = BlockPlan::new(1024, 101, 505).unwrap();
+    let centres = plan.center_frames();
+    for r in centred {
+        assert!(centres.contains(&(r as f64)), "{r} is not a block centre");
+    }
+    // Spacing 150 is no multiple of B (within 2 %): the anchor stays.
+    let other = [75, 225, 375, 525, 675, 825, 975];
+    let video = VideoReconstructor::for_frames(&capture, &rc, &other, &Silent).unwrap();
+    assert_eq!(video.anchor_frame(), 512);
+}
