@@ -5,7 +5,8 @@
 //! (QC_CASES="scene:motion:frames:flux;..." overrides the captures; scenes from ../shared/data;
 //! QC_SEED sets the seed of the first capture, 900 by default, the next ones count up;
 //! QC_DEBUG=epe prints the flow error at the centre and corners over time, QC_DEBUG=rigid the
-//! camera's error as fitted and projected to a similarity or rigid map, any other value the
+//! camera's error as fitted and projected to a similarity or rigid map, QC_DEBUG=local the local
+//! residual of every block (QC_MAP=1 also maps its tiles), any other value the
 //! motion of every sub-block).
 
 mod burst_support;
@@ -163,6 +164,47 @@ fn diagnose_frame_motion() {
                 {
                     e.sort_by(f64::total_cmp);
                     println!("  camera {name}: median EPE {:.3}", e[e.len() / 2]);
+                }
+            } else if std::env::var("QC_DEBUG").is_ok_and(|v| v == "local") {
+                // Local residual of every block: tiles kept, mean and spread of the residual.
+                if let Ok(dir) = std::env::var("QC_DUMP") {
+                    let path = format!("{dir}/local-{name}.npy");
+                    ndarray_npy::write_npy(&path, &b.motion.local).unwrap();
+                    let path = format!("{dir}/flow-{name}.npy");
+                    ndarray_npy::write_npy(&path, &b.alignment.flow).unwrap();
+                }
+                for bl in 0..b.motion.plan.len() {
+                    let l = b.motion.local.slice(ndarray::s![bl, .., .., ..]);
+                    let (ty, tx, _) = l.dim();
+                    let mut n = 0usize;
+                    let (mut sy, mut sx) = (0.0f64, 0.0f64);
+                    let mut rows = Vec::new();
+                    for i in 0..ty {
+                        let mut row = String::new();
+                        for j in 0..tx {
+                            let (a, c) = (l[[i, j, 0]], l[[i, j, 1]]);
+                            if a != 0.0 || c != 0.0 {
+                                n += 1;
+                                sy += a as f64;
+                                sx += c as f64;
+                                row.push(if c.abs() > a.abs() { 'x' } else { 'y' });
+                            } else {
+                                row.push('.');
+                            }
+                        }
+                        rows.push(row);
+                    }
+                    let r = &b.motion.plan.blocks[bl];
+                    println!(
+                        "  block {bl} {r:?}: {n} local tiles, mean ({:+.2}, {:+.2})",
+                        sy / n.max(1) as f64,
+                        sx / n.max(1) as f64
+                    );
+                    if n > 0 && std::env::var("QC_MAP").is_ok() {
+                        for row in rows.iter().step_by(2) {
+                            println!("    {row}");
+                        }
+                    }
                 }
             } else if std::env::var("QC_DEBUG").is_ok() {
                 for (k, r) in b.motion.sub_blocks.iter().enumerate() {
