@@ -192,6 +192,107 @@ fn tile_cost(
     cost / ((y1 - y0) * (x1 - x0)) as f32
 }
 
+/// [`tile_cost`] of the offsets `(dy, dx0 + i)` for every `i < out.len()`, into `out`: with AVX2,
+/// eight offsets at a time where all of them overlap the image alike (each lane sums its rows
+/// in the scalar order, so every cost is bit-identical to [`tile_cost`]'s); elsewhere one
+/// [`tile_cost`] each.
+fn window_row_costs(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    origin: (usize, usize),
+    ts: usize,
+    (dy, dx0): (isize, isize),
+    norm: Norm,
+    out: &mut [f32],
+) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            while done + 1 < out.len() {
+                let dx = dx0 + done as isize;
+                let lanes = (out.len() - done).min(8);
+                // SAFETY: AVX2 checked just above.
+                let costs = unsafe {
+                    tile_cost_8_avx2(reference, alternate, origin, ts, (dy, dx), lanes, norm)
+                };
+                let Some(costs) = costs else {
+                    break;
+                };
+                out[done..done + lanes].copy_from_slice(&costs[..lanes]);
+                done += lanes;
+            }
+        }
+    }
+    for (i, c) in out.iter_mut().enumerate().skip(done) {
+        *c = tile_cost(reference, alternate, origin, ts, (dy, dx0 + i as isize), norm);
+    }
+}
+
+/// [`tile_cost`] of the eight offsets `(dy, dx + i)`, `i < 8`, lane-parallel; `None` when the
+/// first `lanes` offsets do not all clip the tile alike or the eight-wide loads would leave
+/// the image (the caller then takes [`tile_cost`] one by one).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn tile_cost_8_avx2(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    (oy, ox): (usize, usize),
+    ts: usize,
+    (dy, dx): (isize, isize),
+    lanes: usize,
+    norm: Norm,
+) -> Option<[f32; 8]> {
+    use std::arch::x86_64::*;
+    let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
+    let (oy, ox) = (oy as isize, ox as isize);
+    let ts = ts as isize;
+    let clip = |dx: isize| (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
+    let (x0, x1) = clip(dx);
+    if clip(dx + lanes as isize - 1) != (x0, x1) {
+        return None;
+    }
+    let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
+    if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
+        return Some([f32::INFINITY; 8]);
+    }
+    let rs = reference.as_slice().expect("standard layout");
+    let as_ = alternate.as_slice().expect("standard layout");
+    // Eight-wide loads of the alternate row from column x + dx: the last must stay inside.
+    let last = (y1 - 1 + dy) * w + (x1 - 1) + dx + 7;
+    if (y0 + dy) * w + x0 + dx < 0 || last >= as_.len() as isize {
+        return None;
+    }
+    let n = (x1 - x0) as usize;
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let mut cost = _mm256_setzero_ps();
+    for y in y0..y1 {
+        let r = &rs[(y * w + x0) as usize..][..n];
+        let a = as_.as_ptr().offset((y + dy) * w + x0 + dx);
+        let mut sum = _mm256_setzero_ps();
+        for (i, &rv) in r.iter().enumerate() {
+            let diff = _mm256_sub_ps(_mm256_set1_ps(rv), _mm256_loadu_ps(a.add(i)));
+            sum = _mm256_add_ps(
+                sum,
+                match norm {
+                    Norm::L1 => _mm256_and_ps(diff, abs_mask),
+                    Norm::L2 => _mm256_mul_ps(diff, diff),
+                },
+            );
+        }
+        cost = _mm256_add_ps(cost, sum);
+    }
+    let mut out = [0.0f32; 8];
+    _mm256_storeu_ps(
+        out.as_mut_ptr(),
+        _mm256_div_ps(cost, _mm256_set1_ps(((y1 - y0) * (x1 - x0)) as f32)),
+    );
+    Some(out)
+}
+
 /// Reference-side data of a Lucas–Kanade tile: gradients and the inverse of the 2x2 normal
 /// matrix (inverse-compositional style: computed once, reused for every block).
 #[derive(Debug, Clone)]
@@ -327,10 +428,21 @@ impl ReferenceAligner {
                         .expect("at least one seed")
                         .1;
                     let mut best = (f32::INFINITY, seed);
+                    let side = (2 * radius + 1) as usize;
+                    let mut costs = vec![0.0f32; side];
                     for dy in -radius..=radius {
-                        for dx in -radius..=radius {
+                        // One row of the window: the same numbers as `cost` for each offset.
+                        window_row_costs(
+                            r_img,
+                            a_img,
+                            origin,
+                            ts,
+                            (seed.0 + dy, seed.1 - radius),
+                            norm,
+                            &mut costs,
+                        );
+                        for (dx, &c) in (-radius..=radius).zip(&costs) {
                             let d = (seed.0 + dy, seed.1 + dx);
-                            let c = cost(d);
                             // Ties go to the smaller displacement.
                             let closer =
                                 (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
