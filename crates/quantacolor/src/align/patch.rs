@@ -875,3 +875,51 @@ fn connected_components(mask: &Array2<bool>) -> Vec<Vec<(usize, usize)>> {
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Every cost of a window row equals [`tile_cost`] bit for bit: interior tiles, tiles at
+    /// every border, offsets reaching past the image, both norms.
+    #[test]
+    fn window_row_costs_equal_tile_cost() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (h, w) = (29usize, 41usize);
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let mut finite = 0;
+        for norm in [Norm::L1, Norm::L2] {
+            for ts in [8usize, 16] {
+                for oy in (0..h).step_by(5) {
+                    for ox in (0..w).step_by(3) {
+                        for radius in [1isize, 4, 8] {
+                            let dy = rng.gen_range(-6isize..=6);
+                            let dx0 = rng.gen_range(-12isize..=6);
+                            let mut costs = vec![0.0f32; (2 * radius + 1) as usize];
+                            window_row_costs(
+                                &reference,
+                                &alternate,
+                                (oy, ox),
+                                ts,
+                                (dy, dx0),
+                                norm,
+                                &mut costs,
+                            );
+                            for (i, &c) in costs.iter().enumerate() {
+                                let d = (dy, dx0 + i as isize);
+                                let expected =
+                                    tile_cost(&reference, &alternate, (oy, ox), ts, d, norm);
+                                assert_eq!(c.to_bits(), expected.to_bits(), "{oy} {ox} {d:?}");
+                                finite += c.is_finite() as usize;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(finite > 1000, "{finite}");
+    }
+}

@@ -770,6 +770,10 @@ pub(super) fn bin_layout(
 /// Blocks whose templates [`refine_pass`] makes at a time.
 const TEMPLATE_GROUP: usize = 4;
 
+/// Most bytes of warped block images [`refine_pass`] keeps from the mean template for the
+/// blocks' own templates (64 MB: about 130 blocks at 496x254); beyond, it warps them again.
+const WARP_CACHE_BYTES: usize = 64 << 20;
+
 /// Which gradient component (0 = ∂/∂y, 1 = ∂/∂x) and which basis function (0 = 1, 1 = y,
 /// 2 = x, positions relative to the centre) each of the six affine parameters (b_y, b_x, m_yy,
 /// m_yx, m_xy, m_xx) multiplies in the Jacobian.
@@ -1317,14 +1321,21 @@ fn refine_pass(
     let warped = |b: usize| warp_to_reference(&grey_blocks[b], &motion.block_flow(b));
     let block_ids: Vec<usize> = (0..n_blocks).collect();
     let mut total = Array2::<f32>::zeros(grey_blocks[0].dim());
+    // The warped images are kept for the blocks' own templates below when they fit in
+    // WARP_CACHE_BYTES (else warped again there: the same numbers).
+    let keep = n_blocks * total.len() * std::mem::size_of::<f32>() <= WARP_CACHE_BYTES;
+    let mut kept: Vec<Option<Array2<f32>>> = vec![None; n_blocks];
     for group in block_ids.chunks(TEMPLATE_GROUP) {
         // Warped in parallel, summed in block order (the same sum as one at a time).
         let images: Vec<Array2<f32>> = group
             .par_iter()
             .map(|&b| warped(b))
             .collect::<Result<_>>()?;
-        for image in &images {
-            total += image;
+        for (&b, image) in group.iter().zip(images) {
+            total += &image;
+            if keep {
+                kept[b] = Some(image);
+            }
         }
     }
     let all = &total / n_blocks as f32;
@@ -1346,11 +1357,17 @@ fn refine_pass(
     // in one parallel loop (one block's few sub-blocks leave cores idle); memory stays bounded
     // by the group, not the number of blocks.
     for group in busy.chunks(TEMPLATE_GROUP) {
+        let own_images: Vec<Option<Array2<f32>>> = group.iter().map(|&b| kept[b].take()).collect();
         let own_templates: Vec<Option<TemplateLevel>> = group
             .par_iter()
-            .map(|&b| -> Result<Option<TemplateLevel>> {
+            .zip(own_images)
+            .map(|(&b, own)| -> Result<Option<TemplateLevel>> {
                 if n_blocks > 1 {
-                    let others = (&total - &warped(b)?) / (n_blocks - 1) as f32;
+                    let own = match own {
+                        Some(image) => image,
+                        None => warped(b)?,
+                    };
+                    let others = (&total - &own) / (n_blocks - 1) as f32;
                     Ok(Some(template_level(&others, config.levels[last].sigma_px)))
                 } else {
                     Ok(None)
