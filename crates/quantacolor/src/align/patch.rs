@@ -509,15 +509,23 @@ impl ReferenceAligner {
             let (mut by, mut bx) = (0.0f32, 0.0f32);
             let mut n = 0;
             for (y, &(y0, y1, fy)) in ys.clone().zip(&rows) {
-                for (x, &(x0, x1, fx)) in xs.clone().zip(&cols) {
-                    let top = alt[[y0, x0]] * (1.0 - fx) + alt[[y0, x1]] * fx;
-                    let bottom = alt[[y1, x0]] * (1.0 - fx) + alt[[y1, x1]] * fx;
-                    let e = (top * (1.0 - fy) + bottom * fy) - reference[[y, x]];
-                    let (gy, gx) = tile.grad[n];
+                // Rows as slices (no 2-D indexing in the inner loop); the same arithmetic.
+                let (top_row, bottom_row) = (alt.row(y0), alt.row(y1));
+                let (top_row, bottom_row) = (
+                    top_row.as_slice().expect("standard layout"),
+                    bottom_row.as_slice().expect("standard layout"),
+                );
+                let reference_row = reference.row(y);
+                let reference_row = &reference_row.as_slice().expect("standard layout")[xs.clone()];
+                let grad = &tile.grad[n..n + xs.len()];
+                for ((&(x0, x1, fx), &r), &(gy, gx)) in cols.iter().zip(reference_row).zip(grad) {
+                    let top = top_row[x0] * (1.0 - fx) + top_row[x1] * fx;
+                    let bottom = bottom_row[x0] * (1.0 - fx) + bottom_row[x1] * fx;
+                    let e = (top * (1.0 - fy) + bottom * fy) - r;
                     by += gy * e;
                     bx += gx * e;
-                    n += 1;
                 }
+                n += xs.len();
             }
             let step = (-(a * by + b * bx), -(b * by + c * bx));
             u = (u.0 + step.0, u.1 + step.1);

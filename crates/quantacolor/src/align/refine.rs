@@ -767,12 +767,13 @@ pub(super) fn bin_layout(
     }
 }
 
-/// Blocks whose templates [`refine_pass`] makes at a time.
-const TEMPLATE_GROUP: usize = 4;
+/// Blocks whose templates [`refine_pass`] makes at a time (their sub-blocks' fits then run in
+/// one parallel loop: the fewer groups, the less time a thread waits for the group's last fit).
+const TEMPLATE_GROUP: usize = 8;
 
 /// Most bytes of warped block images [`refine_pass`] keeps from the mean template for the
-/// blocks' own templates (64 MB: about 130 blocks at 496x254); beyond, it warps them again.
-const WARP_CACHE_BYTES: usize = 64 << 20;
+/// blocks' own templates (32 MB: 66 blocks at 496x254); beyond, it warps them again.
+const WARP_CACHE_BYTES: usize = 32 << 20;
 
 /// Which gradient component (0 = ∂/∂y, 1 = ∂/∂x) and which basis function (0 = 1, 1 = y,
 /// 2 = x, positions relative to the centre) each of the six affine parameters (b_y, b_x, m_yy,
