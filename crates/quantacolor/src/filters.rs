@@ -123,7 +123,8 @@ pub fn gaussian_blur(img: &Array2<f32>, sigma: f32) -> Array2<f32> {
         if taps != Some(span) {
             den.fill(0.0);
             for &kv in &kernel[span.0..=span.1] {
-                den.row_mut(0).zip_mut_with(&ones.row(0), |d, &s| *d += kv * s);
+                den.row_mut(0)
+                    .zip_mut_with(&ones.row(0), |d, &s| *d += kv * s);
             }
             taps = Some(span);
         }
@@ -226,8 +227,7 @@ mod tests {
     #[test]
     fn gaussian_blur_equals_the_normalised_separable_convolution() {
         for (h, w) in [(23, 31), (3, 17), (1, 5), (40, 2)] {
-            let img =
-                Array2::from_shape_fn((h, w), |(y, x)| ((y * 7 + x * 13) % 17) as f32 * 0.37);
+            let img = Array2::from_shape_fn((h, w), |(y, x)| ((y * 7 + x * 13) % 17) as f32 * 0.37);
             for sigma in [0.4, 1.0, 2.0, 4.0] {
                 let kernel = gaussian_taps(sigma);
                 let expected =

@@ -211,86 +211,131 @@ fn window_row_costs(
         if std::arch::is_x86_feature_detected!("avx2") {
             while done + 1 < out.len() {
                 let dx = dx0 + done as isize;
-                let lanes = (out.len() - done).min(8);
+                let lanes = (out.len() - done).min(24);
+                let part = &mut out[done..done + lanes];
                 // SAFETY: AVX2 checked just above.
-                let costs = unsafe {
-                    tile_cost_8_avx2(reference, alternate, origin, ts, (dy, dx), lanes, norm)
+                let ok = unsafe {
+                    match lanes.div_ceil(8) {
+                        1 => tile_costs_avx2::<1>(
+                            reference,
+                            alternate,
+                            origin,
+                            ts,
+                            (dy, dx),
+                            norm,
+                            part,
+                        ),
+                        2 => tile_costs_avx2::<2>(
+                            reference,
+                            alternate,
+                            origin,
+                            ts,
+                            (dy, dx),
+                            norm,
+                            part,
+                        ),
+                        _ => tile_costs_avx2::<3>(
+                            reference,
+                            alternate,
+                            origin,
+                            ts,
+                            (dy, dx),
+                            norm,
+                            part,
+                        ),
+                    }
                 };
-                let Some(costs) = costs else {
+                if !ok {
                     break;
-                };
-                out[done..done + lanes].copy_from_slice(&costs[..lanes]);
+                }
                 done += lanes;
             }
         }
     }
     for (i, c) in out.iter_mut().enumerate().skip(done) {
-        *c = tile_cost(reference, alternate, origin, ts, (dy, dx0 + i as isize), norm);
+        *c = tile_cost(
+            reference,
+            alternate,
+            origin,
+            ts,
+            (dy, dx0 + i as isize),
+            norm,
+        );
     }
 }
 
-/// [`tile_cost`] of the eight offsets `(dy, dx + i)`, `i < 8`, lane-parallel; `None` when the
-/// first `lanes` offsets do not all clip the tile alike or the eight-wide loads would leave
-/// the image (the caller then takes [`tile_cost`] one by one).
+/// [`tile_cost`] of the offsets `(dy, dx + i)`, `i < out.len()` (at most `8·V`), into `out`,
+/// lane-parallel in `V` vectors of eight (independent sums, so the vectors overlap in time);
+/// `false` (nothing written) when the offsets do not all clip the tile alike or the wide loads
+/// would leave the image (the caller then takes [`tile_cost`] one by one).
 ///
 /// # Safety
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn tile_cost_8_avx2(
+unsafe fn tile_costs_avx2<const V: usize>(
     reference: &Array2<f32>,
     alternate: &Array2<f32>,
     (oy, ox): (usize, usize),
     ts: usize,
     (dy, dx): (isize, isize),
-    lanes: usize,
     norm: Norm,
-) -> Option<[f32; 8]> {
+    out: &mut [f32],
+) -> bool {
     use std::arch::x86_64::*;
+    let lanes = out.len();
+    debug_assert!(lanes >= 1 && lanes <= 8 * V);
     let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
     let (oy, ox) = (oy as isize, ox as isize);
     let ts = ts as isize;
     let clip = |dx: isize| (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
     let (x0, x1) = clip(dx);
+    // Both ends clip alike, so every offset between does (the bounds are monotone in dx).
     if clip(dx + lanes as isize - 1) != (x0, x1) {
-        return None;
+        return false;
     }
     let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
     if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
-        return Some([f32::INFINITY; 8]);
+        out.fill(f32::INFINITY);
+        return true;
     }
     let rs = reference.as_slice().expect("standard layout");
     let as_ = alternate.as_slice().expect("standard layout");
-    // Eight-wide loads of the alternate row from column x + dx: the last must stay inside.
-    let last = (y1 - 1 + dy) * w + (x1 - 1) + dx + 7;
+    // Loads of 8·V alternate values from column x + dx: the last must stay inside.
+    let last = (y1 - 1 + dy) * w + (x1 - 1) + dx + 8 * V as isize - 1;
     if (y0 + dy) * w + x0 + dx < 0 || last >= as_.len() as isize {
-        return None;
+        return false;
     }
     let n = (x1 - x0) as usize;
     let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
-    let mut cost = _mm256_setzero_ps();
+    let mut cost = [_mm256_setzero_ps(); V];
     for y in y0..y1 {
         let r = &rs[(y * w + x0) as usize..][..n];
         let a = as_.as_ptr().offset((y + dy) * w + x0 + dx);
-        let mut sum = _mm256_setzero_ps();
+        // Each lane sums its row in column order from zero, as `tile_cost`.
+        let mut sum = [_mm256_setzero_ps(); V];
         for (i, &rv) in r.iter().enumerate() {
-            let diff = _mm256_sub_ps(_mm256_set1_ps(rv), _mm256_loadu_ps(a.add(i)));
-            sum = _mm256_add_ps(
-                sum,
-                match norm {
+            let rv = _mm256_set1_ps(rv);
+            for (v, s) in sum.iter_mut().enumerate() {
+                let diff = _mm256_sub_ps(rv, _mm256_loadu_ps(a.add(i + 8 * v)));
+                let term = match norm {
                     Norm::L1 => _mm256_and_ps(diff, abs_mask),
                     Norm::L2 => _mm256_mul_ps(diff, diff),
-                },
-            );
+                };
+                *s = _mm256_add_ps(*s, term);
+            }
         }
-        cost = _mm256_add_ps(cost, sum);
+        for (c, s) in cost.iter_mut().zip(sum) {
+            *c = _mm256_add_ps(*c, s);
+        }
     }
-    let mut out = [0.0f32; 8];
-    _mm256_storeu_ps(
-        out.as_mut_ptr(),
-        _mm256_div_ps(cost, _mm256_set1_ps(((y1 - y0) * (x1 - x0)) as f32)),
-    );
-    Some(out)
+    let area = _mm256_set1_ps(((y1 - y0) * (x1 - x0)) as f32);
+    let mut all = [[0.0f32; 8]; V];
+    for (o, c) in all.iter_mut().zip(cost) {
+        _mm256_storeu_ps(o.as_mut_ptr(), _mm256_div_ps(c, area));
+    }
+    out.copy_from_slice(&all.as_flattened()[..lanes]);
+    true
 }
 
 /// Reference-side data of a Lucas–Kanade tile: gradients and the inverse of the 2x2 normal
@@ -683,11 +728,29 @@ impl ReferenceAligner {
             }
             mask
         };
+        let row0 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
+            window_row_costs(ref0, &alt0, origin(i, j), ts, d, Norm::L1, out)
+        };
+        let row1 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
+            let (oy, ox) = origin(i, j);
+            window_row_costs(
+                ref1,
+                &alt1,
+                (oy / f, ox / f),
+                (ts / f).max(2),
+                d,
+                Norm::L1,
+                out,
+            )
+        };
         // Total cost when every tile takes the better of the camera flow and the offset `d`:
         // tiles of the camera's motion score the same for every `d`, so the minimum is the
-        // motion of the others.
+        // motion of the others. Each tile's costs over the window come a row of offsets at a
+        // time ([`window_row_costs`]: the numbers of `cost`).
+        #[allow(clippy::type_complexity)]
         let search = |tiles: &[(usize, usize)],
                       cost: &(dyn Fn(usize, usize, (isize, isize)) -> f32 + Sync),
+                      row_costs: &(dyn Fn(usize, usize, (isize, isize), &mut [f32]) + Sync),
                       scale: f32,
                       centre: (isize, isize),
                       r: isize| {
@@ -701,16 +764,29 @@ impl ReferenceAligner {
                     cost(i, j, d)
                 })
                 .collect();
+            let side = (2 * r + 1) as usize;
+            // Per tile, its cost at every offset, in the order of `offsets`.
+            let table: Vec<Vec<f32>> = tiles
+                .par_iter()
+                .map(|&(i, j)| {
+                    let mut costs = vec![0.0f32; side * side];
+                    for (iy, row) in costs.chunks_mut(side).enumerate() {
+                        row_costs(i, j, (centre.0 - r + iy as isize, centre.1 - r), row);
+                    }
+                    costs
+                })
+                .collect();
             let offsets: Vec<(isize, isize)> = (-r..=r)
                 .flat_map(|dy| (-r..=r).map(move |dx| (centre.0 + dy, centre.1 + dx)))
                 .collect();
             offsets
                 .par_iter()
-                .map(|&d| {
-                    let total: f32 = tiles
+                .enumerate()
+                .map(|(o, &d)| {
+                    let total: f32 = table
                         .iter()
                         .zip(&cam)
-                        .map(|(&(i, j), &c)| (cost(i, j, d) / SWITCH_MARGIN).min(c))
+                        .map(|(costs, &c)| (costs[o] / SWITCH_MARGIN).min(c))
                         .filter(|c| c.is_finite())
                         .sum();
                     (total, d)
@@ -738,6 +814,7 @@ impl ReferenceAligner {
             let coarse = search(
                 &support,
                 &cost1,
+                &row1,
                 fi,
                 (
                     (median(0) / fi).round() as isize,
@@ -748,6 +825,7 @@ impl ReferenceAligner {
             let best = search(
                 &support,
                 &cost0,
+                &row0,
                 1.0,
                 (coarse.0 * f as isize, coarse.1 * f as isize),
                 f as isize,

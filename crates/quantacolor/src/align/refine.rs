@@ -1024,14 +1024,20 @@ unsafe fn run_sums_avx2(
     let row_y = _mm256_set1_pd(bins.row + centre[0]);
     let base_y = _mm256_set1_pd(motion.b[0] + motion.m[0][0] * bins.row);
     let base_x = _mm256_set1_pd(motion.b[1] + motion.m[1][0] * bins.row);
-    let (m_yx, m_xx) = (_mm256_set1_pd(motion.m[0][1]), _mm256_set1_pd(motion.m[1][1]));
+    let (m_yx, m_xx) = (
+        _mm256_set1_pd(motion.m[0][1]),
+        _mm256_set1_pd(motion.m[1][1]),
+    );
     let centre_x = _mm256_set1_pd(centre[1]);
     let zero = _mm256_setzero_pd();
     let (y_max, x_max) = (
         _mm256_set1_pd((h - 1) as f64),
         _mm256_set1_pd((w - 1) as f64),
     );
-    let (y_last, x_last) = (_mm_set1_epi32((h - 2) as i32), _mm_set1_epi32((w - 2) as i32));
+    let (y_last, x_last) = (
+        _mm_set1_epi32((h - 2) as i32),
+        _mm_set1_epi32((w - 2) as i32),
+    );
     let width = _mm_set1_epi32(w as i32);
     let (one, one_ps) = (_mm256_set1_pd(1.0), _mm_set1_ps(1.0));
     let (floor, nine, three) = (
@@ -1492,7 +1498,13 @@ mod tests {
                 let x2: Vec<f64> = x.iter().map(|v| v * v).collect();
                 // Every fourth bin far from the template: a Huber-weighted outlier.
                 let observed: Vec<f64> = (0..len)
-                    .map(|i| if i % 4 == 1 { 0.9 } else { rng.gen_range(0.0..0.3) })
+                    .map(|i| {
+                        if i % 4 == 1 {
+                            0.9
+                        } else {
+                            rng.gen_range(0.0..0.3)
+                        }
+                    })
                     .collect();
                 let trials: Vec<f64> = (0..len).map(|_| rng.gen_range(8.0..200.0)).collect();
                 let bins = RunBins {
@@ -1505,7 +1517,11 @@ mod tests {
                 let scalar = run_sums(&template, &motion, centre, &bins);
                 // SAFETY: AVX2 checked above.
                 let simd = unsafe { run_sums_avx2(&template, &motion, centre, &bins) };
-                assert_eq!(scalar.map(f64::to_bits), simd.map(f64::to_bits), "{len} {shift}");
+                assert_eq!(
+                    scalar.map(f64::to_bits),
+                    simd.map(f64::to_bits),
+                    "{len} {shift}"
+                );
                 checked += scalar.iter().any(|&v| v != 0.0) as usize;
             }
         }
