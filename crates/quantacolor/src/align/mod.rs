@@ -428,27 +428,45 @@ pub fn align_grey_blocks(
     // Each block's robust affine fit (camera motion), for the centre-frame correction.
     let mut camera = Flow::zeros(flow.dim());
     progress.start("patch alignment", plan.len() as u64);
-    for (b, block) in grey.iter().enumerate() {
-        if b != plan.reference_block {
+    // Blocks in parallel (each block's pyramid, filters and fits are serial work; the tile
+    // searches inside run in parallel too): every block's result depends on that block alone.
+    type BlockFlow = Option<(Array3<f32>, Option<Array3<f32>>)>;
+    let results: Vec<BlockFlow> = grey
+        .par_iter()
+        .enumerate()
+        .with_max_len(1)
+        .map(|(b, block)| -> Result<BlockFlow> {
+            if b == plan.reference_block {
+                progress.advance(1);
+                return Ok(None);
+            }
             let (f, valid) = aligner.align_with_validity(block)?;
             let f = median_filter_valid_flow(&f, &valid, config.median_radius);
             let mut f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
-            if let Some(fit) = affine_fit_field(&f, &grid, config.affine_tolerance_px) {
+            let fit = affine_fit_field(&f, &grid, config.affine_tolerance_px);
+            if let Some(fit) = &fit {
                 if config.second_motion_radius_px > 0 {
                     f = aligner.follow_second_motion(
                         block,
                         &f,
-                        &fit,
+                        fit,
                         config.affine_tolerance_px,
                         config.second_motion_radius_px,
                         config.second_motion_min_tiles,
                     );
                 }
+            }
+            progress.advance(1);
+            Ok(Some((f, fit)))
+        })
+        .collect::<Result<_>>()?;
+    for (b, result) in results.into_iter().enumerate() {
+        if let Some((f, fit)) = result {
+            if let Some(fit) = fit {
                 camera.slice_mut(s![b, .., .., ..]).assign(&fit);
             }
             flow.slice_mut(s![b, .., .., ..]).assign(&f);
         }
-        progress.advance(1);
     }
     progress.finish();
     if config.temporal_median {

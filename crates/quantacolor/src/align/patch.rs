@@ -192,6 +192,152 @@ fn tile_cost(
     cost / ((y1 - y0) * (x1 - x0)) as f32
 }
 
+/// [`tile_cost`] of the offsets `(dy, dx0 + i)` for every `i < out.len()`, into `out`: with AVX2,
+/// eight offsets at a time where all of them overlap the image alike (each lane sums its rows
+/// in the scalar order, so every cost is bit-identical to [`tile_cost`]'s); elsewhere one
+/// [`tile_cost`] each.
+fn window_row_costs(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    origin: (usize, usize),
+    ts: usize,
+    (dy, dx0): (isize, isize),
+    norm: Norm,
+    out: &mut [f32],
+) {
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            while done + 1 < out.len() {
+                let dx = dx0 + done as isize;
+                let lanes = (out.len() - done).min(24);
+                let part = &mut out[done..done + lanes];
+                // SAFETY: AVX2 checked just above.
+                let ok = unsafe {
+                    match lanes.div_ceil(8) {
+                        1 => tile_costs_avx2::<1>(
+                            reference,
+                            alternate,
+                            origin,
+                            ts,
+                            (dy, dx),
+                            norm,
+                            part,
+                        ),
+                        2 => tile_costs_avx2::<2>(
+                            reference,
+                            alternate,
+                            origin,
+                            ts,
+                            (dy, dx),
+                            norm,
+                            part,
+                        ),
+                        _ => tile_costs_avx2::<3>(
+                            reference,
+                            alternate,
+                            origin,
+                            ts,
+                            (dy, dx),
+                            norm,
+                            part,
+                        ),
+                    }
+                };
+                if !ok {
+                    break;
+                }
+                done += lanes;
+            }
+        }
+    }
+    for (i, c) in out.iter_mut().enumerate().skip(done) {
+        *c = tile_cost(
+            reference,
+            alternate,
+            origin,
+            ts,
+            (dy, dx0 + i as isize),
+            norm,
+        );
+    }
+}
+
+/// [`tile_cost`] of the offsets `(dy, dx + i)`, `i < out.len()` (at most `8·V`), into `out`,
+/// lane-parallel in `V` vectors of eight (independent sums, so the vectors overlap in time);
+/// `false` (nothing written) when the offsets do not all clip the tile alike or the wide loads
+/// would leave the image (the caller then takes [`tile_cost`] one by one).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn tile_costs_avx2<const V: usize>(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    (oy, ox): (usize, usize),
+    ts: usize,
+    (dy, dx): (isize, isize),
+    norm: Norm,
+    out: &mut [f32],
+) -> bool {
+    use std::arch::x86_64::*;
+    let lanes = out.len();
+    debug_assert!(lanes >= 1 && lanes <= 8 * V);
+    let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
+    let (oy, ox) = (oy as isize, ox as isize);
+    let ts = ts as isize;
+    let clip = |dx: isize| (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
+    let (x0, x1) = clip(dx);
+    // Both ends clip alike, so every offset between does (the bounds are monotone in dx).
+    if clip(dx + lanes as isize - 1) != (x0, x1) {
+        return false;
+    }
+    let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
+    if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
+        out.fill(f32::INFINITY);
+        return true;
+    }
+    let rs = reference.as_slice().expect("standard layout");
+    let as_ = alternate.as_slice().expect("standard layout");
+    // Loads of 8·V alternate values from column x + dx: the last must stay inside.
+    let last = (y1 - 1 + dy) * w + (x1 - 1) + dx + 8 * V as isize - 1;
+    if (y0 + dy) * w + x0 + dx < 0 || last >= as_.len() as isize {
+        return false;
+    }
+    let n = (x1 - x0) as usize;
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let mut cost = [_mm256_setzero_ps(); V];
+    for y in y0..y1 {
+        let r = &rs[(y * w + x0) as usize..][..n];
+        let a = as_.as_ptr().offset((y + dy) * w + x0 + dx);
+        // Each lane sums its row in column order from zero, as `tile_cost`.
+        let mut sum = [_mm256_setzero_ps(); V];
+        for (i, &rv) in r.iter().enumerate() {
+            let rv = _mm256_set1_ps(rv);
+            for (v, s) in sum.iter_mut().enumerate() {
+                let diff = _mm256_sub_ps(rv, _mm256_loadu_ps(a.add(i + 8 * v)));
+                let term = match norm {
+                    Norm::L1 => _mm256_and_ps(diff, abs_mask),
+                    Norm::L2 => _mm256_mul_ps(diff, diff),
+                };
+                *s = _mm256_add_ps(*s, term);
+            }
+        }
+        for (c, s) in cost.iter_mut().zip(sum) {
+            *c = _mm256_add_ps(*c, s);
+        }
+    }
+    let area = _mm256_set1_ps(((y1 - y0) * (x1 - x0)) as f32);
+    let mut all = [[0.0f32; 8]; V];
+    for (o, c) in all.iter_mut().zip(cost) {
+        _mm256_storeu_ps(o.as_mut_ptr(), _mm256_div_ps(c, area));
+    }
+    out.copy_from_slice(&all.as_flattened()[..lanes]);
+    true
+}
+
 /// Reference-side data of a Lucas–Kanade tile: gradients and the inverse of the 2x2 normal
 /// matrix (inverse-compositional style: computed once, reused for every block).
 #[derive(Debug, Clone)]
@@ -327,10 +473,21 @@ impl ReferenceAligner {
                         .expect("at least one seed")
                         .1;
                     let mut best = (f32::INFINITY, seed);
+                    let side = (2 * radius + 1) as usize;
+                    let mut costs = vec![0.0f32; side];
                     for dy in -radius..=radius {
-                        for dx in -radius..=radius {
+                        // One row of the window: the same numbers as `cost` for each offset.
+                        window_row_costs(
+                            r_img,
+                            a_img,
+                            origin,
+                            ts,
+                            (seed.0 + dy, seed.1 - radius),
+                            norm,
+                            &mut costs,
+                        );
+                        for (dx, &c) in (-radius..=radius).zip(&costs) {
                             let d = (seed.0 + dy, seed.1 + dx);
-                            let c = cost(d);
                             // Ties go to the smaller displacement.
                             let closer =
                                 (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
@@ -397,15 +554,23 @@ impl ReferenceAligner {
             let (mut by, mut bx) = (0.0f32, 0.0f32);
             let mut n = 0;
             for (y, &(y0, y1, fy)) in ys.clone().zip(&rows) {
-                for (x, &(x0, x1, fx)) in xs.clone().zip(&cols) {
-                    let top = alt[[y0, x0]] * (1.0 - fx) + alt[[y0, x1]] * fx;
-                    let bottom = alt[[y1, x0]] * (1.0 - fx) + alt[[y1, x1]] * fx;
-                    let e = (top * (1.0 - fy) + bottom * fy) - reference[[y, x]];
-                    let (gy, gx) = tile.grad[n];
+                // Rows as slices (no 2-D indexing in the inner loop); the same arithmetic.
+                let (top_row, bottom_row) = (alt.row(y0), alt.row(y1));
+                let (top_row, bottom_row) = (
+                    top_row.as_slice().expect("standard layout"),
+                    bottom_row.as_slice().expect("standard layout"),
+                );
+                let reference_row = reference.row(y);
+                let reference_row = &reference_row.as_slice().expect("standard layout")[xs.clone()];
+                let grad = &tile.grad[n..n + xs.len()];
+                for ((&(x0, x1, fx), &r), &(gy, gx)) in cols.iter().zip(reference_row).zip(grad) {
+                    let top = top_row[x0] * (1.0 - fx) + top_row[x1] * fx;
+                    let bottom = bottom_row[x0] * (1.0 - fx) + bottom_row[x1] * fx;
+                    let e = (top * (1.0 - fy) + bottom * fy) - r;
                     by += gy * e;
                     bx += gx * e;
-                    n += 1;
                 }
+                n += xs.len();
             }
             let step = (-(a * by + b * bx), -(b * by + c * bx));
             u = (u.0 + step.0, u.1 + step.1);
@@ -563,11 +728,29 @@ impl ReferenceAligner {
             }
             mask
         };
+        let row0 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
+            window_row_costs(ref0, &alt0, origin(i, j), ts, d, Norm::L1, out)
+        };
+        let row1 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
+            let (oy, ox) = origin(i, j);
+            window_row_costs(
+                ref1,
+                &alt1,
+                (oy / f, ox / f),
+                (ts / f).max(2),
+                d,
+                Norm::L1,
+                out,
+            )
+        };
         // Total cost when every tile takes the better of the camera flow and the offset `d`:
         // tiles of the camera's motion score the same for every `d`, so the minimum is the
-        // motion of the others.
+        // motion of the others. Each tile's costs over the window come a row of offsets at a
+        // time ([`window_row_costs`]: the numbers of `cost`).
+        #[allow(clippy::type_complexity)]
         let search = |tiles: &[(usize, usize)],
                       cost: &(dyn Fn(usize, usize, (isize, isize)) -> f32 + Sync),
+                      row_costs: &(dyn Fn(usize, usize, (isize, isize), &mut [f32]) + Sync),
                       scale: f32,
                       centre: (isize, isize),
                       r: isize| {
@@ -581,16 +764,29 @@ impl ReferenceAligner {
                     cost(i, j, d)
                 })
                 .collect();
+            let side = (2 * r + 1) as usize;
+            // Per tile, its cost at every offset, in the order of `offsets`.
+            let table: Vec<Vec<f32>> = tiles
+                .par_iter()
+                .map(|&(i, j)| {
+                    let mut costs = vec![0.0f32; side * side];
+                    for (iy, row) in costs.chunks_mut(side).enumerate() {
+                        row_costs(i, j, (centre.0 - r + iy as isize, centre.1 - r), row);
+                    }
+                    costs
+                })
+                .collect();
             let offsets: Vec<(isize, isize)> = (-r..=r)
                 .flat_map(|dy| (-r..=r).map(move |dx| (centre.0 + dy, centre.1 + dx)))
                 .collect();
             offsets
                 .par_iter()
-                .map(|&d| {
-                    let total: f32 = tiles
+                .enumerate()
+                .map(|(o, &d)| {
+                    let total: f32 = table
                         .iter()
                         .zip(&cam)
-                        .map(|(&(i, j), &c)| (cost(i, j, d) / SWITCH_MARGIN).min(c))
+                        .map(|(costs, &c)| (costs[o] / SWITCH_MARGIN).min(c))
                         .filter(|c| c.is_finite())
                         .sum();
                     (total, d)
@@ -618,6 +814,7 @@ impl ReferenceAligner {
             let coarse = search(
                 &support,
                 &cost1,
+                &row1,
                 fi,
                 (
                     (median(0) / fi).round() as isize,
@@ -628,6 +825,7 @@ impl ReferenceAligner {
             let best = search(
                 &support,
                 &cost0,
+                &row0,
                 1.0,
                 (coarse.0 * f as isize, coarse.1 * f as isize),
                 f as isize,
@@ -762,4 +960,52 @@ fn connected_components(mask: &Array2<bool>) -> Vec<Vec<(usize, usize)>> {
         out.push(component);
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Every cost of a window row equals [`tile_cost`] bit for bit: interior tiles, tiles at
+    /// every border, offsets reaching past the image, both norms.
+    #[test]
+    fn window_row_costs_equal_tile_cost() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (h, w) = (29usize, 41usize);
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let mut finite = 0;
+        for norm in [Norm::L1, Norm::L2] {
+            for ts in [8usize, 16] {
+                for oy in (0..h).step_by(5) {
+                    for ox in (0..w).step_by(3) {
+                        for radius in [1isize, 4, 8] {
+                            let dy = rng.gen_range(-6isize..=6);
+                            let dx0 = rng.gen_range(-12isize..=6);
+                            let mut costs = vec![0.0f32; (2 * radius + 1) as usize];
+                            window_row_costs(
+                                &reference,
+                                &alternate,
+                                (oy, ox),
+                                ts,
+                                (dy, dx0),
+                                norm,
+                                &mut costs,
+                            );
+                            for (i, &c) in costs.iter().enumerate() {
+                                let d = (dy, dx0 + i as isize);
+                                let expected =
+                                    tile_cost(&reference, &alternate, (oy, ox), ts, d, norm);
+                                assert_eq!(c.to_bits(), expected.to_bits(), "{oy} {ox} {d:?}");
+                                finite += c.is_finite() as usize;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(finite > 1000, "{finite}");
+    }
 }

@@ -623,6 +623,10 @@ pub(super) struct BinLayout {
     /// the fit sums the normal equations' x-dependence along a run and multiplies by the row
     /// coordinate once per run.
     runs: Vec<Range<usize>>,
+    /// The centroids' x coordinate and its square, one array each (the fit's inner loop reads
+    /// them for several bins at a time).
+    x: Vec<f64>,
+    x2: Vec<f64>,
 }
 
 impl BinLayout {
@@ -641,8 +645,9 @@ impl BinLayout {
 pub(super) struct TemplateLevel {
     height: usize,
     width: usize,
-    /// (value, ∂/∂y, ∂/∂x) of every pixel, row-major.
-    samples: Vec<[f32; 3]>,
+    /// (value, ∂/∂y, ∂/∂x, 0) of every pixel, row-major (padded to four lanes so that one
+    /// pixel is one vector in the fit's bilinear interpolation).
+    samples: Vec<[f32; 4]>,
 }
 
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
@@ -657,19 +662,26 @@ pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[
     let i = y0 * w + x0;
     let (top, bottom) = (&level.samples[i..i + 2], &level.samples[i + w..i + w + 2]);
     let (a, b, c, d) = (top[0], top[1], bottom[0], bottom[1]);
-    let mut out = [0.0f64; 3];
-    for (k, o) in out.iter_mut().enumerate() {
-        let top = a[k] * (1.0 - fx) + b[k] * fx;
-        let bottom = c[k] * (1.0 - fx) + d[k] * fx;
-        *o = (top * (1.0 - fy) + bottom * fy) as f64;
-    }
-    Some(out)
+    let v = bilinear4(a, b, c, d, fx, fy);
+    Some([v[0] as f64, v[1] as f64, v[2] as f64])
+}
+
+/// Bilinear interpolation of the four lanes of the pixels `a` (top left), `b` (top right), `c`
+/// (bottom left) and `d` (bottom right) at fractions `fx`, `fy`.
+#[inline(always)]
+fn bilinear4(a: [f32; 4], b: [f32; 4], c: [f32; 4], d: [f32; 4], fx: f32, fy: f32) -> [f32; 4] {
+    let (gx, gy) = (1.0 - fx, 1.0 - fy);
+    std::array::from_fn(|k| {
+        let top = a[k] * gx + b[k] * fx;
+        let bottom = c[k] * gx + d[k] * fx;
+        top * gy + bottom * fy
+    })
 }
 
 pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
     let value = gaussian_blur(reference, sigma);
     let (h, w) = value.dim();
-    let mut samples = vec![[0.0f32; 3]; h * w];
+    let mut samples = vec![[0.0f32; 4]; h * w];
     for y in 0..h {
         let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
         for x in 0..w {
@@ -678,6 +690,7 @@ pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLev
                 value[[y, x]],
                 (value[[yb, x]] - value[[ya, x]]) / (yb - ya).max(1) as f32,
                 (value[[y, xb]] - value[[y, xa]]) / (xb - xa).max(1) as f32,
+                0.0,
             ];
         }
     }
@@ -742,16 +755,25 @@ pub(super) fn bin_layout(
             _ => runs.push(b..b + 1),
         }
     }
+    let x: Vec<f64> = centroid.iter().map(|c| c[1]).collect();
+    let x2 = x.iter().map(|&v| v * v).collect();
     BinLayout {
         site_index,
         site_start,
         centroid,
         runs,
+        x,
+        x2,
     }
 }
 
-/// Blocks whose templates [`refine_pass`] makes at a time.
-const TEMPLATE_GROUP: usize = 4;
+/// Blocks whose templates [`refine_pass`] makes at a time (their sub-blocks' fits then run in
+/// one parallel loop: the fewer groups, the less time a thread waits for the group's last fit).
+const TEMPLATE_GROUP: usize = 8;
+
+/// Most bytes of warped block images [`refine_pass`] keeps from the mean template for the
+/// blocks' own templates (32 MB: 66 blocks at 496x254); beyond, it warps them again.
+const WARP_CACHE_BYTES: usize = 32 << 20;
 
 /// Which gradient component (0 = ∂/∂y, 1 = ∂/∂x) and which basis function (0 = 1, 1 = y,
 /// 2 = x, positions relative to the centre) each of the six affine parameters (b_y, b_x, m_yy,
@@ -790,12 +812,12 @@ pub(super) fn fit_sub_block(
         }
     }
     fit_sub_block_generic(
-        counts, frames, layouts, templates, start, centre, iterations,
+        counts, frames, layouts, templates, start, centre, iterations, false,
     )
 }
 
-/// [`fit_sub_block_generic`] compiled for AVX2: the same operations in the same order (no fused
-/// multiply-add), so the same result.
+/// [`fit_sub_block_generic`] compiled for AVX2, with the per-run sums of [`run_sums_avx2`]: the
+/// same operations in the same order (no fused multiply-add), so the same result.
 ///
 /// # Safety
 /// The CPU must support AVX2.
@@ -811,11 +833,12 @@ unsafe fn fit_sub_block_avx2(
     iterations: usize,
 ) -> Option<AffineMotion> {
     fit_sub_block_generic(
-        counts, frames, layouts, templates, start, centre, iterations,
+        counts, frames, layouts, templates, start, centre, iterations, true,
     )
 }
 
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn fit_sub_block_generic(
     counts: &[u32],
     frames: usize,
@@ -824,11 +847,12 @@ fn fit_sub_block_generic(
     start: AffineMotion,
     centre: [f64; 2],
     iterations: usize,
+    avx2: bool,
 ) -> Option<AffineMotion> {
     let mut params = start.params();
     for (layout, template) in layouts.iter().zip(templates) {
         // Mean bit rate and number of trials (sites x frames) of every bin.
-        let bins: Vec<(f64, f64)> = (0..layout.len())
+        let (observed, trials): (Vec<f64>, Vec<f64>) = (0..layout.len())
             .map(|b| {
                 let trials = layout.sites(b).len() as f64 * frames as f64;
                 let sum: u64 = layout
@@ -838,7 +862,7 @@ fn fit_sub_block_generic(
                     .sum();
                 (sum as f64 / trials.max(1.0), trials)
             })
-            .collect();
+            .unzip();
         for iteration in 0..iterations {
             let motion = AffineMotion::from_params(params);
             let mut normal = [[0.0f64; 6]; 6];
@@ -847,43 +871,23 @@ fn fit_sub_block_generic(
                 // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
                 // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
                 // [9 + g + 2·p].
-                let mut sums = [0.0f64; 13];
-                let run_bins = layout.centroid[run.clone()].iter().zip(&bins[run.clone()]);
-                for (&rel, &(observed, trials)) in run_bins {
-                    let d = motion.at(rel);
-                    let Some([t, gy, gx]) = sample_template(
-                        template,
-                        rel[0] + centre[0] + d[0],
-                        rel[1] + centre[1] + d[1],
-                    ) else {
-                        continue;
-                    };
-                    let residual = observed - t;
-                    // Inverse binomial variance of the bin mean, and a Huber weight at 3 std
-                    // (moving objects, occlusions): z = |r|·√(1/var), weight (1 or 3/z)/var,
-                    // with the square root and a second division only past 3 std.
-                    let inv_variance = trials / (t * (1.0 - t)).max(0.01);
-                    let z2 = residual * residual * inv_variance;
-                    let weight = if z2 > 9.0 {
-                        3.0 * inv_variance.sqrt() / residual.abs()
-                    } else {
-                        inv_variance
-                    };
-                    let (wgy, wgx) = (weight * gy, weight * gx);
-                    let pairs = [wgy * gy, wgy * gx, wgx * gx];
-                    let x = rel[1];
-                    let x2 = x * x;
-                    for (i, &v) in pairs.iter().enumerate() {
-                        sums[i] += v;
-                        sums[3 + i] += v * x;
-                        sums[6 + i] += v * x2;
-                    }
-                    let (ry, rx) = (wgy * residual, wgx * residual);
-                    sums[9] += ry;
-                    sums[10] += rx;
-                    sums[11] += ry * x;
-                    sums[12] += rx * x;
-                }
+                let bins = RunBins {
+                    row: layout.centroid[run.start][0],
+                    x: &layout.x[run.clone()],
+                    x2: &layout.x2[run.clone()],
+                    observed: &observed[run.clone()],
+                    trials: &trials[run.clone()],
+                };
+                #[cfg(target_arch = "x86_64")]
+                let sums = if avx2 {
+                    // SAFETY: `avx2` is only set by `fit_sub_block_avx2`, whose caller checked
+                    // that the CPU supports AVX2.
+                    unsafe { run_sums_avx2(template, &motion, centre, &bins) }
+                } else {
+                    run_sums(template, &motion, centre, &bins)
+                };
+                #[cfg(not(target_arch = "x86_64"))]
+                let sums = run_sums(template, &motion, centre, &bins);
                 let y = layout.centroid[run.start][0];
                 let y_power = [1.0, y, y * y];
                 for p in 0..6 {
@@ -929,6 +933,254 @@ fn fit_sub_block_generic(
         }
     }
     Some(AffineMotion::from_params(params))
+}
+
+/// The bins of one run of a [`BinLayout`] (one centroid row), as [`fit_sub_block`] reads them.
+struct RunBins<'a> {
+    /// Centroid row (relative to the image centre), shared by the run.
+    row: f64,
+    /// Centroid column of every bin, and its square.
+    x: &'a [f64],
+    x2: &'a [f64],
+    /// Mean bit rate and number of trials of every bin.
+    observed: &'a [f64],
+    trials: &'a [f64],
+}
+
+/// The 13 sums of one run of [`fit_sub_block`]: per gradient pair (yy, yx, xx) and power of x
+/// (0, 1, 2) Σ w·g·g'·xᵖ at [pair + 3·p]; per gradient (y, x) and power of x (0, 1) Σ w·g·r·xᵖ
+/// at [9 + g + 2·p]; bins in order, those whose position leaves the template skipped.
+#[inline(always)]
+fn run_sums(
+    template: &TemplateLevel,
+    motion: &AffineMotion,
+    centre: [f64; 2],
+    bins: &RunBins,
+) -> [f64; 13] {
+    let mut sums = [0.0f64; 13];
+    for b in 0..bins.x.len() {
+        let (x, x2) = (bins.x[b], bins.x2[b]);
+        let (observed, trials) = (bins.observed[b], bins.trials[b]);
+        let d = motion.at([bins.row, x]);
+        let Some([t, gy, gx]) =
+            sample_template(template, bins.row + centre[0] + d[0], x + centre[1] + d[1])
+        else {
+            continue;
+        };
+        let residual = observed - t;
+        // Inverse binomial variance of the bin mean, and a Huber weight at 3 std (moving
+        // objects, occlusions): z = |r|·√(1/var), weight (1 or 3/z)/var, with the square root
+        // and a second division only past 3 std.
+        let inv_variance = trials / (t * (1.0 - t)).max(0.01);
+        let z2 = residual * residual * inv_variance;
+        let weight = if z2 > 9.0 {
+            3.0 * inv_variance.sqrt() / residual.abs()
+        } else {
+            inv_variance
+        };
+        let (wgy, wgx) = (weight * gy, weight * gx);
+        let pairs = [wgy * gy, wgy * gx, wgx * gx];
+        for (i, &v) in pairs.iter().enumerate() {
+            sums[i] += v;
+            sums[3 + i] += v * x;
+            sums[6 + i] += v * x2;
+        }
+        let (ry, rx) = (wgy * residual, wgx * residual);
+        sums[9] += ry;
+        sums[10] += rx;
+        sums[11] += ry * x;
+        sums[12] += rx * x;
+    }
+    sums
+}
+
+/// [`run_sums`] four bins at a time in AVX2 registers: positions, bilinear template samples
+/// (one pixel's value and gradients per 128-bit vector), weights and the 13 terms of four bins
+/// lane-parallel, then added to the sums bin by bin in order. Every operation is the scalar
+/// one (no fused multiply-add, the same rounding and order), so the sums are bit-identical to
+/// [`run_sums`] (checked by a test).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn run_sums_avx2(
+    template: &TemplateLevel,
+    motion: &AffineMotion,
+    centre: [f64; 2],
+    bins: &RunBins,
+) -> [f64; 13] {
+    use std::arch::x86_64::*;
+    let (h, w) = (template.height, template.width);
+    // The lane arithmetic indexes pixels in i32.
+    if h < 2 || w < 2 || h.saturating_mul(w) >= (1 << 28) {
+        return run_sums(template, motion, centre, bins);
+    }
+    let samples = template.samples.as_ptr() as *const f32;
+    let mut sums = [0.0f64; 13];
+    // Per-run parts of the positions, added as `AffineMotion::at` and `sample_template` add
+    // them: y = (row + c_y) + ((b_y + m_yy·row) + m_yx·x), x = (x + c_x) + ((b_x + m_xy·row) +
+    // m_xx·x).
+    let row_y = _mm256_set1_pd(bins.row + centre[0]);
+    let base_y = _mm256_set1_pd(motion.b[0] + motion.m[0][0] * bins.row);
+    let base_x = _mm256_set1_pd(motion.b[1] + motion.m[1][0] * bins.row);
+    let (m_yx, m_xx) = (
+        _mm256_set1_pd(motion.m[0][1]),
+        _mm256_set1_pd(motion.m[1][1]),
+    );
+    let centre_x = _mm256_set1_pd(centre[1]);
+    let zero = _mm256_setzero_pd();
+    let (y_max, x_max) = (
+        _mm256_set1_pd((h - 1) as f64),
+        _mm256_set1_pd((w - 1) as f64),
+    );
+    let (y_last, x_last) = (
+        _mm_set1_epi32((h - 2) as i32),
+        _mm_set1_epi32((w - 2) as i32),
+    );
+    let width = _mm_set1_epi32(w as i32);
+    let (one, one_ps) = (_mm256_set1_pd(1.0), _mm_set1_ps(1.0));
+    let (floor, nine, three) = (
+        _mm256_set1_pd(0.01),
+        _mm256_set1_pd(9.0),
+        _mm256_set1_pd(3.0),
+    );
+    let sign = _mm256_set1_pd(-0.0);
+    let mut terms = [[0.0f64; 4]; 13];
+    let len = bins.x.len();
+    let mut i = 0;
+    while i < len {
+        let n = (len - i).min(4);
+        let load = |v: &[f64]| -> __m256d {
+            if n == 4 {
+                _mm256_loadu_pd(v.as_ptr().add(i))
+            } else {
+                let mut lanes = [0.0f64; 4];
+                lanes[..n].copy_from_slice(&v[i..i + n]);
+                _mm256_loadu_pd(lanes.as_ptr())
+            }
+        };
+        let (x, x2) = (load(bins.x), load(bins.x2));
+        let (observed, trials) = (load(bins.observed), load(bins.trials));
+        let py = _mm256_add_pd(row_y, _mm256_add_pd(base_y, _mm256_mul_pd(m_yx, x)));
+        let px = _mm256_add_pd(
+            _mm256_add_pd(x, centre_x),
+            _mm256_add_pd(base_x, _mm256_mul_pd(m_xx, x)),
+        );
+        // Inside the template's interior (as `sample_template`; NaN is outside).
+        let inside = _mm256_and_pd(
+            _mm256_and_pd(
+                _mm256_cmp_pd::<_CMP_GE_OQ>(py, zero),
+                _mm256_cmp_pd::<_CMP_GE_OQ>(px, zero),
+            ),
+            _mm256_and_pd(
+                _mm256_cmp_pd::<_CMP_LE_OQ>(py, y_max),
+                _mm256_cmp_pd::<_CMP_LE_OQ>(px, x_max),
+            ),
+        );
+        let mut valid = _mm256_movemask_pd(inside) as u32 & ((1u32 << n) - 1);
+        // Lanes outside sample pixel (0, 0) and are dropped below.
+        let (py, px) = if valid == 0xF {
+            (py, px)
+        } else {
+            (_mm256_and_pd(py, inside), _mm256_and_pd(px, inside))
+        };
+        let y0 = _mm_min_epi32(_mm256_cvttpd_epi32(py), y_last);
+        let x0 = _mm_min_epi32(_mm256_cvttpd_epi32(px), x_last);
+        let mut fy = [0.0f32; 4];
+        let mut fx = [0.0f32; 4];
+        _mm_storeu_ps(
+            fy.as_mut_ptr(),
+            _mm256_cvtpd_ps(_mm256_sub_pd(py, _mm256_cvtepi32_pd(y0))),
+        );
+        _mm_storeu_ps(
+            fx.as_mut_ptr(),
+            _mm256_cvtpd_ps(_mm256_sub_pd(px, _mm256_cvtepi32_pd(x0))),
+        );
+        let mut index = [0i32; 4];
+        _mm_storeu_si128(
+            index.as_mut_ptr() as *mut __m128i,
+            _mm_add_epi32(_mm_mullo_epi32(y0, width), x0),
+        );
+        // (value, ∂y, ∂x, 0) of every lane: pixels i, i + 1 in one load, i + w, i + w + 1 in
+        // another.
+        let mut sampled = [_mm_setzero_ps(); 4];
+        for (lane, out) in sampled.iter_mut().enumerate() {
+            let top_row = samples.add(4 * index[lane] as usize);
+            let ab = _mm256_loadu_ps(top_row);
+            let cd = _mm256_loadu_ps(top_row.add(4 * w));
+            let fxl = _mm_set1_ps(fx[lane]);
+            let fyl = _mm_set1_ps(fy[lane]);
+            let (gxl, gyl) = (_mm_sub_ps(one_ps, fxl), _mm_sub_ps(one_ps, fyl));
+            let top = _mm_add_ps(
+                _mm_mul_ps(_mm256_castps256_ps128(ab), gxl),
+                _mm_mul_ps(_mm256_extractf128_ps::<1>(ab), fxl),
+            );
+            let bottom = _mm_add_ps(
+                _mm_mul_ps(_mm256_castps256_ps128(cd), gxl),
+                _mm_mul_ps(_mm256_extractf128_ps::<1>(cd), fxl),
+            );
+            *out = _mm_add_ps(_mm_mul_ps(top, gyl), _mm_mul_ps(bottom, fyl));
+        }
+        // Transposed to value, ∂y and ∂x across the lanes.
+        let low01 = _mm_unpacklo_ps(sampled[0], sampled[1]);
+        let low23 = _mm_unpacklo_ps(sampled[2], sampled[3]);
+        let high01 = _mm_unpackhi_ps(sampled[0], sampled[1]);
+        let high23 = _mm_unpackhi_ps(sampled[2], sampled[3]);
+        let t = _mm256_cvtps_pd(_mm_movelh_ps(low01, low23));
+        let gy = _mm256_cvtps_pd(_mm_movehl_ps(low23, low01));
+        let gx = _mm256_cvtps_pd(_mm_movelh_ps(high01, high23));
+        let residual = _mm256_sub_pd(observed, t);
+        let inv_variance = _mm256_div_pd(
+            trials,
+            _mm256_max_pd(_mm256_mul_pd(t, _mm256_sub_pd(one, t)), floor),
+        );
+        let z2 = _mm256_mul_pd(_mm256_mul_pd(residual, residual), inv_variance);
+        let far = _mm256_cmp_pd::<_CMP_GT_OQ>(z2, nine);
+        let weight = if _mm256_movemask_pd(far) == 0 {
+            inv_variance
+        } else {
+            let huber = _mm256_div_pd(
+                _mm256_mul_pd(three, _mm256_sqrt_pd(inv_variance)),
+                _mm256_andnot_pd(sign, residual),
+            );
+            _mm256_blendv_pd(inv_variance, huber, far)
+        };
+        let (wgy, wgx) = (_mm256_mul_pd(weight, gy), _mm256_mul_pd(weight, gx));
+        let pairs = [
+            _mm256_mul_pd(wgy, gy),
+            _mm256_mul_pd(wgy, gx),
+            _mm256_mul_pd(wgx, gx),
+        ];
+        for (k, &v) in pairs.iter().enumerate() {
+            _mm256_storeu_pd(terms[k].as_mut_ptr(), v);
+            _mm256_storeu_pd(terms[3 + k].as_mut_ptr(), _mm256_mul_pd(v, x));
+            _mm256_storeu_pd(terms[6 + k].as_mut_ptr(), _mm256_mul_pd(v, x2));
+        }
+        let (ry, rx) = (_mm256_mul_pd(wgy, residual), _mm256_mul_pd(wgx, residual));
+        _mm256_storeu_pd(terms[9].as_mut_ptr(), ry);
+        _mm256_storeu_pd(terms[10].as_mut_ptr(), rx);
+        _mm256_storeu_pd(terms[11].as_mut_ptr(), _mm256_mul_pd(ry, x));
+        _mm256_storeu_pd(terms[12].as_mut_ptr(), _mm256_mul_pd(rx, x));
+        // Bin by bin, in order.
+        if valid == 0xF {
+            for lane in 0..4 {
+                for (s, t) in sums.iter_mut().zip(&terms) {
+                    *s += t[lane];
+                }
+            }
+        } else {
+            while valid != 0 {
+                let lane = valid.trailing_zeros() as usize;
+                valid &= valid - 1;
+                for (s, t) in sums.iter_mut().zip(&terms) {
+                    *s += t[lane];
+                }
+            }
+        }
+        i += 4;
+    }
+    sums
 }
 
 /// Local quadratic fit along time of every parameter of `camera` (sub-block centres `times`)
@@ -1076,14 +1328,21 @@ fn refine_pass(
     let warped = |b: usize| warp_to_reference(&grey_blocks[b], &motion.block_flow(b));
     let block_ids: Vec<usize> = (0..n_blocks).collect();
     let mut total = Array2::<f32>::zeros(grey_blocks[0].dim());
+    // The warped images are kept for the blocks' own templates below when they fit in
+    // WARP_CACHE_BYTES (else warped again there: the same numbers).
+    let keep = n_blocks * total.len() * std::mem::size_of::<f32>() <= WARP_CACHE_BYTES;
+    let mut kept: Vec<Option<Array2<f32>>> = vec![None; n_blocks];
     for group in block_ids.chunks(TEMPLATE_GROUP) {
         // Warped in parallel, summed in block order (the same sum as one at a time).
         let images: Vec<Array2<f32>> = group
             .par_iter()
             .map(|&b| warped(b))
             .collect::<Result<_>>()?;
-        for image in &images {
-            total += image;
+        for (&b, image) in group.iter().zip(images) {
+            total += &image;
+            if keep {
+                kept[b] = Some(image);
+            }
         }
     }
     let all = &total / n_blocks as f32;
@@ -1105,11 +1364,17 @@ fn refine_pass(
     // in one parallel loop (one block's few sub-blocks leave cores idle); memory stays bounded
     // by the group, not the number of blocks.
     for group in busy.chunks(TEMPLATE_GROUP) {
+        let own_images: Vec<Option<Array2<f32>>> = group.iter().map(|&b| kept[b].take()).collect();
         let own_templates: Vec<Option<TemplateLevel>> = group
             .par_iter()
-            .map(|&b| -> Result<Option<TemplateLevel>> {
+            .zip(own_images)
+            .map(|(&b, own)| -> Result<Option<TemplateLevel>> {
                 if n_blocks > 1 {
-                    let others = (&total - &warped(b)?) / (n_blocks - 1) as f32;
+                    let own = match own {
+                        Some(image) => image,
+                        None => warped(b)?,
+                    };
+                    let others = (&total - &own) / (n_blocks - 1) as f32;
                     Ok(Some(template_level(&others, config.levels[last].sigma_px)))
                 } else {
                     Ok(None)
@@ -1184,7 +1449,7 @@ fn refine_pass(
 mod tests {
     use super::*;
     use crate::cfa::colorspad_cfa;
-    use rand::SeedableRng;
+    use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Binomial, Distribution};
 
@@ -1206,6 +1471,61 @@ mod tests {
             let p = scene(y as f64 + e[0], x as f64 + e[1]);
             Binomial::new(frames as u64, p).unwrap().sample(&mut rng) as u32
         })
+    }
+
+    /// The AVX2 run sums equal the scalar ones bit for bit: bins inside and outside the
+    /// template, Huber-weighted outliers, runs of every length modulo four.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_run_sums_are_bit_identical_to_scalar() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (h, w) = (37usize, 53usize);
+        let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        let template = template_level(&reference, 0.7);
+        let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut checked = 0;
+        for len in 0..12usize {
+            for shift in [0.0, 1.7, -3.2, 30.0] {
+                let motion = AffineMotion {
+                    b: [0.3 + shift, -0.7 - shift],
+                    m: [[0.01, -0.02], [0.015, 0.005]],
+                };
+                let row = rng.gen_range(-20.0..20.0);
+                let x: Vec<f64> = (0..len).map(|_| rng.gen_range(-30.0..30.0)).collect();
+                let x2: Vec<f64> = x.iter().map(|v| v * v).collect();
+                // Every fourth bin far from the template: a Huber-weighted outlier.
+                let observed: Vec<f64> = (0..len)
+                    .map(|i| {
+                        if i % 4 == 1 {
+                            0.9
+                        } else {
+                            rng.gen_range(0.0..0.3)
+                        }
+                    })
+                    .collect();
+                let trials: Vec<f64> = (0..len).map(|_| rng.gen_range(8.0..200.0)).collect();
+                let bins = RunBins {
+                    row,
+                    x: &x,
+                    x2: &x2,
+                    observed: &observed,
+                    trials: &trials,
+                };
+                let scalar = run_sums(&template, &motion, centre, &bins);
+                // SAFETY: AVX2 checked above.
+                let simd = unsafe { run_sums_avx2(&template, &motion, centre, &bins) };
+                assert_eq!(
+                    scalar.map(f64::to_bits),
+                    simd.map(f64::to_bits),
+                    "{len} {shift}"
+                );
+                checked += scalar.iter().any(|&v| v != 0.0) as usize;
+            }
+        }
+        assert!(checked > 20, "{checked}");
     }
 
     #[test]
