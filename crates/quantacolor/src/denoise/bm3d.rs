@@ -649,6 +649,31 @@ fn squared_distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
     (d <= limit).then_some(d)
 }
 
+/// [`squared_distance_at_most`], with 8 × 8 blocks (64 coefficients, the default) unrolled
+/// and checked against `limit` after the first two rows of coefficients as well (the low
+/// vertical frequencies, where most of a mismatch shows): the same bits, or `None` under the
+/// same condition (a partial sum of non-negative terms, summed over the lanes in the same
+/// order as the full one, only grows).
+#[inline(always)]
+fn distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
+    if let (Ok(a), Ok(b)) = (<&[f32; 64]>::try_from(a), <&[f32; 64]>::try_from(b)) {
+        let mut acc = [0.0f32; 8];
+        for chunk in 0..8 {
+            if (chunk == 2 || chunk == 4) && acc.iter().sum::<f32>() > limit {
+                return None;
+            }
+            for j in 0..8 {
+                let d = a[chunk * 8 + j] - b[chunk * 8 + j];
+                acc[j] += d * d;
+            }
+        }
+        // `+ 0.0`: the empty tail of the general path.
+        let d = acc.iter().sum::<f32>() + 0.0;
+        return (d <= limit).then_some(d);
+    }
+    squared_distance_at_most(a, b, limit)
+}
+
 /// What differs between the two steps.
 struct StepParams<'a> {
     /// Coefficients that matching compares (channel 0 of noisy or basic estimate).
@@ -670,6 +695,11 @@ struct StepParams<'a> {
 struct Scratch {
     candidates: Vec<(f32, u32)>,
     group: Vec<usize>,
+    /// The group of the last reference block this worker grouped (a search bound for the
+    /// next, see [`find_group`]; never changes a result).
+    previous_group: Vec<usize>,
+    /// Distances of `previous_group`'s members to the current reference.
+    warm: Vec<f32>,
     noisy_group: Vec<f32>,
     basic_group: Vec<f32>,
     haar_tmp: Vec<f32>,
@@ -682,6 +712,8 @@ impl Scratch {
         Scratch {
             candidates: Vec::new(),
             group: Vec::with_capacity(max_group),
+            previous_group: Vec::with_capacity(max_group),
+            warm: Vec::with_capacity(max_group),
             noisy_group: vec![0.0; max_group * n2],
             basic_group: vec![0.0; max_group * n2],
             haar_tmp: vec![0.0; max_group * n2],
@@ -692,11 +724,11 @@ impl Scratch {
 }
 
 /// Numerator and denominator of the aggregation for image rows `y0..y0+rows`, every channel.
-struct Strip {
+struct Strip<'b> {
     y0: usize,
     rows: usize,
-    num: Vec<f32>,
-    den: Vec<f32>,
+    num: &'b mut [f32],
+    den: &'b mut [f32],
 }
 
 /// One BM3D step over the whole image; returns one plane per channel. Channels with σ = 0 are
@@ -707,38 +739,52 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
     let channels = planes.len();
     let mut num = vec![0.0f32; channels * h * w];
     let mut den = vec![0.0f32; channels * h * w];
-    // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once.
+    // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once; their
+    // buffers are made once and cleared for every batch (fresh ones cost page faults).
     const ROWS_PER_BATCH: usize = 16;
+    let strip_rows = (2 * geo.half_window + n).min(h);
+    let mut buffers: Vec<(Vec<f32>, Vec<f32>)> = (0..ROWS_PER_BATCH.min(geo.ref_ys.len()))
+        .map(|_| {
+            let len = channels * strip_rows * w;
+            (vec![0.0; len], vec![0.0; len])
+        })
+        .collect();
+    // Group members lie within the search window's rows.
+    let strip_of = |yr: usize| {
+        let y0 = yr.saturating_sub(geo.half_window);
+        (y0, (yr + geo.half_window + n).min(h) - y0)
+    };
     for batch in geo.ref_ys.chunks(ROWS_PER_BATCH) {
-        let strips: Vec<Strip> = batch
+        batch
             .par_iter()
-            .map_init(
+            .zip(buffers.par_iter_mut())
+            .for_each_init(
                 || Scratch::new(n2, p.max_group),
-                |scratch, &yr| {
-                    // Group members lie within the search window's rows.
-                    let y0 = yr.saturating_sub(geo.half_window);
-                    let rows = (yr + geo.half_window + n).min(h) - y0;
+                |scratch, (&yr, (num, den))| {
+                    let (y0, rows) = strip_of(yr);
+                    let len = channels * rows * w;
+                    num[..len].fill(0.0);
+                    den[..len].fill(0.0);
                     let mut strip = Strip {
                         y0,
                         rows,
-                        num: vec![0.0; channels * rows * w],
-                        den: vec![0.0; channels * rows * w],
+                        num: &mut num[..len],
+                        den: &mut den[..len],
                     };
                     process_row(p, geo, tr, yr, scratch, &mut strip);
-                    strip
                 },
-            )
-            .collect();
+            );
         // Sum the strips in reference-row order: the same float additions for any thread count.
-        for strip in &strips {
-            let len = strip.rows * w;
+        for (&yr, (strip_num, strip_den)) in batch.iter().zip(&buffers) {
+            let (y0, rows) = strip_of(yr);
+            let len = rows * w;
             for c in 0..channels {
                 let src = c * len..(c + 1) * len;
-                let dst = c * h * w + strip.y0 * w..c * h * w + strip.y0 * w + len;
-                for (d, s) in num[dst.clone()].iter_mut().zip(&strip.num[src.clone()]) {
+                let dst = c * h * w + y0 * w..c * h * w + y0 * w + len;
+                for (d, s) in num[dst.clone()].iter_mut().zip(&strip_num[src.clone()]) {
                     *d += s;
                 }
-                for (d, s) in den[dst].iter_mut().zip(&strip.den[src]) {
+                for (d, s) in den[dst].iter_mut().zip(&strip_den[src]) {
                     *d += s;
                 }
             }
@@ -770,7 +816,7 @@ fn process_row(
     tr: &Transforms,
     yr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     #[cfg(target_arch = "x86_64")]
     {
@@ -790,7 +836,7 @@ fn process_row_generic(
     tr: &Transforms,
     yr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     for &xr in &geo.ref_xs {
         process_reference(p, geo, tr, yr, xr, s, strip);
@@ -809,7 +855,7 @@ unsafe fn process_row_avx2(
     tr: &Transforms,
     yr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     process_row_generic(p, geo, tr, yr, s, strip);
 }
@@ -824,7 +870,7 @@ fn process_reference(
     yr: usize,
     xr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     let n = geo.n;
     let n2 = n * n;
@@ -843,7 +889,7 @@ fn process_reference(
             sigma *= mean.sqrt();
         }
         for (g, &pos) in s.group.iter().enumerate() {
-            s.noisy_group[g * n2..(g + 1) * n2].copy_from_slice(p.noisy[c].block(pos));
+            copy_coefficients(&mut s.noisy_group[g * n2..(g + 1) * n2], p.noisy[c].block(pos));
         }
         let group = &mut s.noisy_group[..m * n2];
         haar_forward(group, m, n2, &mut s.haar_tmp);
@@ -870,7 +916,7 @@ fn process_reference(
                 // Step 2: empirical Wiener shrinkage W = |B|²/(|B|² + σ²) (§III-B, Eq. 7–8) and
                 // weight 1/(σ²·‖W‖²) (Eq. 12).
                 for (g, &pos) in s.group.iter().enumerate() {
-                    s.basic_group[g * n2..(g + 1) * n2].copy_from_slice(basic[c].block(pos));
+                    copy_coefficients(&mut s.basic_group[g * n2..(g + 1) * n2], basic[c].block(pos));
                 }
                 let bgroup = &mut s.basic_group[..m * n2];
                 haar_forward(bgroup, m, n2, &mut s.haar_tmp);
@@ -909,7 +955,7 @@ fn process_reference(
                     let den: &mut [f32; 8] = den.try_into().expect("8 wide");
                     let kai: &[f32; 8] = kai.try_into().expect("8 wide");
                     let px: &[f32; 8] = px.try_into().expect("8 wide");
-                    aggregate_row(num, den, kai, px, weight);
+                    aggregate_row8(num, den, kai, px, weight);
                 } else {
                     aggregate_row(num, den, kai, px, weight);
                 }
@@ -929,44 +975,112 @@ fn aggregate_row(num: &mut [f32], den: &mut [f32], kai: &[f32], px: &[f32], weig
     }
 }
 
+/// [`aggregate_row`] of an 8-pixel row, through local copies so that it compiles to a few
+/// vector instructions: the same operations, so the same bits.
+#[inline(always)]
+fn aggregate_row8(
+    num: &mut [f32; 8],
+    den: &mut [f32; 8],
+    kai: &[f32; 8],
+    px: &[f32; 8],
+    weight: f32,
+) {
+    let (mut n8, mut d8) = (*num, *den);
+    for j in 0..8 {
+        let wk = weight * kai[j];
+        n8[j] += wk * px[j];
+        d8[j] += wk;
+    }
+    *num = n8;
+    *den = d8;
+}
+
+/// `dst.copy_from_slice(src)`, as a fixed-size copy for 8 × 8 blocks (no call to `memcpy`).
+#[inline(always)]
+fn copy_coefficients(dst: &mut [f32], src: &[f32]) {
+    match (<&mut [f32; 64]>::try_from(&mut *dst), <&[f32; 64]>::try_from(src)) {
+        (Ok(d), Ok(s)) => *d = *s,
+        _ => dst.copy_from_slice(src),
+    }
+}
+
 /// Fills `s.group` with the reference position followed by its best matches (distance ≤ τ,
 /// ascending distance, ties by position), truncated to a power of two ≤ `max_group`.
+///
+/// Only the best `max_group − 1` matches can enter the group, so a candidate farther than the
+/// `(max_group − 1)`-th best distance known so far need not be summed to the end: the scan
+/// keeps that bound (from the previous reference's group members, which mostly lie in this
+/// window too, and then from the matches found), and [`distance_at_most`] stops once a
+/// partial sum exceeds it. The bound is always the distance of an actual candidate, so every
+/// candidate the group can take is still summed in full: the group is the one of a full scan
+/// (the test `bounded_search_finds_the_full_search_group` compares them).
 #[inline(always)]
 fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scratch) {
     let hw = geo.half_window;
-    let ref_pos = yr * geo.pw + xr;
+    let pw = geo.pw;
+    let ref_pos = yr * pw + xr;
     let reference = p.matching.block(ref_pos);
     s.candidates.clear();
     let (y0, y1) = (yr.saturating_sub(hw), (yr + hw).min(geo.ph - 1));
-    let (x0, x1) = (xr.saturating_sub(hw), (xr + hw).min(geo.pw - 1));
-    for y in y0..=y1 {
-        for x in x0..=x1 {
-            let pos = y * geo.pw + x;
-            if pos == ref_pos {
-                continue;
-            }
-            if let Some(d) = squared_distance_at_most(reference, p.matching.block(pos), p.tau_sum) {
-                s.candidates.push((d, pos as u32));
+    let (x0, x1) = (xr.saturating_sub(hw), (xr + hw).min(pw - 1));
+    let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+    let keep = p.max_group - 1;
+    s.group.clear();
+    s.group.push(ref_pos);
+    if keep == 0 {
+        return;
+    }
+    // Bound from the previous reference's group: the keep-th smallest of its members'
+    // distances to this reference, when enough of them lie in this window.
+    let mut bound = p.tau_sum;
+    let in_window = |pos: usize| {
+        let (y, x) = (pos / pw, pos % pw);
+        pos != ref_pos && (y0..=y1).contains(&y) && (x0..=x1).contains(&x)
+    };
+    s.warm.clear();
+    for &pos in &s.previous_group {
+        if in_window(pos) {
+            if let Some(d) = distance_at_most(reference, p.matching.block(pos), bound) {
+                s.warm.push(d);
             }
         }
     }
-    let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-    let keep = p.max_group - 1;
-    if s.candidates.len() > keep {
-        if keep > 0 {
-            s.candidates.select_nth_unstable_by(keep - 1, order);
+    if s.warm.len() >= keep {
+        s.warm.select_nth_unstable_by(keep - 1, f32::total_cmp);
+        bound = bound.min(s.warm[keep - 1]);
+    }
+    // Every position of the window; the list is cut back to the best `keep` (and the bound
+    // lowered to the last of them) whenever it reaches `cap`.
+    let cap = 2 * keep.max(8);
+    for y in y0..=y1 {
+        for x in x0..=x1 {
+            let pos = y * pw + x;
+            if pos == ref_pos {
+                continue;
+            }
+            if let Some(d) = distance_at_most(reference, p.matching.block(pos), bound) {
+                s.candidates.push((d, pos as u32));
+                if s.candidates.len() == cap {
+                    s.candidates.select_nth_unstable_by(keep - 1, order);
+                    s.candidates.truncate(keep);
+                    bound = s.candidates[keep - 1].0;
+                }
+            }
         }
+    }
+    if s.candidates.len() > keep {
+        s.candidates.select_nth_unstable_by(keep - 1, order);
         s.candidates.truncate(keep);
     }
     s.candidates.sort_unstable_by(order);
     let size = prev_power_of_two(1 + s.candidates.len()).min(prev_power_of_two(p.max_group));
-    s.group.clear();
-    s.group.push(ref_pos);
     s.group.extend(
         s.candidates[..size - 1]
             .iter()
             .map(|&(_, pos)| pos as usize),
     );
+    s.previous_group.clear();
+    s.previous_group.extend_from_slice(&s.group);
 }
 
 /// Largest power of two ≤ `k` (`k ≥ 1`).
@@ -979,6 +1093,16 @@ fn prev_power_of_two(k: usize) -> usize {
 /// from coarse to fine.
 #[inline(always)]
 pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
+    if n2 % 8 == 0 && m <= MAX_LANE_GROUP {
+        haar_lanes(g, m, n2, haar_forward_lanes);
+    } else {
+        haar_forward_general(g, m, n2, tmp);
+    }
+}
+
+/// [`haar_forward`] level by level over whole blocks (any `n2` and `m`).
+#[inline(always)]
+fn haar_forward_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let mut len = m;
     while len > 1 {
         let half = len / 2;
@@ -998,6 +1122,16 @@ pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) 
 /// Inverse of [`haar_forward`].
 #[inline(always)]
 pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
+    if n2 % 8 == 0 && m <= MAX_LANE_GROUP {
+        haar_lanes(g, m, n2, haar_inverse_lanes);
+    } else {
+        haar_inverse_general(g, m, n2, tmp);
+    }
+}
+
+/// [`haar_inverse`] level by level over whole blocks (any `n2` and `m`).
+#[inline(always)]
+fn haar_inverse_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let mut len = 2;
     while len <= m {
         let half = len / 2;
@@ -1010,6 +1144,84 @@ pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) 
             }
         }
         g[..len * n2].copy_from_slice(&tmp[..len * n2]);
+        len *= 2;
+    }
+}
+
+/// Largest group that [`haar_lanes`] transforms on the stack.
+const MAX_LANE_GROUP: usize = 32;
+
+/// Eight lanes of every group member (`[[f32; 8]; MAX_LANE_GROUP]`, first `m` rows used).
+type Lanes = [[f32; 8]; MAX_LANE_GROUP];
+
+/// Eight coefficients of every group member at a time, held in stack arrays while
+/// `transform` runs all levels on them: the same operations on the same values as the general
+/// path of [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole
+/// group back after every level.
+#[inline(always)]
+fn haar_lanes(g: &mut [f32], m: usize, n2: usize, transform: impl Fn(&mut Lanes, &mut Lanes, usize)) {
+    let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    for k0 in (0..n2).step_by(8) {
+        for (b, lanes) in x[..m].iter_mut().enumerate() {
+            *lanes = g[b * n2 + k0..b * n2 + k0 + 8]
+                .try_into()
+                .expect("eight lanes");
+        }
+        transform(&mut x, &mut y, m);
+        for (b, lanes) in y[..m].iter().enumerate() {
+            g[b * n2 + k0..b * n2 + k0 + 8].copy_from_slice(lanes);
+        }
+    }
+}
+
+/// [`haar_forward`] of the lanes `x` into `y` (`x` is overwritten): each level's details go
+/// straight to their place in `y`, its approximation to the other of two work arrays.
+#[inline(always)]
+fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
+    let mut other = [[0.0f32; 8]; MAX_LANE_GROUP];
+    let (mut src, mut dst) = (x, &mut other);
+    let mut len = m;
+    while len > 1 {
+        let half = len / 2;
+        for i in 0..half {
+            for k in 0..8 {
+                let a = src[2 * i][k];
+                let b = src[2 * i + 1][k];
+                dst[i][k] = (a + b) * FRAC_1_SQRT_2;
+                y[half + i][k] = (a - b) * FRAC_1_SQRT_2;
+            }
+        }
+        std::mem::swap(&mut src, &mut dst);
+        len = half;
+    }
+    y[0] = src[0];
+}
+
+/// [`haar_inverse`] of the lanes `x` into `y`: each level reads the approximation of the
+/// level before (at first `x[0]`) and its details in `x`, and writes to the other of two work
+/// arrays; the last level writes `y`.
+#[inline(always)]
+fn haar_inverse_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
+    if m == 1 {
+        y[0] = x[0];
+        return;
+    }
+    let (mut p, mut q) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    p[0] = x[0];
+    let (mut approx, mut next) = (&mut p, &mut q);
+    let mut len = 2;
+    while len <= m {
+        let half = len / 2;
+        let out: &mut Lanes = if len == m { &mut *y } else { &mut *next };
+        for i in 0..half {
+            for k in 0..8 {
+                let a = approx[i][k];
+                let d = x[half + i][k];
+                out[2 * i][k] = (a + d) * FRAC_1_SQRT_2;
+                out[2 * i + 1][k] = (a - d) * FRAC_1_SQRT_2;
+            }
+        }
+        std::mem::swap(&mut approx, &mut next);
         len *= 2;
     }
 }
@@ -1144,6 +1356,23 @@ mod tests {
             haar_inverse(&mut g, m, n2, &mut tmp);
             for (a, b) in orig.iter().zip(&g) {
                 assert!((a - b).abs() < 1e-5);
+            }
+        }
+    }
+
+    #[test]
+    fn haar_of_eight_lanes_matches_the_general_path() {
+        for n2 in [8usize, 64] {
+            for m in [1usize, 2, 4, 8, 16, 32] {
+                let orig = random(m * n2, (m * n2) as u64 + 7);
+                let mut tmp = vec![0.0; m * n2];
+                let (mut fast, mut general) = (orig.clone(), orig.clone());
+                haar_forward(&mut fast, m, n2, &mut tmp);
+                haar_forward_general(&mut general, m, n2, &mut tmp);
+                assert_eq!(fast, general, "forward, m {m}, n2 {n2}");
+                haar_inverse(&mut fast, m, n2, &mut tmp);
+                haar_inverse_general(&mut general, m, n2, &mut tmp);
+                assert_eq!(fast, general, "inverse, m {m}, n2 {n2}");
             }
         }
     }
