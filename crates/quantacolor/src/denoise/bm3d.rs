@@ -283,8 +283,10 @@ pub fn bm3d_multichannel_varying(
     } else {
         (&noisy_coeffs[0], config.tau_match_ht)
     };
+    let low1 = low_planes(match1, &geo);
     let step1 = StepParams {
         matching: match1,
+        low: low1.as_ref(),
         tau_sum: tau1 * scale * scale * (n * n) as f32,
         max_group: config.max_group_ht,
         noisy: &noisy_coeffs,
@@ -307,8 +309,10 @@ pub fn bm3d_multichannel_varying(
         .iter()
         .map(|p| BlockCoeffs::compute(p, &geo, &tr))
         .collect();
+    let low2 = low_planes(&basic_coeffs[0], &geo);
     let step2 = StepParams {
         matching: &basic_coeffs[0],
+        low: low2.as_ref(),
         tau_sum: if high_noise {
             config.tau_match_wiener_high_noise
         } else {
@@ -674,10 +678,69 @@ fn distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
     squared_distance_at_most(a, b, limit)
 }
 
+/// Coefficients per block in [`LowPlanes`]: the first two rows of an 8 × 8 block's DCT.
+const LOW_COEFFS: usize = 16;
+
+/// `planes[k·stride + pos]`: coefficient k < [`LOW_COEFFS`] of the block at position `pos`
+/// (`stride` = positions + 8, the padding zero), so that eight consecutive positions are read
+/// as lanes.
+struct LowPlanes {
+    planes: Vec<f32>,
+    stride: usize,
+}
+
+/// The [`LowPlanes`] of `coeffs` for 8 × 8 blocks, `None` for other sizes.
+fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
+    if coeffs.n2 != 64 {
+        return None;
+    }
+    let positions = geo.ph * geo.pw;
+    let stride = positions + LANES8;
+    let mut planes = vec![0.0f32; LOW_COEFFS * stride];
+    planes
+        .par_chunks_mut(stride)
+        .enumerate()
+        .for_each(|(k, plane)| {
+            for (pos, v) in plane[..positions].iter_mut().enumerate() {
+                *v = coeffs.data[pos * 64 + k];
+            }
+        });
+    Some(LowPlanes { planes, stride })
+}
+
+/// Lanes of the first matching check (eight f32: one AVX2 register).
+const LANES8: usize = 8;
+
+/// For the eight block positions `first..first + 8`, the partial distance to `reference` that
+/// [`distance_at_most`] compares with its limit after two rows of coefficients: per lane,
+/// `acc[j] = (r[j] − c[j])² + (r[j+8] − c[j+8])²`, summed over j in order. The same operations
+/// on the same values, so the same bits, with the positions as vector lanes.
+#[inline(always)]
+fn low_partial_distances(low: &LowPlanes, reference: &[f32], first: usize) -> [f32; LANES8] {
+    let mut sum = [0.0f32; LANES8];
+    for j in 0..8 {
+        let at = j * low.stride + first;
+        let c0: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
+        let at = (j + 8) * low.stride + first;
+        let c1: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
+        let (r0, r1) = (reference[j], reference[j + 8]);
+        for l in 0..LANES8 {
+            let d0 = r0 - c0[l];
+            let d1 = r1 - c1[l];
+            let acc = d0 * d0 + d1 * d1;
+            sum[l] = if j == 0 { acc } else { sum[l] + acc };
+        }
+    }
+    sum
+}
+
 /// What differs between the two steps.
 struct StepParams<'a> {
     /// Coefficients that matching compares (channel 0 of noisy or basic estimate).
     matching: &'a BlockCoeffs,
+    /// The first [`LOW_COEFFS`] of `matching`'s coefficients as planes over the block
+    /// positions ([`low_planes`]; 8 × 8 blocks only): the first check of [`find_group`].
+    low: Option<&'a LowPlanes>,
     /// Matching threshold on the summed squared coefficient distance (τ·N1², image units).
     tau_sum: f32,
     max_group: usize,
@@ -1052,18 +1115,40 @@ fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scra
     // Every position of the window; the list is cut back to the best `keep` (and the bound
     // lowered to the last of them) whenever it reaches `cap`.
     let cap = 2 * keep.max(8);
-    for y in y0..=y1 {
-        for x in x0..=x1 {
-            let pos = y * pw + x;
-            if pos == ref_pos {
-                continue;
+    let consider = |pos: usize, bound: &mut f32, candidates: &mut Vec<(f32, u32)>| {
+        if let Some(d) = distance_at_most(reference, p.matching.block(pos), *bound) {
+            candidates.push((d, pos as u32));
+            if candidates.len() == cap {
+                candidates.select_nth_unstable_by(keep - 1, order);
+                candidates.truncate(keep);
+                *bound = candidates[keep - 1].0;
             }
-            if let Some(d) = distance_at_most(reference, p.matching.block(pos), bound) {
-                s.candidates.push((d, pos as u32));
-                if s.candidates.len() == cap {
-                    s.candidates.select_nth_unstable_by(keep - 1, order);
-                    s.candidates.truncate(keep);
-                    bound = s.candidates[keep - 1].0;
+        }
+    };
+    for y in y0..=y1 {
+        match p.low {
+            Some(low) => {
+                // Eight positions at a time through the first check (the tail's extra lanes
+                // read the next positions or the padding and are not used).
+                let mut x = x0;
+                while x <= x1 {
+                    let first = y * pw + x;
+                    let partial = low_partial_distances(low, reference, first);
+                    for (l, &part) in partial.iter().enumerate().take(x1 + 1 - x) {
+                        let pos = first + l;
+                        if pos != ref_pos && part <= bound {
+                            consider(pos, &mut bound, &mut s.candidates);
+                        }
+                    }
+                    x += LANES8;
+                }
+            }
+            None => {
+                for x in x0..=x1 {
+                    let pos = y * pw + x;
+                    if pos != ref_pos {
+                        consider(pos, &mut bound, &mut s.candidates);
+                    }
                 }
             }
         }
@@ -1414,6 +1499,7 @@ mod tests {
         let noisy = [coeffs];
         let p = StepParams {
             matching: &noisy[0],
+            low: None,
             tau_sum: 1.0,
             max_group: 16,
             noisy: &noisy,
