@@ -738,18 +738,29 @@ impl<'a> MergeAccumulator<'a> {
         let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut effective_frames = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
-        for (i, s) in sums.iter().enumerate() {
-            let (oy, ox) = (i / ws, i % ws);
-            for ch in 0..4 {
-                let s = &s[ch * 3..ch * 3 + 3];
-                if s[1] > 1e-6 && s[2] > 0.0 {
-                    let p = s[0] / s[1];
-                    let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
-                    bit_rate[[ch, oy, ox]] = p;
-                    effective_frames[[ch, oy, ox]] = n_eff as f32;
-                    flux[[ch, oy, ox]] = model.flux(p as f64, n_eff) as f32;
-                }
-            }
+        // Per channel plane, in parallel by output rows.
+        for ch in 0..4 {
+            let mut rate_plane = bit_rate.index_axis_mut(Axis(0), ch);
+            let mut frames_plane = effective_frames.index_axis_mut(Axis(0), ch);
+            let mut flux_plane = flux.index_axis_mut(Axis(0), ch);
+            rate_plane
+                .axis_iter_mut(Axis(0))
+                .into_par_iter()
+                .zip(frames_plane.axis_iter_mut(Axis(0)))
+                .zip(flux_plane.axis_iter_mut(Axis(0)))
+                .zip(sums.par_chunks(ws))
+                .for_each(|(((mut rate, mut frames), mut flux), row)| {
+                    for (ox, s) in row.iter().enumerate() {
+                        let s = &s[ch * 3..ch * 3 + 3];
+                        if s[1] > 1e-6 && s[2] > 0.0 {
+                            let p = s[0] / s[1];
+                            let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;
+                            rate[ox] = p;
+                            frames[ox] = n_eff as f32;
+                            flux[ox] = model.flux(p as f64, n_eff) as f32;
+                        }
+                    }
+                });
         }
         drop(sums);
         // Fill pixels that no sample reached (sparse channels, image borders).
@@ -1087,12 +1098,23 @@ fn validate(
             )));
         }
         let most = b.frames as f64 * max_sample;
-        if let Some(((y, x), c)) = b.counts.indexed_iter().find(|(_, &c)| c as f64 > most) {
-            return Err(Error::invalid(format!(
-                "merge: sub-block {k} sums to {c} at (y={y}, x={x}), more than {} frames of at \
-                 most {max_sample} each",
-                b.frames
-            )));
+        // A count exceeds `most` exactly when it exceeds its floor (counts are integers): a
+        // quick scan first, the position only for the message.
+        let exceeds = match b.counts.as_slice() {
+            Some(counts) if most < u32::MAX as f64 => {
+                let floor = most.max(0.0).floor() as u32;
+                counts.iter().any(|&c| c > floor)
+            }
+            _ => true,
+        };
+        if exceeds {
+            if let Some(((y, x), c)) = b.counts.indexed_iter().find(|(_, &c)| c as f64 > most) {
+                return Err(Error::invalid(format!(
+                    "merge: sub-block {k} sums to {c} at (y={y}, x={x}), more than {} frames of \
+                     at most {max_sample} each",
+                    b.frames
+                )));
+            }
         }
         b.flow.check(h, w, &format!("merge: sub-block {k}"))?;
         match &b.robustness {
