@@ -574,17 +574,41 @@ impl BlockCoeffs {
         data.par_chunks_mut(pw * n2)
             .enumerate()
             .for_each(|(y, row)| {
-                let mut block = vec![0.0f32; n2];
-                let mut tmp = vec![0.0f32; n2];
-                for (x, dst) in row.chunks_exact_mut(n2).enumerate() {
-                    for i in 0..n {
-                        let src = &plane[(y + i) * w + x..(y + i) * w + x + n];
-                        block[i * n..(i + 1) * n].copy_from_slice(src);
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        // SAFETY: the CPU supports AVX2 (checked just above).
+                        return unsafe { Self::row_avx2(plane, y, n, w, tr, row) };
                     }
-                    tr.forward(&block, &mut tmp, dst);
                 }
+                Self::row(plane, y, n, w, tr, row)
             });
         BlockCoeffs { n2, pw, data }
+    }
+
+    /// The coefficients of the blocks of position row `y` into `row`.
+    #[inline(always)]
+    fn row(plane: &[f32], y: usize, n: usize, w: usize, tr: &Transforms, row: &mut [f32]) {
+        let n2 = n * n;
+        let mut block = vec![0.0f32; n2];
+        let mut tmp = vec![0.0f32; n2];
+        for (x, dst) in row.chunks_exact_mut(n2).enumerate() {
+            for i in 0..n {
+                let src = &plane[(y + i) * w + x..(y + i) * w + x + n];
+                block[i * n..(i + 1) * n].copy_from_slice(src);
+            }
+            tr.forward(&block, &mut tmp, dst);
+        }
+    }
+
+    /// [`BlockCoeffs::row`] compiled for AVX2 (no fused multiply-add: the same bits).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn row_avx2(plane: &[f32], y: usize, n: usize, w: usize, tr: &Transforms, row: &mut [f32]) {
+        Self::row(plane, y, n, w, tr, row)
     }
 
     /// A copy with every coefficient of magnitude ≤ `t` set to zero (Step 1 matching, σ > 40).
@@ -681,9 +705,9 @@ fn distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
 /// Coefficients per block in [`LowPlanes`]: the first two rows of an 8 × 8 block's DCT.
 const LOW_COEFFS: usize = 16;
 
-/// `planes[k·stride + pos]`: coefficient k < [`LOW_COEFFS`] of the block at position `pos`
-/// (`stride` = positions + 8, the padding zero), so that eight consecutive positions are read
-/// as lanes.
+/// `planes[(y·LOW_COEFFS + k)·stride + x]`: coefficient k < [`LOW_COEFFS`] of the block at
+/// position (y, x) (`stride` = positions per row + 8, the padding zero), so that eight
+/// consecutive positions of a row are read as lanes.
 struct LowPlanes {
     planes: Vec<f32>,
     stride: usize,
@@ -694,15 +718,17 @@ fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
     if coeffs.n2 != 64 {
         return None;
     }
-    let positions = geo.ph * geo.pw;
-    let stride = positions + LANES8;
-    let mut planes = vec![0.0f32; LOW_COEFFS * stride];
+    let pw = geo.pw;
+    let stride = pw + LANES8;
+    let mut planes = vec![0.0f32; geo.ph * LOW_COEFFS * stride];
     planes
-        .par_chunks_mut(stride)
-        .enumerate()
-        .for_each(|(k, plane)| {
-            for (pos, v) in plane[..positions].iter_mut().enumerate() {
-                *v = coeffs.data[pos * 64 + k];
+        .par_chunks_mut(LOW_COEFFS * stride)
+        .zip(coeffs.data.par_chunks(pw * 64))
+        .for_each(|(rows, blocks)| {
+            for (x, block) in blocks.chunks_exact(64).enumerate() {
+                for (k, &v) in block[..LOW_COEFFS].iter().enumerate() {
+                    rows[k * stride + x] = v;
+                }
             }
         });
     Some(LowPlanes { planes, stride })
@@ -711,17 +737,18 @@ fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
 /// Lanes of the first matching check (eight f32: one AVX2 register).
 const LANES8: usize = 8;
 
-/// For the eight block positions `first..first + 8`, the partial distance to `reference` that
+/// For the eight block positions (y, x..x + 8), the partial distance to `reference` that
 /// [`distance_at_most`] compares with its limit after two rows of coefficients: per lane,
 /// `acc[j] = (r[j] − c[j])² + (r[j+8] − c[j+8])²`, summed over j in order. The same operations
 /// on the same values, so the same bits, with the positions as vector lanes.
 #[inline(always)]
-fn low_partial_distances(low: &LowPlanes, reference: &[f32], first: usize) -> [f32; LANES8] {
+fn low_partial_distances(low: &LowPlanes, reference: &[f32], y: usize, x: usize) -> [f32; LANES8] {
     let mut sum = [0.0f32; LANES8];
+    let row = y * LOW_COEFFS * low.stride + x;
     for j in 0..8 {
-        let at = j * low.stride + first;
+        let at = row + j * low.stride;
         let c0: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
-        let at = (j + 8) * low.stride + first;
+        let at = row + (j + 8) * low.stride;
         let c1: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
         let (r0, r1) = (reference[j], reference[j + 8]);
         for l in 0..LANES8 {
@@ -1132,11 +1159,18 @@ fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scra
                 // read the next positions or the padding and are not used).
                 let mut x = x0;
                 while x <= x1 {
-                    let first = y * pw + x;
-                    let partial = low_partial_distances(low, reference, first);
-                    for (l, &part) in partial.iter().enumerate().take(x1 + 1 - x) {
-                        let pos = first + l;
-                        if pos != ref_pos && part <= bound {
+                    let partial = low_partial_distances(low, reference, y, x);
+                    // Lanes that pass the check, as bits (the bound of the chunk's start: a
+                    // lower one found meanwhile only saves work, `consider` applies it).
+                    let mut pass = 0u32;
+                    for (l, &part) in partial.iter().enumerate() {
+                        pass |= ((part <= bound) as u32) << l;
+                    }
+                    pass &= (1u32 << (x1 + 1 - x).min(LANES8)) - 1;
+                    while pass != 0 {
+                        let pos = y * pw + x + pass.trailing_zeros() as usize;
+                        pass &= pass - 1;
+                        if pos != ref_pos {
                             consider(pos, &mut bound, &mut s.candidates);
                         }
                     }
