@@ -47,8 +47,11 @@ impl BinomialAnscombe {
         // A(k) of every count k, made once (the expectations below visit each many times);
         // beyond `MAX_COUNT_TABLE` trials each is computed where it is needed.
         const MAX_COUNT_TABLE: f64 = 4_194_304.0;
-        let counts: Option<Vec<f64>> = (trials <= MAX_COUNT_TABLE)
-            .then(|| (0..=trials as u64).map(|k| transform.forward(k as f64)).collect());
+        let counts: Option<Vec<f64>> = (trials <= MAX_COUNT_TABLE).then(|| {
+            (0..=trials as u64)
+                .map(|k| transform.forward(k as f64))
+                .collect()
+        });
         let points: Vec<(f64, f64)> = (0..TABLE_POINTS)
             .into_par_iter()
             .map(|i| {

@@ -37,6 +37,10 @@
 //! `(H−N1+1)·(W−N1+1)·N1²` f32 per channel (noisy, and in Step 2 also the basic estimate), so
 //! matching is a cheap distance on stored coefficients. That is about 65 MB per channel per
 //! image for 512×512 and 250 MB for 1000×1000: fine for images up to about 1000×1000.
+//! For 8×8 blocks the matching channel's first two coefficient rows are also stored as planes
+//! over the positions (a quarter more), so that the first check of a candidate runs on eight
+//! positions at once; matching stops summing a candidate once it cannot enter the group
+//! ([`find_group`]). Both only skip work: the groups are those of the plain full search.
 //!
 //! Parallelism and determinism: reference-block rows are processed in parallel with rayon; each
 //! row aggregates into its own strip buffer (the rows its search window reaches), and strips are
@@ -607,7 +611,14 @@ impl BlockCoeffs {
     /// The CPU must support AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn row_avx2(plane: &[f32], y: usize, n: usize, w: usize, tr: &Transforms, row: &mut [f32]) {
+    unsafe fn row_avx2(
+        plane: &[f32],
+        y: usize,
+        n: usize,
+        w: usize,
+        tr: &Transforms,
+        row: &mut [f32],
+    ) {
         Self::row(plane, y, n, w, tr, row)
     }
 
@@ -845,25 +856,22 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
         (y0, (yr + geo.half_window + n).min(h) - y0)
     };
     for batch in geo.ref_ys.chunks(ROWS_PER_BATCH) {
-        batch
-            .par_iter()
-            .zip(buffers.par_iter_mut())
-            .for_each_init(
-                || Scratch::new(n2, p.max_group),
-                |scratch, (&yr, (num, den))| {
-                    let (y0, rows) = strip_of(yr);
-                    let len = channels * rows * w;
-                    num[..len].fill(0.0);
-                    den[..len].fill(0.0);
-                    let mut strip = Strip {
-                        y0,
-                        rows,
-                        num: &mut num[..len],
-                        den: &mut den[..len],
-                    };
-                    process_row(p, geo, tr, yr, scratch, &mut strip);
-                },
-            );
+        batch.par_iter().zip(buffers.par_iter_mut()).for_each_init(
+            || Scratch::new(n2, p.max_group),
+            |scratch, (&yr, (num, den))| {
+                let (y0, rows) = strip_of(yr);
+                let len = channels * rows * w;
+                num[..len].fill(0.0);
+                den[..len].fill(0.0);
+                let mut strip = Strip {
+                    y0,
+                    rows,
+                    num: &mut num[..len],
+                    den: &mut den[..len],
+                };
+                process_row(p, geo, tr, yr, scratch, &mut strip);
+            },
+        );
         // Sum the strips in reference-row order: the same float additions for any thread count.
         for (&yr, (strip_num, strip_den)) in batch.iter().zip(&buffers) {
             let (y0, rows) = strip_of(yr);
@@ -979,7 +987,10 @@ fn process_reference(
             sigma *= mean.sqrt();
         }
         for (g, &pos) in s.group.iter().enumerate() {
-            copy_coefficients(&mut s.noisy_group[g * n2..(g + 1) * n2], p.noisy[c].block(pos));
+            copy_coefficients(
+                &mut s.noisy_group[g * n2..(g + 1) * n2],
+                p.noisy[c].block(pos),
+            );
         }
         let group = &mut s.noisy_group[..m * n2];
         haar_forward(group, m, n2, &mut s.haar_tmp);
@@ -1006,7 +1017,10 @@ fn process_reference(
                 // Step 2: empirical Wiener shrinkage W = |B|²/(|B|² + σ²) (§III-B, Eq. 7–8) and
                 // weight 1/(σ²·‖W‖²) (Eq. 12).
                 for (g, &pos) in s.group.iter().enumerate() {
-                    copy_coefficients(&mut s.basic_group[g * n2..(g + 1) * n2], basic[c].block(pos));
+                    copy_coefficients(
+                        &mut s.basic_group[g * n2..(g + 1) * n2],
+                        basic[c].block(pos),
+                    );
                 }
                 let bgroup = &mut s.basic_group[..m * n2];
                 haar_forward(bgroup, m, n2, &mut s.haar_tmp);
@@ -1088,7 +1102,10 @@ fn aggregate_row8(
 /// `dst.copy_from_slice(src)`, as a fixed-size copy for 8 × 8 blocks (no call to `memcpy`).
 #[inline(always)]
 fn copy_coefficients(dst: &mut [f32], src: &[f32]) {
-    match (<&mut [f32; 64]>::try_from(&mut *dst), <&[f32; 64]>::try_from(src)) {
+    match (
+        <&mut [f32; 64]>::try_from(&mut *dst),
+        <&[f32; 64]>::try_from(src),
+    ) {
         (Ok(d), Ok(s)) => *d = *s,
         _ => dst.copy_from_slice(src),
     }
@@ -1278,7 +1295,12 @@ type Lanes = [[f32; 8]; MAX_LANE_GROUP];
 /// path of [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole
 /// group back after every level.
 #[inline(always)]
-fn haar_lanes(g: &mut [f32], m: usize, n2: usize, transform: impl Fn(&mut Lanes, &mut Lanes, usize)) {
+fn haar_lanes(
+    g: &mut [f32],
+    m: usize,
+    n2: usize,
+    transform: impl Fn(&mut Lanes, &mut Lanes, usize),
+) {
     let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
     for k0 in (0..n2).step_by(8) {
         for (b, lanes) in x[..m].iter_mut().enumerate() {
@@ -1520,6 +1542,111 @@ mod tests {
     fn previous_power_of_two() {
         let got: Vec<usize> = (1..=9).map(prev_power_of_two).collect();
         assert_eq!(got, vec![1, 2, 2, 4, 4, 4, 4, 8, 8]);
+    }
+
+    /// The group of a plain full search: every window position within τ, sorted by
+    /// (distance, position), the best `max_group − 1` kept, cut to a power of two.
+    fn full_search_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize) -> Vec<usize> {
+        let hw = geo.half_window;
+        let ref_pos = yr * geo.pw + xr;
+        let reference = p.matching.block(ref_pos);
+        let mut found: Vec<(f32, usize)> = Vec::new();
+        for y in yr.saturating_sub(hw)..=(yr + hw).min(geo.ph - 1) {
+            for x in xr.saturating_sub(hw)..=(xr + hw).min(geo.pw - 1) {
+                let pos = y * geo.pw + x;
+                let d = squared_distance(reference, p.matching.block(pos));
+                if pos != ref_pos && d <= p.tau_sum {
+                    found.push((d, pos));
+                }
+            }
+        }
+        found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        found.truncate(p.max_group - 1);
+        let size = prev_power_of_two(1 + found.len()).min(prev_power_of_two(p.max_group));
+        std::iter::once(ref_pos)
+            .chain(found[..size - 1].iter().map(|&(_, pos)| pos))
+            .collect()
+    }
+
+    #[test]
+    fn bounded_search_finds_the_full_search_group() {
+        // A smooth image with repeated texture and noise, so that many blocks are near each
+        // other and near the thresholds.
+        let (h, w) = (48usize, 56usize);
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let image: Vec<f32> = (0..h * w)
+            .map(|i| {
+                let (y, x) = ((i / w) as f32, (i % w) as f32);
+                100.0 + 40.0 * (x * 0.7).sin() * (y * 0.3).cos() + rng.gen_range(-20.0..20.0)
+            })
+            .collect();
+        let config = Bm3dConfig {
+            search_window: 21,
+            ..Bm3dConfig::default()
+        };
+        let geo = Geometry::new(h, w, 8, &config);
+        let tr = Transforms::new(8, 2.0);
+        let coeffs = [BlockCoeffs::compute(&image, &geo, &tr)];
+        let low = low_planes(&coeffs[0], &geo).expect("8 x 8 blocks");
+        for (tau_sum, max_group) in [(64.0 * 400.0, 16), (64.0 * 3000.0, 32), (64.0 * 50.0, 8)] {
+            for with_low in [true, false] {
+                let p = StepParams {
+                    matching: &coeffs[0],
+                    low: with_low.then_some(&low),
+                    tau_sum,
+                    max_group,
+                    noisy: &coeffs,
+                    basic: None,
+                    sigmas: &[20.0],
+                    block_variance: None,
+                    lambda_3d: 2.7,
+                };
+                // One worker's scratch across many references, so that the bound from the
+                // previous group is used (and sometimes from another row).
+                let mut s = Scratch::new(64, max_group);
+                for &yr in &geo.ref_ys {
+                    for &xr in &geo.ref_xs {
+                        find_group(&p, &geo, yr, xr, &mut s);
+                        assert_eq!(
+                            s.group,
+                            full_search_group(&p, &geo, yr, xr),
+                            "tau {tau_sum}, group {max_group}, low {with_low}, ({yr}, {xr})"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn low_coefficient_partials_are_the_bounded_distance_checks() {
+        // Eight lanes of the first check equal the partial sum that `distance_at_most` compares
+        // after two rows of coefficients (bit for bit), and never exceed the full distance.
+        let (h, w) = (20usize, 30usize);
+        let image = random(h * w, 77);
+        let geo = Geometry::new(h, w, 8, &Bm3dConfig::default());
+        let tr = Transforms::new(8, 2.0);
+        let coeffs = BlockCoeffs::compute(&image, &geo, &tr);
+        let low = low_planes(&coeffs, &geo).expect("8 x 8 blocks");
+        let reference = coeffs.block(5 * geo.pw + 4);
+        for y in 0..geo.ph {
+            for x0 in (0..geo.pw).step_by(8) {
+                let lanes = low_partial_distances(&low, reference, y, x0);
+                for (l, &got) in lanes.iter().enumerate().take(geo.pw - x0) {
+                    let block = coeffs.block(y * geo.pw + x0 + l);
+                    let mut acc = [0.0f32; 8];
+                    for chunk in 0..2 {
+                        for j in 0..8 {
+                            let d = reference[chunk * 8 + j] - block[chunk * 8 + j];
+                            acc[j] += d * d;
+                        }
+                    }
+                    let want = acc.iter().sum::<f32>();
+                    assert_eq!(got.to_bits(), want.to_bits(), "({y}, {})", x0 + l);
+                    assert!(got <= squared_distance(reference, block));
+                }
+            }
+        }
     }
 
     #[test]

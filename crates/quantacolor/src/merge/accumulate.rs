@@ -372,10 +372,7 @@ impl TargetGrid<'_> {
         {
             (u32::MAX, 0.0)
         } else {
-            (
-                (by as usize * SUMS * self.stride + bx as usize) as u32,
-                r,
-            )
+            ((by as usize * SUMS * self.stride + bx as usize) as u32, r)
         }
     }
 
@@ -456,10 +453,7 @@ impl TargetGrid<'_> {
                     *target = (u32::MAX, 0.0);
                     continue;
                 }
-                let (mut r, mut b) = (
-                    [rounded[0][i], rounded[1][i]],
-                    [bin[0][i], bin[1][i]],
-                );
+                let (mut r, mut b) = ([rounded[0][i], rounded[1][i]], [bin[0][i], bin[1][i]]);
                 if let Some((mask, flow)) = local {
                     let (py, px) = (p[0][i], p[1][i]);
                     let inside = py >= 0.0 && px >= 0.0 && py <= hf && px <= wf;
@@ -635,7 +629,9 @@ impl<'a> MergeAccumulator<'a> {
                     *span = row
                         .iter()
                         .filter(|&&(bin, _)| bin != u32::MAX)
-                        .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| (lo.min(bin), hi.max(bin)));
+                        .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
+                            (lo.min(bin), hi.max(bin))
+                        });
                 });
             let frames = sub.frames as f32;
             let (targets, codes, row_bins) = (&targets, &self.codes, &row_bins);
@@ -1141,6 +1137,59 @@ fn validate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn affine_targets_match_the_per_site_positions() {
+        // `fill_affine` (eight sites at a time, the local mask's rounding reused) against
+        // `fill` with the position closures of SubBlockMotion::Affine and ::CameraAndLocal.
+        use rand::{Rng, SeedableRng};
+        let (h, w) = (23usize, 37usize);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let robust: Vec<f32> = (0..h * w).map(|_| rng.gen_range(-0.2..1.0)).collect();
+        let excluded: Vec<bool> = (0..h * w).map(|_| rng.gen_bool(0.05)).collect();
+        let mask: Vec<bool> = (0..h * w).map(|i| (i / w) % 7 < 2 || i % w > 30).collect();
+        let flow: Vec<f32> = (0..h * w * 2).map(|_| rng.gen_range(-2.5..2.5)).collect();
+        let (u, margin) = (2.0f32, 3.0f32);
+        let bins_h = (h - 1 + 6) * 2 + 1;
+        let bins_w = (w - 1 + 6) * 2 + 1;
+        let grid = TargetGrid {
+            h,
+            w,
+            u,
+            margin,
+            bins_h,
+            bins_w,
+            stride: (bins_w + LANES - 1).next_multiple_of(LANES),
+            excluded: Some(&excluded),
+            robust: Some(&robust),
+        };
+        for (matrix, offset) in [
+            ([[1.0, 0.0], [0.0, 1.0]], [0.5, -0.5]),
+            ([[1.001, 0.01], [-0.012, 0.998]], [-1.37, 2.61]),
+            ([[0.97, 0.2], [-0.2, 0.97]], [4.2, -7.9]),
+        ] {
+            let mut fast = vec![(0u32, 0.0f32); h * w];
+            let mut plain = vec![(1u32, 1.0f32); h * w];
+            grid.fill_affine(&mut fast, &matrix, &offset, None);
+            grid.fill(&mut plain, |q| affine_position(&matrix, &offset, q));
+            assert_eq!(fast, plain, "affine {matrix:?} {offset:?}");
+
+            let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
+            grid.fill_affine(&mut fast, &matrix, &offset, Some((&mask, &flow)));
+            grid.fill(&mut plain, |q| {
+                let p = affine_position(&matrix, &offset, q);
+                let inside = p[0] >= 0.0 && p[1] >= 0.0 && p[0] <= hf && p[1] <= wf;
+                if inside
+                    && !mask[round_half_away(p[0]) as usize * w + round_half_away(p[1]) as usize]
+                {
+                    p
+                } else {
+                    reference_position(&flow, h, w, q)
+                }
+            });
+            assert_eq!(fast, plain, "camera and local {matrix:?} {offset:?}");
+        }
+    }
 
     #[test]
     fn round_half_away_matches_f32_round() {
