@@ -1229,7 +1229,8 @@ fn prev_power_of_two(k: usize) -> usize {
 /// from coarse to fine.
 #[inline(always)]
 pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
-    if n2 % 8 == 0 && m <= MAX_LANE_GROUP {
+    let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
+    if rem == 0 && m <= MAX_LANE_GROUP {
         haar_lanes(g, m, n2, haar_forward_lanes);
     } else {
         haar_forward_general(g, m, n2, tmp);
@@ -1258,7 +1259,8 @@ fn haar_forward_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
 /// Inverse of [`haar_forward`].
 #[inline(always)]
 pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
-    if n2 % 8 == 0 && m <= MAX_LANE_GROUP {
+    let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
+    if rem == 0 && m <= MAX_LANE_GROUP {
         haar_lanes(g, m, n2, haar_inverse_lanes);
     } else {
         haar_inverse_general(g, m, n2, tmp);
