@@ -14,6 +14,7 @@
 
 use crate::error::{Error, Result};
 use crate::model::{detection_probability, detection_probability_slope, PixelModel, Readout};
+use rayon::prelude::*;
 
 /// Number of table points in p (uniform in asin √p, so uniform in the transformed domain).
 const TABLE_POINTS: usize = 4097;
@@ -43,10 +44,27 @@ impl BinomialAnscombe {
             table_p: Vec::with_capacity(TABLE_POINTS),
             table_expected: Vec::with_capacity(TABLE_POINTS),
         };
-        for i in 0..TABLE_POINTS {
-            let theta = std::f64::consts::FRAC_PI_2 * i as f64 / (TABLE_POINTS - 1) as f64;
-            let p = theta.sin().powi(2).clamp(0.0, 1.0);
-            let expected = transform.expected(p);
+        // A(k) of every count k, made once (the expectations below visit each many times);
+        // beyond `MAX_COUNT_TABLE` trials each is computed where it is needed.
+        const MAX_COUNT_TABLE: f64 = 4_194_304.0;
+        let counts: Option<Vec<f64>> = (trials <= MAX_COUNT_TABLE).then(|| {
+            (0..=trials as u64)
+                .map(|k| transform.forward(k as f64))
+                .collect()
+        });
+        let points: Vec<(f64, f64)> = (0..TABLE_POINTS)
+            .into_par_iter()
+            .map(|i| {
+                let theta = std::f64::consts::FRAC_PI_2 * i as f64 / (TABLE_POINTS - 1) as f64;
+                let p = theta.sin().powi(2).clamp(0.0, 1.0);
+                let expected = match &counts {
+                    Some(counts) => transform.expected_with(p, |k| counts[k as usize]),
+                    None => transform.expected(p),
+                };
+                (p, expected)
+            })
+            .collect();
+        for (p, expected) in points {
             transform.table_p.push(p);
             transform.table_expected.push(expected);
         }
@@ -94,19 +112,24 @@ impl BinomialAnscombe {
 
     /// E[A(X) | p] for X ~ Binomial(n, p), summed over the binomial distribution.
     pub fn expected(&self, p: f64) -> f64 {
+        self.expected_with(p, |k| self.forward(k as f64))
+    }
+
+    /// [`BinomialAnscombe::expected`] with A(k) of count k given by `forward_count`.
+    fn expected_with(&self, p: f64, forward_count: impl Fn(u64) -> f64) -> f64 {
         let n = self.trials;
         if p <= 0.0 {
-            return self.forward(0.0);
+            return forward_count(0);
         }
         if p >= 1.0 {
-            return self.forward(n);
+            return forward_count(n as u64);
         }
         // Probabilities relative to the mode by the ratio P(k+1)/P(k) = (n−k)/(k+1) · p/(1−p),
         // walking out until they are negligible; then normalised.
         let n_int = n as u64;
         let mode = (((n + 1.0) * p).floor() as u64).min(n_int);
         let odds = p / (1.0 - p);
-        let (mut weight_sum, mut value_sum) = (1.0, self.forward(mode as f64));
+        let (mut weight_sum, mut value_sum) = (1.0, forward_count(mode));
         let mut weight = 1.0f64;
         for k in mode..n_int {
             weight *= (n - k as f64) / (k as f64 + 1.0) * odds;
@@ -114,7 +137,7 @@ impl BinomialAnscombe {
                 break;
             }
             weight_sum += weight;
-            value_sum += weight * self.forward(k as f64 + 1.0);
+            value_sum += weight * forward_count(k + 1);
         }
         weight = 1.0;
         for k in (1..=mode).rev() {
@@ -124,7 +147,7 @@ impl BinomialAnscombe {
                 break;
             }
             weight_sum += weight;
-            value_sum += weight * self.forward(k as f64 - 1.0);
+            value_sum += weight * forward_count(k - 1);
         }
         value_sum / weight_sum
     }

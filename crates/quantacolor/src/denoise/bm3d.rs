@@ -37,6 +37,10 @@
 //! `(H−N1+1)·(W−N1+1)·N1²` f32 per channel (noisy, and in Step 2 also the basic estimate), so
 //! matching is a cheap distance on stored coefficients. That is about 65 MB per channel per
 //! image for 512×512 and 250 MB for 1000×1000: fine for images up to about 1000×1000.
+//! For 8×8 blocks the matching channel's first two coefficient rows are also stored as planes
+//! over the positions (a quarter more), so that the first check of a candidate runs on eight
+//! positions at once; matching stops summing a candidate once it cannot enter the group
+//! ([`find_group`]). Both only skip work: the groups are those of the plain full search.
 //!
 //! Parallelism and determinism: reference-block rows are processed in parallel with rayon; each
 //! row aggregates into its own strip buffer (the rows its search window reaches), and strips are
@@ -296,8 +300,10 @@ pub fn bm3d_multichannel_varying(
     } else {
         (&noisy_coeffs[0], config.tau_match_ht)
     };
+    let low1 = low_planes(match1, &geo);
     let step1 = StepParams {
         matching: match1,
+        low: low1.as_ref(),
         tau_sum: tau1 * scale * scale * (n * n) as f32,
         max_group: config.max_group_ht,
         noisy: &noisy_coeffs,
@@ -321,8 +327,10 @@ pub fn bm3d_multichannel_varying(
         .iter()
         .map(|p| BlockCoeffs::compute(p, &geo, &tr))
         .collect();
+    let low2 = low_planes(&basic_coeffs[0], &geo);
     let step2 = StepParams {
         matching: &basic_coeffs[0],
+        low: low2.as_ref(),
         tau_sum: if high_noise {
             config.tau_match_wiener_high_noise
         } else {
@@ -599,17 +607,48 @@ impl BlockCoeffs {
         data.par_chunks_mut(pw * n2)
             .enumerate()
             .for_each(|(y, row)| {
-                let mut block = vec![0.0f32; n2];
-                let mut tmp = vec![0.0f32; n2];
-                for (x, dst) in row.chunks_exact_mut(n2).enumerate() {
-                    for i in 0..n {
-                        let src = &plane[(y + i) * w + x..(y + i) * w + x + n];
-                        block[i * n..(i + 1) * n].copy_from_slice(src);
+                #[cfg(target_arch = "x86_64")]
+                {
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        // SAFETY: the CPU supports AVX2 (checked just above).
+                        return unsafe { Self::row_avx2(plane, y, n, w, tr, row) };
                     }
-                    tr.forward(&block, &mut tmp, dst);
                 }
+                Self::row(plane, y, n, w, tr, row)
             });
         BlockCoeffs { n2, pw, data }
+    }
+
+    /// The coefficients of the blocks of position row `y` into `row`.
+    #[inline(always)]
+    fn row(plane: &[f32], y: usize, n: usize, w: usize, tr: &Transforms, row: &mut [f32]) {
+        let n2 = n * n;
+        let mut block = vec![0.0f32; n2];
+        let mut tmp = vec![0.0f32; n2];
+        for (x, dst) in row.chunks_exact_mut(n2).enumerate() {
+            for i in 0..n {
+                let src = &plane[(y + i) * w + x..(y + i) * w + x + n];
+                block[i * n..(i + 1) * n].copy_from_slice(src);
+            }
+            tr.forward(&block, &mut tmp, dst);
+        }
+    }
+
+    /// [`BlockCoeffs::row`] compiled for AVX2 (no fused multiply-add: the same bits).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn row_avx2(
+        plane: &[f32],
+        y: usize,
+        n: usize,
+        w: usize,
+        tr: &Transforms,
+        row: &mut [f32],
+    ) {
+        Self::row(plane, y, n, w, tr, row)
     }
 
     /// A copy with every coefficient of magnitude ≤ `t` set to zero (Step 1 matching, σ > 40).
@@ -678,10 +717,97 @@ fn squared_distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
     (d <= limit).then_some(d)
 }
 
+/// [`squared_distance_at_most`], with 8 × 8 blocks (64 coefficients, the default) unrolled
+/// and checked against `limit` after the first two rows of coefficients as well (the low
+/// vertical frequencies, where most of a mismatch shows): the same bits, or `None` under the
+/// same condition (a partial sum of non-negative terms, summed over the lanes in the same
+/// order as the full one, only grows).
+#[inline(always)]
+fn distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
+    if let (Ok(a), Ok(b)) = (<&[f32; 64]>::try_from(a), <&[f32; 64]>::try_from(b)) {
+        let mut acc = [0.0f32; 8];
+        for chunk in 0..8 {
+            if (chunk == 2 || chunk == 4) && acc.iter().sum::<f32>() > limit {
+                return None;
+            }
+            for j in 0..8 {
+                let d = a[chunk * 8 + j] - b[chunk * 8 + j];
+                acc[j] += d * d;
+            }
+        }
+        // `+ 0.0`: the empty tail of the general path.
+        let d = acc.iter().sum::<f32>() + 0.0;
+        return (d <= limit).then_some(d);
+    }
+    squared_distance_at_most(a, b, limit)
+}
+
+/// Coefficients per block in [`LowPlanes`]: the first two rows of an 8 × 8 block's DCT.
+const LOW_COEFFS: usize = 16;
+
+/// `planes[(y·LOW_COEFFS + k)·stride + x]`: coefficient k < [`LOW_COEFFS`] of the block at
+/// position (y, x) (`stride` = positions per row + 8, the padding zero), so that eight
+/// consecutive positions of a row are read as lanes.
+struct LowPlanes {
+    planes: Vec<f32>,
+    stride: usize,
+}
+
+/// The [`LowPlanes`] of `coeffs` for 8 × 8 blocks, `None` for other sizes.
+fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
+    if coeffs.n2 != 64 {
+        return None;
+    }
+    let pw = geo.pw;
+    let stride = pw + LANES8;
+    let mut planes = vec![0.0f32; geo.ph * LOW_COEFFS * stride];
+    planes
+        .par_chunks_mut(LOW_COEFFS * stride)
+        .zip(coeffs.data.par_chunks(pw * 64))
+        .for_each(|(rows, blocks)| {
+            for (x, block) in blocks.chunks_exact(64).enumerate() {
+                for (k, &v) in block[..LOW_COEFFS].iter().enumerate() {
+                    rows[k * stride + x] = v;
+                }
+            }
+        });
+    Some(LowPlanes { planes, stride })
+}
+
+/// Lanes of the first matching check (eight f32: one AVX2 register).
+const LANES8: usize = 8;
+
+/// For the eight block positions (y, x..x + 8), the partial distance to `reference` that
+/// [`distance_at_most`] compares with its limit after two rows of coefficients: per lane,
+/// `acc[j] = (r[j] − c[j])² + (r[j+8] − c[j+8])²`, summed over j in order. The same operations
+/// on the same values, so the same bits, with the positions as vector lanes.
+#[inline(always)]
+fn low_partial_distances(low: &LowPlanes, reference: &[f32], y: usize, x: usize) -> [f32; LANES8] {
+    let mut sum = [0.0f32; LANES8];
+    let row = y * LOW_COEFFS * low.stride + x;
+    for j in 0..8 {
+        let at = row + j * low.stride;
+        let c0: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
+        let at = row + (j + 8) * low.stride;
+        let c1: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
+        let (r0, r1) = (reference[j], reference[j + 8]);
+        for l in 0..LANES8 {
+            let d0 = r0 - c0[l];
+            let d1 = r1 - c1[l];
+            let acc = d0 * d0 + d1 * d1;
+            sum[l] = if j == 0 { acc } else { sum[l] + acc };
+        }
+    }
+    sum
+}
+
 /// What differs between the two steps.
 struct StepParams<'a> {
     /// Coefficients that matching compares (channel 0 of noisy or basic estimate).
     matching: &'a BlockCoeffs,
+    /// The first [`LOW_COEFFS`] of `matching`'s coefficients as planes over the block
+    /// positions ([`low_planes`]; 8 × 8 blocks only): the first check of [`find_group`].
+    low: Option<&'a LowPlanes>,
     /// Matching threshold on the summed squared coefficient distance (τ·N1², image units).
     tau_sum: f32,
     max_group: usize,
@@ -701,6 +827,11 @@ struct StepParams<'a> {
 struct Scratch {
     candidates: Vec<(f32, u32)>,
     group: Vec<usize>,
+    /// The group of the last reference block this worker grouped (a search bound for the
+    /// next, see [`find_group`]; never changes a result).
+    previous_group: Vec<usize>,
+    /// Distances of `previous_group`'s members to the current reference.
+    warm: Vec<f32>,
     noisy_group: Vec<f32>,
     basic_group: Vec<f32>,
     haar_tmp: Vec<f32>,
@@ -713,6 +844,8 @@ impl Scratch {
         Scratch {
             candidates: Vec::new(),
             group: Vec::with_capacity(max_group),
+            previous_group: Vec::with_capacity(max_group),
+            warm: Vec::with_capacity(max_group),
             noisy_group: vec![0.0; max_group * n2],
             basic_group: vec![0.0; max_group * n2],
             haar_tmp: vec![0.0; max_group * n2],
@@ -723,11 +856,11 @@ impl Scratch {
 }
 
 /// Numerator and denominator of the aggregation for image rows `y0..y0+rows`, every channel.
-struct Strip {
+struct Strip<'b> {
     y0: usize,
     rows: usize,
-    num: Vec<f32>,
-    den: Vec<f32>,
+    num: &'b mut [f32],
+    den: &'b mut [f32],
 }
 
 /// One BM3D step over the whole image; returns one plane per channel. Channels with σ = 0 are
@@ -738,38 +871,49 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
     let channels = planes.len();
     let mut num = vec![0.0f32; channels * h * w];
     let mut den = vec![0.0f32; channels * h * w];
-    // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once.
+    // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once; their
+    // buffers are made once and cleared for every batch (fresh ones cost page faults).
     const ROWS_PER_BATCH: usize = 16;
+    let strip_rows = (2 * geo.half_window + n).min(h);
+    let mut buffers: Vec<(Vec<f32>, Vec<f32>)> = (0..ROWS_PER_BATCH.min(geo.ref_ys.len()))
+        .map(|_| {
+            let len = channels * strip_rows * w;
+            (vec![0.0; len], vec![0.0; len])
+        })
+        .collect();
+    // Group members lie within the search window's rows.
+    let strip_of = |yr: usize| {
+        let y0 = yr.saturating_sub(geo.half_window);
+        (y0, (yr + geo.half_window + n).min(h) - y0)
+    };
     for batch in geo.ref_ys.chunks(ROWS_PER_BATCH) {
-        let strips: Vec<Strip> = batch
-            .par_iter()
-            .map_init(
-                || Scratch::new(n2, p.max_group),
-                |scratch, &yr| {
-                    // Group members lie within the search window's rows.
-                    let y0 = yr.saturating_sub(geo.half_window);
-                    let rows = (yr + geo.half_window + n).min(h) - y0;
-                    let mut strip = Strip {
-                        y0,
-                        rows,
-                        num: vec![0.0; channels * rows * w],
-                        den: vec![0.0; channels * rows * w],
-                    };
-                    process_row(p, geo, tr, yr, scratch, &mut strip);
-                    strip
-                },
-            )
-            .collect();
+        batch.par_iter().zip(buffers.par_iter_mut()).for_each_init(
+            || Scratch::new(n2, p.max_group),
+            |scratch, (&yr, (num, den))| {
+                let (y0, rows) = strip_of(yr);
+                let len = channels * rows * w;
+                num[..len].fill(0.0);
+                den[..len].fill(0.0);
+                let mut strip = Strip {
+                    y0,
+                    rows,
+                    num: &mut num[..len],
+                    den: &mut den[..len],
+                };
+                process_row(p, geo, tr, yr, scratch, &mut strip);
+            },
+        );
         // Sum the strips in reference-row order: the same float additions for any thread count.
-        for strip in &strips {
-            let len = strip.rows * w;
+        for (&yr, (strip_num, strip_den)) in batch.iter().zip(&buffers) {
+            let (y0, rows) = strip_of(yr);
+            let len = rows * w;
             for c in 0..channels {
                 let src = c * len..(c + 1) * len;
-                let dst = c * h * w + strip.y0 * w..c * h * w + strip.y0 * w + len;
-                for (d, s) in num[dst.clone()].iter_mut().zip(&strip.num[src.clone()]) {
+                let dst = c * h * w + y0 * w..c * h * w + y0 * w + len;
+                for (d, s) in num[dst.clone()].iter_mut().zip(&strip_num[src.clone()]) {
                     *d += s;
                 }
-                for (d, s) in den[dst].iter_mut().zip(&strip.den[src]) {
+                for (d, s) in den[dst].iter_mut().zip(&strip_den[src]) {
                     *d += s;
                 }
             }
@@ -801,7 +945,7 @@ fn process_row(
     tr: &Transforms,
     yr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     #[cfg(target_arch = "x86_64")]
     {
@@ -821,7 +965,7 @@ fn process_row_generic(
     tr: &Transforms,
     yr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     for &xr in &geo.ref_xs {
         process_reference(p, geo, tr, yr, xr, s, strip);
@@ -840,7 +984,7 @@ unsafe fn process_row_avx2(
     tr: &Transforms,
     yr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     process_row_generic(p, geo, tr, yr, s, strip);
 }
@@ -855,7 +999,7 @@ fn process_reference(
     yr: usize,
     xr: usize,
     s: &mut Scratch,
-    strip: &mut Strip,
+    strip: &mut Strip<'_>,
 ) {
     let n = geo.n;
     let n2 = n * n;
@@ -874,7 +1018,10 @@ fn process_reference(
             sigma *= mean.sqrt();
         }
         for (g, &pos) in s.group.iter().enumerate() {
-            s.noisy_group[g * n2..(g + 1) * n2].copy_from_slice(p.noisy[c].block(pos));
+            copy_coefficients(
+                &mut s.noisy_group[g * n2..(g + 1) * n2],
+                p.noisy[c].block(pos),
+            );
         }
         let group = &mut s.noisy_group[..m * n2];
         haar_forward(group, m, n2, &mut s.haar_tmp);
@@ -906,7 +1053,10 @@ fn process_reference(
                 // Step 2: empirical Wiener shrinkage W = |B|²/(|B|² + σ²) (§III-B, Eq. 7–8) and
                 // weight 1/(σ²·‖W‖²) (Eq. 12).
                 for (g, &pos) in s.group.iter().enumerate() {
-                    s.basic_group[g * n2..(g + 1) * n2].copy_from_slice(basic[c].block(pos));
+                    copy_coefficients(
+                        &mut s.basic_group[g * n2..(g + 1) * n2],
+                        basic[c].block(pos),
+                    );
                 }
                 let bgroup = &mut s.basic_group[..m * n2];
                 haar_forward(bgroup, m, n2, &mut s.haar_tmp);
@@ -948,7 +1098,7 @@ fn process_reference(
                     let den: &mut [f32; 8] = den.try_into().expect("8 wide");
                     let kai: &[f32; 8] = kai.try_into().expect("8 wide");
                     let px: &[f32; 8] = px.try_into().expect("8 wide");
-                    aggregate_row(num, den, kai, px, weight);
+                    aggregate_row8(num, den, kai, px, weight);
                 } else {
                     aggregate_row(num, den, kai, px, weight);
                 }
@@ -968,44 +1118,144 @@ fn aggregate_row(num: &mut [f32], den: &mut [f32], kai: &[f32], px: &[f32], weig
     }
 }
 
+/// [`aggregate_row`] of an 8-pixel row, through local copies so that it compiles to a few
+/// vector instructions: the same operations, so the same bits.
+#[inline(always)]
+fn aggregate_row8(
+    num: &mut [f32; 8],
+    den: &mut [f32; 8],
+    kai: &[f32; 8],
+    px: &[f32; 8],
+    weight: f32,
+) {
+    let (mut n8, mut d8) = (*num, *den);
+    for j in 0..8 {
+        let wk = weight * kai[j];
+        n8[j] += wk * px[j];
+        d8[j] += wk;
+    }
+    *num = n8;
+    *den = d8;
+}
+
+/// `dst.copy_from_slice(src)`, as a fixed-size copy for 8 × 8 blocks (no call to `memcpy`).
+#[inline(always)]
+fn copy_coefficients(dst: &mut [f32], src: &[f32]) {
+    match (
+        <&mut [f32; 64]>::try_from(&mut *dst),
+        <&[f32; 64]>::try_from(src),
+    ) {
+        (Ok(d), Ok(s)) => *d = *s,
+        _ => dst.copy_from_slice(src),
+    }
+}
+
 /// Fills `s.group` with the reference position followed by its best matches (distance ≤ τ,
 /// ascending distance, ties by position), truncated to a power of two ≤ `max_group`.
+///
+/// Only the best `max_group − 1` matches can enter the group, so a candidate farther than the
+/// `(max_group − 1)`-th best distance known so far need not be summed to the end: the scan
+/// keeps that bound (from the previous reference's group members, which mostly lie in this
+/// window too, and then from the matches found), and [`distance_at_most`] stops once a
+/// partial sum exceeds it. The bound is always the distance of an actual candidate, so every
+/// candidate the group can take is still summed in full: the group is the one of a full scan
+/// (the test `bounded_search_finds_the_full_search_group` compares them).
 #[inline(always)]
 fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scratch) {
     let hw = geo.half_window;
-    let ref_pos = yr * geo.pw + xr;
+    let pw = geo.pw;
+    let ref_pos = yr * pw + xr;
     let reference = p.matching.block(ref_pos);
     s.candidates.clear();
     let (y0, y1) = (yr.saturating_sub(hw), (yr + hw).min(geo.ph - 1));
-    let (x0, x1) = (xr.saturating_sub(hw), (xr + hw).min(geo.pw - 1));
-    for y in y0..=y1 {
-        for x in x0..=x1 {
-            let pos = y * geo.pw + x;
-            if pos == ref_pos {
-                continue;
-            }
-            if let Some(d) = squared_distance_at_most(reference, p.matching.block(pos), p.tau_sum) {
-                s.candidates.push((d, pos as u32));
+    let (x0, x1) = (xr.saturating_sub(hw), (xr + hw).min(pw - 1));
+    let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+    let keep = p.max_group - 1;
+    s.group.clear();
+    s.group.push(ref_pos);
+    if keep == 0 {
+        return;
+    }
+    // Bound from the previous reference's group: the keep-th smallest of its members'
+    // distances to this reference, when enough of them lie in this window.
+    let mut bound = p.tau_sum;
+    let in_window = |pos: usize| {
+        let (y, x) = (pos / pw, pos % pw);
+        pos != ref_pos && (y0..=y1).contains(&y) && (x0..=x1).contains(&x)
+    };
+    s.warm.clear();
+    for &pos in &s.previous_group {
+        if in_window(pos) {
+            if let Some(d) = distance_at_most(reference, p.matching.block(pos), bound) {
+                s.warm.push(d);
             }
         }
     }
-    let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-    let keep = p.max_group - 1;
-    if s.candidates.len() > keep {
-        if keep > 0 {
-            s.candidates.select_nth_unstable_by(keep - 1, order);
+    if s.warm.len() >= keep {
+        s.warm.select_nth_unstable_by(keep - 1, f32::total_cmp);
+        bound = bound.min(s.warm[keep - 1]);
+    }
+    // Every position of the window; the list is cut back to the best `keep` (and the bound
+    // lowered to the last of them) whenever it reaches `cap`.
+    let cap = 2 * keep.max(8);
+    let consider = |pos: usize, bound: &mut f32, candidates: &mut Vec<(f32, u32)>| {
+        if let Some(d) = distance_at_most(reference, p.matching.block(pos), *bound) {
+            candidates.push((d, pos as u32));
+            if candidates.len() == cap {
+                candidates.select_nth_unstable_by(keep - 1, order);
+                candidates.truncate(keep);
+                *bound = candidates[keep - 1].0;
+            }
         }
+    };
+    for y in y0..=y1 {
+        match p.low {
+            Some(low) => {
+                // Eight positions at a time through the first check (the tail's extra lanes
+                // read the next positions or the padding and are not used).
+                let mut x = x0;
+                while x <= x1 {
+                    let partial = low_partial_distances(low, reference, y, x);
+                    // Lanes that pass the check, as bits (the bound of the chunk's start: a
+                    // lower one found meanwhile only saves work, `consider` applies it).
+                    let mut pass = 0u32;
+                    for (l, &part) in partial.iter().enumerate() {
+                        pass |= ((part <= bound) as u32) << l;
+                    }
+                    pass &= (1u32 << (x1 + 1 - x).min(LANES8)) - 1;
+                    while pass != 0 {
+                        let pos = y * pw + x + pass.trailing_zeros() as usize;
+                        pass &= pass - 1;
+                        if pos != ref_pos {
+                            consider(pos, &mut bound, &mut s.candidates);
+                        }
+                    }
+                    x += LANES8;
+                }
+            }
+            None => {
+                for x in x0..=x1 {
+                    let pos = y * pw + x;
+                    if pos != ref_pos {
+                        consider(pos, &mut bound, &mut s.candidates);
+                    }
+                }
+            }
+        }
+    }
+    if s.candidates.len() > keep {
+        s.candidates.select_nth_unstable_by(keep - 1, order);
         s.candidates.truncate(keep);
     }
     s.candidates.sort_unstable_by(order);
     let size = prev_power_of_two(1 + s.candidates.len()).min(prev_power_of_two(p.max_group));
-    s.group.clear();
-    s.group.push(ref_pos);
     s.group.extend(
         s.candidates[..size - 1]
             .iter()
             .map(|&(_, pos)| pos as usize),
     );
+    s.previous_group.clear();
+    s.previous_group.extend_from_slice(&s.group);
 }
 
 /// Largest power of two ≤ `k` (`k ≥ 1`).
@@ -1018,6 +1268,17 @@ fn prev_power_of_two(k: usize) -> usize {
 /// from coarse to fine.
 #[inline(always)]
 pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
+    let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
+    if rem == 0 && m <= MAX_LANE_GROUP {
+        haar_lanes(g, m, n2, haar_forward_lanes);
+    } else {
+        haar_forward_general(g, m, n2, tmp);
+    }
+}
+
+/// [`haar_forward`] level by level over whole blocks (any `n2` and `m`).
+#[inline(always)]
+fn haar_forward_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let mut len = m;
     while len > 1 {
         let half = len / 2;
@@ -1037,6 +1298,17 @@ pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) 
 /// Inverse of [`haar_forward`].
 #[inline(always)]
 pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
+    let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
+    if rem == 0 && m <= MAX_LANE_GROUP {
+        haar_lanes(g, m, n2, haar_inverse_lanes);
+    } else {
+        haar_inverse_general(g, m, n2, tmp);
+    }
+}
+
+/// [`haar_inverse`] level by level over whole blocks (any `n2` and `m`).
+#[inline(always)]
+fn haar_inverse_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let mut len = 2;
     while len <= m {
         let half = len / 2;
@@ -1049,6 +1321,89 @@ pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) 
             }
         }
         g[..len * n2].copy_from_slice(&tmp[..len * n2]);
+        len *= 2;
+    }
+}
+
+/// Largest group that [`haar_lanes`] transforms on the stack.
+const MAX_LANE_GROUP: usize = 32;
+
+/// Eight lanes of every group member (`[[f32; 8]; MAX_LANE_GROUP]`, first `m` rows used).
+type Lanes = [[f32; 8]; MAX_LANE_GROUP];
+
+/// Eight coefficients of every group member at a time, held in stack arrays while
+/// `transform` runs all levels on them: the same operations on the same values as the general
+/// path of [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole
+/// group back after every level.
+#[inline(always)]
+fn haar_lanes(
+    g: &mut [f32],
+    m: usize,
+    n2: usize,
+    transform: impl Fn(&mut Lanes, &mut Lanes, usize),
+) {
+    let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    for k0 in (0..n2).step_by(8) {
+        for (b, lanes) in x[..m].iter_mut().enumerate() {
+            *lanes = g[b * n2 + k0..b * n2 + k0 + 8]
+                .try_into()
+                .expect("eight lanes");
+        }
+        transform(&mut x, &mut y, m);
+        for (b, lanes) in y[..m].iter().enumerate() {
+            g[b * n2 + k0..b * n2 + k0 + 8].copy_from_slice(lanes);
+        }
+    }
+}
+
+/// [`haar_forward`] of the lanes `x` into `y` (`x` is overwritten): each level's details go
+/// straight to their place in `y`, its approximation to the other of two work arrays.
+#[inline(always)]
+fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
+    let mut other = [[0.0f32; 8]; MAX_LANE_GROUP];
+    let (mut src, mut dst) = (x, &mut other);
+    let mut len = m;
+    while len > 1 {
+        let half = len / 2;
+        for i in 0..half {
+            for k in 0..8 {
+                let a = src[2 * i][k];
+                let b = src[2 * i + 1][k];
+                dst[i][k] = (a + b) * FRAC_1_SQRT_2;
+                y[half + i][k] = (a - b) * FRAC_1_SQRT_2;
+            }
+        }
+        std::mem::swap(&mut src, &mut dst);
+        len = half;
+    }
+    y[0] = src[0];
+}
+
+/// [`haar_inverse`] of the lanes `x` into `y`: each level reads the approximation of the
+/// level before (at first `x[0]`) and its details in `x`, and writes to the other of two work
+/// arrays; the last level writes `y`.
+#[inline(always)]
+fn haar_inverse_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
+    if m == 1 {
+        y[0] = x[0];
+        return;
+    }
+    let (mut p, mut q) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    p[0] = x[0];
+    let (mut approx, mut next) = (&mut p, &mut q);
+    let mut len = 2;
+    while len <= m {
+        let half = len / 2;
+        let out: &mut Lanes = if len == m { &mut *y } else { &mut *next };
+        for i in 0..half {
+            for k in 0..8 {
+                let a = approx[i][k];
+                let d = x[half + i][k];
+                out[2 * i][k] = (a + d) * FRAC_1_SQRT_2;
+                out[2 * i + 1][k] = (a - d) * FRAC_1_SQRT_2;
+            }
+        }
+        std::mem::swap(&mut approx, &mut next);
         len *= 2;
     }
 }
@@ -1262,6 +1617,23 @@ mod tests {
     }
 
     #[test]
+    fn haar_of_eight_lanes_matches_the_general_path() {
+        for n2 in [8usize, 64] {
+            for m in [1usize, 2, 4, 8, 16, 32] {
+                let orig = random(m * n2, (m * n2) as u64 + 7);
+                let mut tmp = vec![0.0; m * n2];
+                let (mut fast, mut general) = (orig.clone(), orig.clone());
+                haar_forward(&mut fast, m, n2, &mut tmp);
+                haar_forward_general(&mut general, m, n2, &mut tmp);
+                assert_eq!(fast, general, "forward, m {m}, n2 {n2}");
+                haar_inverse(&mut fast, m, n2, &mut tmp);
+                haar_inverse_general(&mut general, m, n2, &mut tmp);
+                assert_eq!(fast, general, "inverse, m {m}, n2 {n2}");
+            }
+        }
+    }
+
+    #[test]
     fn kaiser_window_matches_closed_form() {
         // I0(0) = 1; I0(2) = 2.2795853023360673.
         assert!((bessel_i0(0.0) - 1.0).abs() < 1e-15);
@@ -1287,6 +1659,111 @@ mod tests {
         assert_eq!(got, vec![1, 2, 2, 4, 4, 4, 4, 8, 8]);
     }
 
+    /// The group of a plain full search: every window position within τ, sorted by
+    /// (distance, position), the best `max_group − 1` kept, cut to a power of two.
+    fn full_search_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize) -> Vec<usize> {
+        let hw = geo.half_window;
+        let ref_pos = yr * geo.pw + xr;
+        let reference = p.matching.block(ref_pos);
+        let mut found: Vec<(f32, usize)> = Vec::new();
+        for y in yr.saturating_sub(hw)..=(yr + hw).min(geo.ph - 1) {
+            for x in xr.saturating_sub(hw)..=(xr + hw).min(geo.pw - 1) {
+                let pos = y * geo.pw + x;
+                let d = squared_distance(reference, p.matching.block(pos));
+                if pos != ref_pos && d <= p.tau_sum {
+                    found.push((d, pos));
+                }
+            }
+        }
+        found.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        found.truncate(p.max_group - 1);
+        let size = prev_power_of_two(1 + found.len()).min(prev_power_of_two(p.max_group));
+        std::iter::once(ref_pos)
+            .chain(found[..size - 1].iter().map(|&(_, pos)| pos))
+            .collect()
+    }
+
+    #[test]
+    fn bounded_search_finds_the_full_search_group() {
+        // A smooth image with repeated texture and noise, so that many blocks are near each
+        // other and near the thresholds.
+        let (h, w) = (48usize, 56usize);
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let image: Vec<f32> = (0..h * w)
+            .map(|i| {
+                let (y, x) = ((i / w) as f32, (i % w) as f32);
+                100.0 + 40.0 * (x * 0.7).sin() * (y * 0.3).cos() + rng.gen_range(-20.0..20.0)
+            })
+            .collect();
+        let config = Bm3dConfig {
+            search_window: 21,
+            ..Bm3dConfig::default()
+        };
+        let geo = Geometry::new(h, w, 8, &config);
+        let tr = Transforms::new(8, 2.0);
+        let coeffs = [BlockCoeffs::compute(&image, &geo, &tr)];
+        let low = low_planes(&coeffs[0], &geo).expect("8 x 8 blocks");
+        for (tau_sum, max_group) in [(64.0 * 400.0, 16), (64.0 * 3000.0, 32), (64.0 * 50.0, 8)] {
+            for with_low in [true, false] {
+                let p = StepParams {
+                    matching: &coeffs[0],
+                    low: with_low.then_some(&low),
+                    tau_sum,
+                    max_group,
+                    noisy: &coeffs,
+                    basic: None,
+                    sigmas: &[20.0],
+                    block_variance: None,
+                    lambda_3d: 2.7,
+                };
+                // One worker's scratch across many references, so that the bound from the
+                // previous group is used (and sometimes from another row).
+                let mut s = Scratch::new(64, max_group);
+                for &yr in &geo.ref_ys {
+                    for &xr in &geo.ref_xs {
+                        find_group(&p, &geo, yr, xr, &mut s);
+                        assert_eq!(
+                            s.group,
+                            full_search_group(&p, &geo, yr, xr),
+                            "tau {tau_sum}, group {max_group}, low {with_low}, ({yr}, {xr})"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn low_coefficient_partials_are_the_bounded_distance_checks() {
+        // Eight lanes of the first check equal the partial sum that `distance_at_most` compares
+        // after two rows of coefficients (bit for bit), and never exceed the full distance.
+        let (h, w) = (20usize, 30usize);
+        let image = random(h * w, 77);
+        let geo = Geometry::new(h, w, 8, &Bm3dConfig::default());
+        let tr = Transforms::new(8, 2.0);
+        let coeffs = BlockCoeffs::compute(&image, &geo, &tr);
+        let low = low_planes(&coeffs, &geo).expect("8 x 8 blocks");
+        let reference = coeffs.block(5 * geo.pw + 4);
+        for y in 0..geo.ph {
+            for x0 in (0..geo.pw).step_by(8) {
+                let lanes = low_partial_distances(&low, reference, y, x0);
+                for (l, &got) in lanes.iter().enumerate().take(geo.pw - x0) {
+                    let block = coeffs.block(y * geo.pw + x0 + l);
+                    let mut acc = [0.0f32; 8];
+                    for chunk in 0..2 {
+                        for j in 0..8 {
+                            let d = reference[chunk * 8 + j] - block[chunk * 8 + j];
+                            acc[j] += d * d;
+                        }
+                    }
+                    let want = acc.iter().sum::<f32>();
+                    assert_eq!(got.to_bits(), want.to_bits(), "({y}, {})", x0 + l);
+                    assert!(got <= squared_distance(reference, block));
+                }
+            }
+        }
+    }
+
     #[test]
     fn group_starts_with_reference_even_among_identical_blocks() {
         // Constant image: every block is at distance 0; the reference must still be first.
@@ -1298,6 +1775,7 @@ mod tests {
         let noisy = [coeffs];
         let p = StepParams {
             matching: &noisy[0],
+            low: None,
             tau_sum: 1.0,
             max_group: 16,
             noisy: &noisy,

@@ -453,16 +453,26 @@ pub fn stabilise(
     };
     let stabiliser = Stabiliser::new(input.model, trials.max(1.0))?;
     let mut planes = Array3::<f32>::zeros((3, h, w));
-    for y in 0..h {
-        for x in 0..w {
-            let a = [0, 1, 2].map(|ch| {
-                let v = linear[[y, x, ch]];
-                let v = if v.is_finite() { v as f64 } else { 0.0 };
-                stabiliser.forward(v)
-            });
-            let t = ColorTransform::apply(&transform.forward, a);
+    // In parallel by rows of the planes (`rows[y]` holds row y of all three).
+    let rows: Vec<Vec<[f32; 3]>> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            (0..w)
+                .map(|x| {
+                    let a = [0, 1, 2].map(|ch| {
+                        let v = linear[[y, x, ch]];
+                        let v = if v.is_finite() { v as f64 } else { 0.0 };
+                        stabiliser.forward(v)
+                    });
+                    ColorTransform::apply(&transform.forward, a).map(|t| t as f32)
+                })
+                .collect()
+        })
+        .collect();
+    for (y, row) in rows.iter().enumerate() {
+        for (x, t) in row.iter().enumerate() {
             for ch in 0..3 {
-                planes[[ch, y, x]] = t[ch] as f32;
+                planes[[ch, y, x]] = t[ch];
             }
         }
     }
