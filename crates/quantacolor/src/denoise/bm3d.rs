@@ -1715,6 +1715,7 @@ mod tests {
                     sigmas: &[20.0],
                     block_variance: None,
                     lambda_3d: 2.7,
+                    profiles: &[vec![1.0; 64]],
                 };
                 // One worker's scratch across many references, so that the bound from the
                 // previous group is used (and sometimes from another row).
