@@ -98,7 +98,14 @@ pub struct Bm3dConfig {
     /// (luma, or the grey image), the second for the other channels; 0 = white noise (TIP
     /// 2007). After Mäkinen, Azzari & Foi (TIP 2020, correlated-noise BM3D), with this
     /// project's one-parameter Gaussian model of the merge's kernels instead of a measured PSD.
+    /// Chroma-BM3D sets it from `DenoiseConfig::noise_correlation_px` (so a report lists it
+    /// there, and here only when not white).
+    #[serde(skip_serializing_if = "is_white")]
     pub noise_correlation_px: [f32; 2],
+}
+
+fn is_white(correlation_px: &[f32; 2]) -> bool {
+    correlation_px.iter().all(|&s| s == 0.0)
 }
 
 impl Default for Bm3dConfig {

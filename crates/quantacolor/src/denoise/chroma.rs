@@ -104,6 +104,17 @@ pub struct DenoiseConfig {
     /// frames vary over the image (robustness, kernel widths, brightness through Eq. 8), so the
     /// stabilised noise is not uniform. Ignored without a merge noise model.
     pub sigma_map: bool,
+    /// Correlation length (px) of the merge's noise for luma and for chroma: BM3D thresholds
+    /// every DCT coefficient at the σ of white noise smoothed by a Gaussian of this std
+    /// ([`Bm3dConfig::noise_correlation_px`], which this sets). The merge's kernels average
+    /// neighbouring samples, so its noise is correlated; a white-noise BM3D over-thresholds the
+    /// fine coefficients (detail) and under-thresholds the coarse ones (blotches). Chosen with
+    /// `bench denoise --set tuning` (correlations 0–1.1 px, luma gains 1–1.5, chroma gains
+    /// 1.5–3): 0.8 / 0.4 px with gains 1 / 2 instead of white noise with 1.5 / 3 gave 29.45 dB /
+    /// 0.868 SSIM -> 29.67 / 0.874, and on the validation set 31.32 / 0.848 / LPIPS 0.250 ->
+    /// 31.61 / 0.855 / 0.180 (`bench quality`).
+    pub noise_correlation_px: [f32; 2],
+    /// BM3D's own parameters (its `noise_correlation_px` is set from the field above).
     pub bm3d: Bm3dConfig,
 }
 
@@ -120,15 +131,8 @@ impl Default for DenoiseConfig {
             chroma_scales: 1,
             coarse_sigma_factor: 0.7,
             sigma_map: true,
-            bm3d: Bm3dConfig {
-                // The merge's noise as white noise smoothed over 0.8 px (luma) and 0.4 px
-                // (chroma, whose coarse grain the chroma gain and scales handle). Chosen with
-                // `bench denoise --set tuning` (correlations 0–1.1 px, luma gains 1–1.5, chroma
-                // gains 1.5–3): 29.45 dB / 0.868 SSIM -> 29.67 / 0.874; validation set 31.32 /
-                // 0.848 -> 31.61 / 0.855.
-                noise_correlation_px: [0.8, 0.4],
-                ..Bm3dConfig::default()
-            },
+            noise_correlation_px: [0.8, 0.4],
+            bm3d: Bm3dConfig::default(),
         }
     }
 }
@@ -328,7 +332,10 @@ pub fn denoise_linear(
         relative_variance.as_ref().map(|v| v.view()),
         chroma_scales,
         config.coarse_sigma_factor,
-        &config.bm3d,
+        &Bm3dConfig {
+            noise_correlation_px: config.noise_correlation_px,
+            ..config.bm3d.clone()
+        },
     )?;
     denoised.mapv_inplace(|v| v / scale);
 
