@@ -213,38 +213,23 @@ fn window_row_costs(
                 let dx = dx0 + done as isize;
                 let lanes = (out.len() - done).min(24);
                 let part = &mut out[done..done + lanes];
-                // SAFETY: AVX2 checked just above.
-                let ok = unsafe {
-                    match lanes.div_ceil(8) {
-                        1 => tile_costs_avx2::<1>(
-                            reference,
-                            alternate,
-                            origin,
-                            ts,
-                            (dy, dx),
-                            norm,
-                            part,
-                        ),
-                        2 => tile_costs_avx2::<2>(
-                            reference,
-                            alternate,
-                            origin,
-                            ts,
-                            (dy, dx),
-                            norm,
-                            part,
-                        ),
-                        _ => tile_costs_avx2::<3>(
-                            reference,
-                            alternate,
-                            origin,
-                            ts,
-                            (dy, dx),
-                            norm,
-                            part,
-                        ),
-                    }
+                // Vectors of 8 offsets: as many as the lanes need (up to 3).
+                type Kernel = unsafe fn(
+                    &Array2<f32>,
+                    &Array2<f32>,
+                    (usize, usize),
+                    usize,
+                    (isize, isize),
+                    Norm,
+                    &mut [f32],
+                ) -> bool;
+                let kernel: Kernel = match lanes.div_ceil(8) {
+                    1 => tile_costs_avx2::<1>,
+                    2 => tile_costs_avx2::<2>,
+                    _ => tile_costs_avx2::<3>,
                 };
+                // SAFETY: AVX2 checked just above.
+                let ok = unsafe { kernel(reference, alternate, origin, ts, (dy, dx), norm, part) };
                 if !ok {
                     break;
                 }
