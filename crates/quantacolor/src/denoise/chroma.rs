@@ -72,7 +72,7 @@ pub struct DenoiseConfig {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sigma_c: Option<f32>,
     /// Multiplies the modelled per-pixel σ of Y (of every channel for plain BM3D). The merge's
-    /// kernels correlate the noise over a few pixels; `bm3d.noise_correlation_px` models that
+    /// kernels correlate the noise over a few pixels; `noise_correlation_px` models that
     /// per DCT coefficient, so the modelled σ needs no gain (1). Before that model a gain of 1.5
     /// stood in for it. Tuned with `bench denoise` on the tuning set.
     pub luma_gain: f32,
