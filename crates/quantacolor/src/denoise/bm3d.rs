@@ -225,6 +225,34 @@ pub fn bm3d_multichannel_varying(
     relative_variance: Option<ArrayView3<f32>>,
     config: &Bm3dConfig,
 ) -> Result<Array3<f32>> {
+    bm3d_planes(
+        noisy,
+        sigmas,
+        relative_variance,
+        config,
+        FirstChannel::Filtered,
+    )
+}
+
+/// What a caller needs of channel 0, the channel that groups are matched on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum FirstChannel {
+    /// Denoised by both steps, as every other channel.
+    Filtered,
+    /// Only a guide for the other channels' grouping: Step 1 still estimates it (Step 2
+    /// matches on that basic estimate), Step 2 does not filter it, and the returned channel 0
+    /// is the basic estimate. The other channels are the same as with `Filtered`.
+    GuideOnly,
+}
+
+/// [`bm3d_multichannel_varying`], with channel 0 filtered or only used as the guide.
+pub(crate) fn bm3d_planes(
+    noisy: ArrayView3<f32>,
+    sigmas: &[f32],
+    relative_variance: Option<ArrayView3<f32>>,
+    config: &Bm3dConfig,
+    first_channel: FirstChannel,
+) -> Result<Array3<f32>> {
     config.validate()?;
     let (c, h, w) = noisy.dim();
     if c == 0 {
@@ -335,6 +363,11 @@ pub fn bm3d_multichannel_varying(
         .map(|p| BlockCoeffs::compute(p, &geo, &tr))
         .collect();
     let low2 = low_planes(&basic_coeffs[0], &geo);
+    // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
+    let mut step2_sigmas = sigmas.to_vec();
+    if first_channel == FirstChannel::GuideOnly {
+        step2_sigmas[0] = 0.0;
+    }
     let step2 = StepParams {
         matching: &basic_coeffs[0],
         low: low2.as_ref(),
@@ -348,12 +381,12 @@ pub fn bm3d_multichannel_varying(
         max_group: config.max_group_wiener,
         noisy: &noisy_coeffs,
         basic: Some(&basic_coeffs),
-        sigmas,
+        sigmas: &step2_sigmas,
         block_variance,
         lambda_3d: config.lambda_3d,
         profiles: &profiles,
     };
-    let fin = run_step(&step2, &geo, &tr, &planes);
+    let fin = run_step(&step2, &geo, &tr, &basic);
     Ok(to_array(fin, h, w))
 }
 

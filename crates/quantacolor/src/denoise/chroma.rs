@@ -15,7 +15,7 @@
 //! three channels (the RMS noise of the stabilised R, G, B).
 
 use super::anscombe::Stabiliser;
-use super::bm3d::{bm3d_multichannel_varying, Bm3dConfig};
+use super::bm3d::{bm3d_planes, Bm3dConfig, FirstChannel};
 use crate::error::{Error, Result};
 use crate::filters::{bilinear, box_downsample};
 use crate::model::PixelModel;
@@ -380,7 +380,29 @@ pub fn bm3d_multiscale(
     coarse_sigma_factor: f32,
     config: &Bm3dConfig,
 ) -> Result<Array3<f32>> {
-    let mut fine = bm3d_multichannel_varying(planes, &sigmas, relative_variance, config)?;
+    multiscale(
+        planes,
+        sigmas,
+        relative_variance,
+        scales,
+        coarse_sigma_factor,
+        config,
+        FirstChannel::Filtered,
+    )
+}
+
+/// [`bm3d_multiscale`]; the coarse scales use only their chroma, so their Y is only the
+/// grouping guide ([`FirstChannel::GuideOnly`]: the same chroma, less work).
+fn multiscale(
+    planes: ArrayView3<f32>,
+    sigmas: [f32; 3],
+    relative_variance: Option<ArrayView3<f32>>,
+    scales: usize,
+    coarse_sigma_factor: f32,
+    config: &Bm3dConfig,
+    first_channel: FirstChannel,
+) -> Result<Array3<f32>> {
+    let mut fine = bm3d_planes(planes, &sigmas, relative_variance, config, first_channel)?;
     let (_, h, w) = planes.dim();
     let min_side = 4 * config.block_size;
     if scales == 0 || h / 2 < min_side || w / 2 < min_side {
@@ -399,13 +421,14 @@ pub fn bm3d_multiscale(
     };
     let coarse = down3(planes);
     let coarse_variance = relative_variance.map(down3);
-    let coarse_denoised = bm3d_multiscale(
+    let coarse_denoised = multiscale(
         coarse.view(),
         sigmas.map(|s| s * coarse_sigma_factor),
         coarse_variance.as_ref().map(|v| v.view()),
         scales - 1,
         coarse_sigma_factor,
         config,
+        FirstChannel::GuideOnly,
     )?;
     for ch in 1..3 {
         let correction =
