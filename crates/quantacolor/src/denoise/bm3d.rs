@@ -663,6 +663,29 @@ impl BlockCoeffs {
     #[inline(always)]
     fn row(plane: &[f32], y: usize, n: usize, w: usize, tr: &Transforms, row: &mut [f32]) {
         let n2 = n * n;
+        if n == 8 {
+            // Separably: the column transform D·(rows y..y+8) once for every column, shared by
+            // the eight blocks that contain the column, then each block's ·Dᵀ. Every
+            // coefficient is the same products summed in the same order as `forward`'s.
+            let d: &[f32; 64] = tr.dct[..64].try_into().expect("8 x 8");
+            let dt: &[f32; 64] = tr.dct_t[..64].try_into().expect("8 x 8");
+            let mut columns = vec![0.0f32; 8 * w];
+            for (k, out) in columns.chunks_exact_mut(w).enumerate() {
+                for i in 0..8 {
+                    let src = &plane[(y + i) * w..(y + i + 1) * w];
+                    axpy(out, d[k * 8 + i], src);
+                }
+            }
+            let mut t = [0.0f32; 64];
+            for (x, dst) in row.chunks_exact_mut(n2).enumerate() {
+                for k in 0..8 {
+                    t[k * 8..k * 8 + 8].copy_from_slice(&columns[k * w + x..k * w + x + 8]);
+                }
+                let dst: &mut [f32; 64] = dst.try_into().expect("8 x 8 block");
+                matmul8(&t, dt, dst);
+            }
+            return;
+        }
         let mut block = vec![0.0f32; n2];
         let mut tmp = vec![0.0f32; n2];
         for (x, dst) in row.chunks_exact_mut(n2).enumerate() {
@@ -1618,6 +1641,40 @@ mod tests {
             let e_pix: f32 = block.iter().map(|v| v * v).sum();
             let e_coef: f32 = coeffs.iter().map(|v| v * v).sum();
             assert!((e_pix - e_coef).abs() < 1e-4 * e_pix);
+        }
+    }
+
+    #[test]
+    fn block_coefficients_are_each_blocks_own_transform_bit_for_bit() {
+        // The separable all-positions transform (8 x 8) and the general path (5 x 5) against
+        // `forward` of every block cut out of the plane.
+        for n in [8usize, 5] {
+            let (h, w) = (13, 29);
+            let plane = random(h * w, 11 + n as u64);
+            let config = Bm3dConfig {
+                block_size: n,
+                ..Bm3dConfig::default()
+            };
+            let geo = Geometry::new(h, w, n, &config);
+            let tr = Transforms::new(n, 2.0);
+            let coeffs = BlockCoeffs::compute(&plane, &geo, &tr);
+            let (mut block, mut tmp, mut expected) =
+                (vec![0.0; n * n], vec![0.0; n * n], vec![0.0; n * n]);
+            for y in 0..geo.ph {
+                for x in 0..geo.pw {
+                    for i in 0..n {
+                        block[i * n..(i + 1) * n]
+                            .copy_from_slice(&plane[(y + i) * w + x..(y + i) * w + x + n]);
+                    }
+                    tr.forward(&block, &mut tmp, &mut expected);
+                    let got = coeffs.block(y * geo.pw + x);
+                    let same = got
+                        .iter()
+                        .zip(&expected)
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "n = {n}, block ({y}, {x}): {got:?} != {expected:?}");
+                }
+            }
         }
     }
 
