@@ -253,6 +253,50 @@ pub(crate) fn bm3d_planes(
     config: &Bm3dConfig,
     first_channel: FirstChannel,
 ) -> Result<Array3<f32>> {
+    check_inputs(noisy, sigmas, config)?;
+    if sigmas.iter().all(|&s| s == 0.0) {
+        return Ok(noisy.to_owned());
+    }
+    let (c, h, w) = noisy.dim();
+    let n = config.block_size;
+    let tr = Transforms::new(n, config.kaiser_beta);
+    let geo = Geometry::new(h, w, n, config);
+    let block_variance = block_variances(relative_variance, c, &geo)?;
+    let profiles: Vec<Vec<f32>> = (0..c)
+        .map(|ch| coefficient_profile(n, config.noise_correlation_px[(ch > 0) as usize]))
+        .collect();
+    let planes: Vec<Vec<f32>> = noisy
+        .outer_iter()
+        .map(|p| p.iter().copied().collect())
+        .collect();
+    let noisy_coeffs: Vec<BlockCoeffs> = planes
+        .iter()
+        .map(|p| BlockCoeffs::compute(p, &geo, &tr))
+        .collect();
+    let regime = NoiseRegime::of(sigmas[0], config);
+    let shared = SharedParams {
+        noisy: &noisy_coeffs,
+        block_variance: block_variance.as_deref(),
+        profiles: &profiles,
+        geo: &geo,
+        tr: &tr,
+    };
+
+    let basic = hard_threshold_step(&shared, &regime, sigmas, config, &planes);
+    if !config.wiener {
+        return Ok(to_array(basic, h, w));
+    }
+    // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
+    let mut step2_sigmas = sigmas.to_vec();
+    if first_channel == FirstChannel::GuideOnly {
+        step2_sigmas[0] = 0.0;
+    }
+    let fin = wiener_step(&shared, &regime, &step2_sigmas, config, &basic);
+    Ok(to_array(fin, h, w))
+}
+
+/// The argument checks of [`bm3d_multichannel_varying`] that do not need the geometry.
+fn check_inputs(noisy: ArrayView3<f32>, sigmas: &[f32], config: &Bm3dConfig) -> Result<()> {
     config.validate()?;
     let (c, h, w) = noisy.dim();
     if c == 0 {
@@ -282,112 +326,141 @@ pub(crate) fn bm3d_planes(
             "BM3D: image contains a non-finite pixel ({v})"
         )));
     }
-    let planes: Vec<Vec<f32>> = noisy
-        .outer_iter()
-        .map(|p| p.iter().copied().collect())
-        .collect();
-    if sigmas.iter().all(|&s| s == 0.0) {
-        return Ok(noisy.to_owned());
+    Ok(())
+}
+
+/// Per channel, the mean relative noise variance of every block position (`None` without a
+/// map); errors on a map of the wrong shape or with a non-positive or non-finite value.
+fn block_variances(
+    relative_variance: Option<ArrayView3<f32>>,
+    channels: usize,
+    geo: &Geometry,
+) -> Result<Option<Vec<Vec<f32>>>> {
+    let Some(map) = relative_variance else {
+        return Ok(None);
+    };
+    let expected = (channels, geo.h, geo.w);
+    if map.dim() != expected {
+        return Err(Error::invalid(format!(
+            "BM3D: relative variance map has shape {:?}, expected {expected:?}",
+            map.dim()
+        )));
+    }
+    if let Some(v) = map.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
+        return Err(Error::invalid(format!(
+            "BM3D: relative variance map holds {v}; it must be positive and finite"
+        )));
+    }
+    Ok(Some(
+        map.outer_iter()
+            .map(|plane| block_means(plane, geo))
+            .collect(),
+    ))
+}
+
+/// The parameters TIP 2007 (Table I) switches when channel 0's σ exceeds `high_noise_sigma`.
+struct NoiseRegime {
+    high_noise: bool,
+    /// `data_range / 255`: the factor from the paper's 0–255 thresholds to image units.
+    scale: f32,
+}
+
+impl NoiseRegime {
+    fn of(sigma0: f32, config: &Bm3dConfig) -> Self {
+        let scale = config.data_range / 255.0;
+        NoiseRegime {
+            high_noise: sigma0 / scale > config.high_noise_sigma,
+            scale,
+        }
     }
 
-    let tr = Transforms::new(n, config.kaiser_beta);
-    let geo = Geometry::new(h, w, n, config);
-    let block_variance = match relative_variance {
-        None => None,
-        Some(map) => {
-            if map.dim() != (c, h, w) {
-                return Err(Error::invalid(format!(
-                    "BM3D: relative variance map has shape {:?}, expected ({c}, {h}, {w})",
-                    map.dim()
-                )));
-            }
-            if let Some(v) = map.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
-                return Err(Error::invalid(format!(
-                    "BM3D: relative variance map holds {v}; it must be positive and finite"
-                )));
-            }
-            Some(
-                map.outer_iter()
-                    .map(|plane| block_means(plane, &geo))
-                    .collect::<Vec<_>>(),
-            )
-        }
-    };
-    let block_variance = block_variance.as_deref();
-    let profiles: Vec<Vec<f32>> = (0..c)
-        .map(|ch| coefficient_profile(n, config.noise_correlation_px[(ch > 0) as usize]))
-        .collect();
-    let noisy_coeffs: Vec<BlockCoeffs> = planes
-        .iter()
-        .map(|p| BlockCoeffs::compute(p, &geo, &tr))
-        .collect();
+    /// A per-pixel matching threshold as the summed squared distance over an N1×N1 block.
+    fn tau_sum(&self, tau: f32, tau_high_noise: f32, n: usize) -> f32 {
+        let tau = if self.high_noise { tau_high_noise } else { tau };
+        tau * self.scale * self.scale * (n * n) as f32
+    }
+}
 
-    // Step 1: matching on noisy channel 0, hard-thresholded in 2D when the noise is high.
-    let scale = config.data_range / 255.0;
-    let high_noise = sigmas[0] / scale > config.high_noise_sigma;
+/// What both steps read: the noisy coefficients, noise model and geometry.
+struct SharedParams<'a> {
+    noisy: &'a [BlockCoeffs],
+    block_variance: Option<&'a [Vec<f32>]>,
+    profiles: &'a [Vec<f32>],
+    geo: &'a Geometry,
+    tr: &'a Transforms,
+}
+
+/// Step 1 (TIP 2007 §III-A): matching on noisy channel 0 (hard-thresholded in 2D when the
+/// noise is high), hard thresholding of every group's 3D spectrum; the basic estimate.
+fn hard_threshold_step(
+    shared: &SharedParams,
+    regime: &NoiseRegime,
+    sigmas: &[f32],
+    config: &Bm3dConfig,
+    planes: &[Vec<f32>],
+) -> Vec<Vec<f32>> {
     let thresholded;
-    let (match1, tau1) = if high_noise && config.lambda_2d > 0.0 {
-        let t = config.lambda_2d * sigmas[0];
-        thresholded = noisy_coeffs[0].hard_thresholded(t);
-        (&thresholded, config.tau_match_ht_high_noise)
-    } else if high_noise {
-        (&noisy_coeffs[0], config.tau_match_ht_high_noise)
+    let matching = if regime.high_noise && config.lambda_2d > 0.0 {
+        thresholded = shared.noisy[0].hard_thresholded(config.lambda_2d * sigmas[0]);
+        &thresholded
     } else {
-        (&noisy_coeffs[0], config.tau_match_ht)
+        &shared.noisy[0]
     };
-    let low1 = low_planes(match1, &geo);
-    let step1 = StepParams {
-        matching: match1,
-        low: low1.as_ref(),
-        tau_sum: tau1 * scale * scale * (n * n) as f32,
+    let low = low_planes(matching, shared.geo);
+    let step = StepParams {
+        matching,
+        low: low.as_ref(),
+        tau_sum: regime.tau_sum(
+            config.tau_match_ht,
+            config.tau_match_ht_high_noise,
+            config.block_size,
+        ),
         max_group: config.max_group_ht,
-        noisy: &noisy_coeffs,
+        noisy: shared.noisy,
         basic: None,
         sigmas,
-        block_variance,
-        lambda_3d: if high_noise {
+        block_variance: shared.block_variance,
+        lambda_3d: if regime.high_noise {
             config.lambda_3d_high_noise
         } else {
             config.lambda_3d
         },
-        profiles: &profiles,
+        profiles: shared.profiles,
     };
-    let basic = run_step(&step1, &geo, &tr, &planes);
-    if !config.wiener {
-        return Ok(to_array(basic, h, w));
-    }
+    run_step(&step, shared.geo, shared.tr, planes)
+}
 
-    // Step 2: matching on the basic estimate's channel 0, Wiener shrinkage of the noisy group.
+/// Step 2 (TIP 2007 §III-B): matching on the basic estimate's channel 0, empirical Wiener
+/// shrinkage of the noisy groups with the basic estimate as the oracle; the final estimate.
+fn wiener_step(
+    shared: &SharedParams,
+    regime: &NoiseRegime,
+    sigmas: &[f32],
+    config: &Bm3dConfig,
+    basic: &[Vec<f32>],
+) -> Vec<Vec<f32>> {
     let basic_coeffs: Vec<BlockCoeffs> = basic
         .iter()
-        .map(|p| BlockCoeffs::compute(p, &geo, &tr))
+        .map(|p| BlockCoeffs::compute(p, shared.geo, shared.tr))
         .collect();
-    let low2 = low_planes(&basic_coeffs[0], &geo);
-    // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
-    let mut step2_sigmas = sigmas.to_vec();
-    if first_channel == FirstChannel::GuideOnly {
-        step2_sigmas[0] = 0.0;
-    }
-    let step2 = StepParams {
+    let low = low_planes(&basic_coeffs[0], shared.geo);
+    let step = StepParams {
         matching: &basic_coeffs[0],
-        low: low2.as_ref(),
-        tau_sum: if high_noise {
-            config.tau_match_wiener_high_noise
-        } else {
-            config.tau_match_wiener
-        } * scale
-            * scale
-            * (n * n) as f32,
+        low: low.as_ref(),
+        tau_sum: regime.tau_sum(
+            config.tau_match_wiener,
+            config.tau_match_wiener_high_noise,
+            config.block_size,
+        ),
         max_group: config.max_group_wiener,
-        noisy: &noisy_coeffs,
+        noisy: shared.noisy,
         basic: Some(&basic_coeffs),
-        sigmas: &step2_sigmas,
-        block_variance,
+        sigmas,
+        block_variance: shared.block_variance,
         lambda_3d: config.lambda_3d,
-        profiles: &profiles,
+        profiles: shared.profiles,
     };
-    let fin = run_step(&step2, &geo, &tr, &basic);
-    Ok(to_array(fin, h, w))
+    run_step(&step, shared.geo, shared.tr, basic)
 }
 
 /// Relative σ of every 2D DCT coefficient (row-major `n × n`) of white noise smoothed by a
