@@ -64,8 +64,8 @@ pub struct Bm3dConfig {
     /// column of block positions are always included. TIP 2007 Table I uses 3 (normal profile)
     /// and 5–6 (fast profile). Default 5: chosen with `bench denoise` (step 3 / 4 / 5 / 6 with
     /// the chroma-BM3D defaults) on the tuning set, 29.67 dB / 0.8739 SSIM / 29.67 / 0.8737 /
-    /// 29.66 / 0.8733 / 29.62 / 0.8722, confirmed on the validation set (31.61 / 0.8549 at 4,
-    /// 31.60 / 0.8544 at 5), with 0.36 times the reference blocks (and work) of step 3.
+    /// 29.66 / 0.8733 / 29.62 / 0.8722, confirmed on the validation set (31.61 / 0.8551 at 3,
+    /// 31.61 / 0.8549 at 4, 31.60 / 0.8544 at 5), with 0.36 times the reference blocks (and work) of step 3.
     pub step: usize,
     /// Side `NS` of the search window centred on the reference block, in pixels (both steps).
     pub search_window: usize,
