@@ -291,6 +291,7 @@ impl BinaryFrames {
     }
 
     /// The stored bytes of row `y` of frame `t` (packed or unpacked, see [`Self::layout`]).
+    #[inline]
     pub fn raw_row(&self, t: usize, y: usize) -> &[u8] {
         let rb = self.row_bytes();
         let start = (t * self.height + y) * rb;
@@ -304,6 +305,7 @@ impl BinaryFrames {
     }
 
     /// The sample of pixel `(y, x)` in frame `t`: its bit (0 or 1) or its digital number.
+    #[inline]
     pub fn sample(&self, t: usize, y: usize, x: usize) -> u32 {
         let row = self.raw_row(t, y);
         match self.layout {
