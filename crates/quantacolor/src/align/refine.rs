@@ -439,33 +439,55 @@ impl FrameMotion {
 
     /// Dense (H, W, 2) flow of camera motion `camera` plus the local residual at frame `t`.
     fn dense(&self, camera: &AffineMotion, t: f64) -> Array3<f32> {
+        self.dense_with(camera, self.local_at(t).as_ref())
+    }
+
+    /// The local residual's tile flow at frame `t` and its tiles near a residual
+    /// ([`near_local_tiles`]), when there is a residual.
+    fn local_at(&self, t: f64) -> Option<(Array3<f32>, Array2<bool>)> {
+        self.has_local.then(|| {
+            let local = frame_flow(&self.local, &self.plan, t);
+            let near = near_local_tiles(&local);
+            (local, near)
+        })
+    }
+
+    /// [`Self::dense`] with the residual of [`Self::local_at`] given.
+    fn dense_with(
+        &self,
+        camera: &AffineMotion,
+        local: Option<&(Array3<f32>, Array2<bool>)>,
+    ) -> Array3<f32> {
         let (h, w) = (self.height, self.width);
         let centre = self.centre();
-        let local = self
-            .has_local
-            .then(|| frame_flow(&self.local, &self.plan, t));
-        let near_local = local.as_ref().map(near_local_tiles);
         let stride = self.grid.tile_stride.max(1);
         let mut out = Array3::<f32>::zeros((h, w, 2));
         out.outer_iter_mut()
             .into_par_iter()
             .enumerate()
             .for_each(|(y, mut row)| {
-                for x in 0..w {
-                    let d = camera.at([y as f64 - centre[0], x as f64 - centre[1]]);
-                    let l = match (&local, &near_local) {
-                        (Some(l), Some(near)) => {
-                            let (ty, tx) = near.dim();
-                            if near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]] {
-                                flow_at(l, &self.grid, y as f32, x as f32)
-                            } else {
-                                [0.0; 2]
-                            }
+                let row = row.as_slice_mut().expect("fresh array is contiguous");
+                // `AffineMotion::at` with its row part added once: (b + m·ry) + m'·rx.
+                let ry = y as f64 - centre[0];
+                let base = [
+                    camera.b[0] + camera.m[0][0] * ry,
+                    camera.b[1] + camera.m[1][0] * ry,
+                ];
+                let near_row = local.map(|(l, near)| {
+                    let (ty, _) = near.dim();
+                    (l, near.row((y / stride).min(ty - 1)))
+                });
+                for (x, out) in row.chunks_exact_mut(2).enumerate() {
+                    let rx = x as f64 - centre[1];
+                    let d = [base[0] + camera.m[0][1] * rx, base[1] + camera.m[1][1] * rx];
+                    let l = match &near_row {
+                        Some((l, near)) if near[(x / stride).min(near.len() - 1)] => {
+                            flow_at(l, &self.grid, y as f32, x as f32)
                         }
                         _ => [0.0; 2],
                     };
-                    row[[x, 0]] = d[0] as f32 + l[0];
-                    row[[x, 1]] = d[1] as f32 + l[1];
+                    out[0] = d[0] as f32 + l[0];
+                    out[1] = d[1] as f32 + l[1];
                 }
             });
         out
@@ -480,17 +502,22 @@ impl FrameMotion {
         if let Some((matrix, offset)) = self.sub_block_reference_map(k) {
             return SubBlockMotion::Affine { matrix, offset };
         }
-        let flow = self.sub_block_flow(k);
-        match self.camera_reference_map(k) {
-            Some((matrix, offset)) if self.has_local => {
-                let r = &self.sub_blocks[k];
-                let t = (r.start + r.end - 1) as f64 / 2.0;
-                let near = near_local_tiles(&frame_flow(&self.local, &self.plan, t));
+        let r = &self.sub_blocks[k];
+        let local = self.local_at((r.start + r.end - 1) as f64 / 2.0);
+        let flow = self.dense_with(&self.camera[k], local.as_ref());
+        match (self.camera_reference_map(k), local) {
+            (Some((matrix, offset)), Some((_, near))) => {
                 let (ty, tx) = near.dim();
                 let stride = self.grid.tile_stride.max(1);
-                let local = Array2::from_shape_fn((self.height, self.width), |(y, x)| {
-                    near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]]
-                });
+                let columns: Vec<usize> =
+                    (0..self.width).map(|x| (x / stride).min(tx - 1)).collect();
+                let mut local = Array2::from_elem((self.height, self.width), false);
+                for (y, mut row) in local.outer_iter_mut().enumerate() {
+                    let near = near.row((y / stride).min(ty - 1));
+                    for (m, &c) in row.iter_mut().zip(&columns) {
+                        *m = near[c];
+                    }
+                }
                 SubBlockMotion::CameraAndLocal {
                     matrix,
                     offset,
