@@ -7,6 +7,7 @@
 //! random. The draw is a function of `(seed, pixel, frame)` only, so block sums do not depend on
 //! block boundaries or thread count.
 
+use crate::capture::frames::FrameLayout;
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;
 use crate::error::{Error, Result};
@@ -146,13 +147,21 @@ impl HotPixelCorrector {
                     .collect();
                 let mut counts = vec![0u32; hot.len()];
                 for t in range.clone() {
+                    // Packed frames: the bit read straight from the frame's bytes.
+                    let packed = (frames.layout() == FrameLayout::Packed)
+                        .then(|| (frames.raw_frame(t), frames.width().div_ceil(8)));
                     for ((rng, cands), count) in
                         rngs.iter_mut().zip(candidates).zip(counts.iter_mut())
                     {
                         let n = cands.len() as u64;
                         let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
-                        let (y, x) = cands[pick];
-                        *count += frames.sample(t, y as usize, x as usize);
+                        let (y, x) = (cands[pick].0 as usize, cands[pick].1 as usize);
+                        *count += match packed {
+                            Some((frame, row_bytes)) => {
+                                ((frame[y * row_bytes + x / 8] >> (7 - x % 8)) & 1) as u32
+                            }
+                            None => frames.sample(t, y, x),
+                        };
                     }
                 }
                 counts

@@ -717,20 +717,25 @@ impl RunQuads {
         quads
     }
 
-    /// `values` (one per bin) laid out as the slots are (0 for padding).
-    fn interleave(&self, values: &[f64]) -> Vec<[f64; 4]> {
-        self.bin
-            .iter()
-            .map(|bins| {
-                bins.map(|b| {
-                    if b == u32::MAX {
-                        0.0
-                    } else {
-                        values[b as usize]
-                    }
-                })
-            })
-            .collect()
+    /// The (mean bit rate, trials) `observation` of every bin laid out as the slots are (0 for
+    /// padding: no trials, so weight zero in the fit).
+    fn observations(
+        &self,
+        observation: impl Fn(usize) -> (f64, f64),
+    ) -> (Vec<[f64; 4]>, Vec<[f64; 4]>) {
+        let mut observed = Vec::with_capacity(self.bin.len());
+        let mut trials = Vec::with_capacity(self.bin.len());
+        for bins in &self.bin {
+            let (mut o, mut t) = ([0.0; 4], [0.0; 4]);
+            for (lane, &b) in bins.iter().enumerate() {
+                if b != u32::MAX {
+                    (o[lane], t[lane]) = observation(b as usize);
+                }
+            }
+            observed.push(o);
+            trials.push(t);
+        }
+        (observed, trials)
     }
 }
 
@@ -744,6 +749,12 @@ impl BinLayout {
     pub(super) fn sites(&self, b: usize) -> &[u32] {
         &self.site_index[self.site_start[b] as usize..self.site_start[b + 1] as usize]
     }
+}
+
+/// Whether a template's pixels can be indexed in the i32 lanes of [`run_sums_quad_avx2`].
+fn quad_lanes_fit(template: &TemplateLevel) -> bool {
+    let (h, w) = (template.height, template.width);
+    h >= 2 && w >= 2 && h.saturating_mul(w) < (1 << 28)
 }
 
 /// A smoothed reference and its gradients, interleaved per pixel for the fit's inner loop.
@@ -959,36 +970,35 @@ fn fit_sub_block_generic(
 ) -> Option<AffineMotion> {
     let mut params = start.params();
     for (layout, template) in layouts.iter().zip(templates) {
-        // Mean bit rate and number of trials (sites x frames) of every bin.
-        let (observed, trials): (Vec<f64>, Vec<f64>) = (0..layout.len())
-            .map(|b| {
-                let trials = layout.sites(b).len() as f64 * frames as f64;
-                let sum: u64 = layout
-                    .sites(b)
-                    .iter()
-                    .map(|&i| counts[i as usize] as u64)
-                    .sum();
-                (sum as f64 / trials.max(1.0), trials)
-            })
-            .unzip();
-        // The bins' observations laid out as the run groups' slots, for the AVX2 sums.
-        #[cfg(target_arch = "x86_64")]
-        let interleaved = avx2.then(|| {
-            (
-                layout.quads.interleave(&observed),
-                layout.quads.interleave(&trials),
-            )
-        });
+        // Mean bit rate and number of trials (sites x frames) of bin b.
+        let observation = |b: usize| -> (f64, f64) {
+            let trials = layout.sites(b).len() as f64 * frames as f64;
+            let sum: u64 = layout
+                .sites(b)
+                .iter()
+                .map(|&i| counts[i as usize] as u64)
+                .sum();
+            (sum as f64 / trials.max(1.0), trials)
+        };
+        // The AVX2 sums read the observations laid out as the run groups' slots, the scalar
+        // ones bin by bin.
+        let by_quads = avx2 && quad_lanes_fit(template);
+        let (observed, trials): (Vec<f64>, Vec<f64>) = if by_quads {
+            (Vec::new(), Vec::new())
+        } else {
+            (0..layout.len()).map(observation).unzip()
+        };
+        let interleaved = by_quads.then(|| layout.quads.observations(observation));
         let mut quad_sums = vec![[0.0f64; 13]; layout.runs.len()];
         for iteration in 0..iterations {
             let motion = AffineMotion::from_params(params);
             let mut normal = [[0.0f64; 6]; 6];
             let mut rhs = [0.0f64; 6];
             #[cfg(target_arch = "x86_64")]
-            let by_quads = match &interleaved {
+            if let Some((observed, trials)) = &interleaved {
                 // SAFETY: `avx2` is only set by `fit_sub_block_avx2`, whose caller checked that
                 // the CPU supports AVX2.
-                Some((observed, trials)) => unsafe {
+                unsafe {
                     run_sums_quad_avx2(
                         template,
                         &motion,
@@ -998,11 +1008,8 @@ fn fit_sub_block_generic(
                         trials,
                         &mut quad_sums,
                     )
-                },
-                None => false,
-            };
-            #[cfg(not(target_arch = "x86_64"))]
-            let by_quads = false;
+                };
+            }
             for (r, run) in layout.runs.iter().enumerate() {
                 // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
                 // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
@@ -1131,8 +1138,7 @@ fn run_sums(
 /// fused multiply-add, the same rounding), and a bin outside the template (or a padding slot)
 /// adds weight zero, so ±0 terms: a sum that starts at +0 is never −0, so adding ±0 leaves it
 /// unchanged, as skipping the bin does. The sums are bit-identical to [`run_sums`] (checked by
-/// a test). Returns false, doing nothing, for a template too small or too large for its lane
-/// arithmetic.
+/// a test). The template must pass [`quad_lanes_fit`].
 ///
 /// # Safety
 /// The CPU must support AVX2.
@@ -1146,13 +1152,11 @@ unsafe fn run_sums_quad_avx2(
     observed: &[[f64; 4]],
     trials: &[[f64; 4]],
     out: &mut [[f64; 13]],
-) -> bool {
+) {
     use std::arch::x86_64::*;
     let (h, w) = (template.height, template.width);
     // The lane arithmetic indexes pixels in i32.
-    if h < 2 || w < 2 || h.saturating_mul(w) >= (1 << 28) {
-        return false;
-    }
+    assert!(quad_lanes_fit(template), "template of {h}x{w} pixels");
     assert!(observed.len() == quads.bin.len() && trials.len() == quads.bin.len());
     let samples = template.samples.as_ptr() as *const f32;
     let (m_yx, m_xx) = (
@@ -1307,7 +1311,6 @@ unsafe fn run_sums_quad_avx2(
             }
         }
     }
-    true
 }
 
 /// Local quadratic fit along time of every parameter of `camera` (sub-block centres `times`)
@@ -1645,19 +1648,20 @@ mod tests {
                 let trials: Vec<f64> = (0..start).map(|_| rng.gen_range(8.0..200.0)).collect();
                 let quads = RunQuads::new(&runs, &rows, &x, &x2);
                 let mut simd = vec![[f64::NAN; 13]; runs.len()];
+                let (lanes_observed, lanes_trials) =
+                    quads.observations(|b| (observed[b], trials[b]));
                 // SAFETY: AVX2 checked above.
-                let done = unsafe {
+                unsafe {
                     run_sums_quad_avx2(
                         &template,
                         &motion,
                         centre,
                         &quads,
-                        &quads.interleave(&observed),
-                        &quads.interleave(&trials),
+                        &lanes_observed,
+                        &lanes_trials,
                         &mut simd,
                     )
                 };
-                assert!(done);
                 for (r, run) in runs.iter().enumerate() {
                     let bins = RunBins {
                         row: rows[r],

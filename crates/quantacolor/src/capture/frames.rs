@@ -298,6 +298,13 @@ impl BinaryFrames {
         &self.data()[start..start + rb]
     }
 
+    /// The stored bytes of frame `t`: its H rows of [`Self::raw_row`] one after another.
+    #[inline]
+    pub fn raw_frame(&self, t: usize) -> &[u8] {
+        let frame_bytes = self.height * self.row_bytes();
+        &self.data()[t * frame_bytes..(t + 1) * frame_bytes]
+    }
+
     /// The bit of pixel `(y, x)` in frame `t` (for multi-bit frames: whether the sample is
     /// nonzero).
     pub fn bit(&self, t: usize, y: usize, x: usize) -> bool {
@@ -703,11 +710,13 @@ fn flush_planes(
             lanes += SPREAD[((planes[k * words + j] >> shift) & 0xFF) as usize] << k;
         }
         let (row, column) = (byte / row_bytes, byte % row_bytes);
-        for (i, count) in lanes.to_le_bytes().iter().enumerate() {
-            let x = 8 * column + i;
-            if x < width {
-                out[row * width + x] += *count as u32;
-            }
+        let first = row * width + 8 * column;
+        let pixels = (width - 8 * column).min(8);
+        for (o, count) in out[first..first + pixels]
+            .iter_mut()
+            .zip(lanes.to_le_bytes())
+        {
+            *o += count as u32;
         }
     }
     planes.fill(0);
