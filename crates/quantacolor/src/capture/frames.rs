@@ -85,9 +85,6 @@ static SPREAD: [u64; 256] = spread_table();
 /// released (16 MB of 496x254 packed frames).
 const SUM_CHUNK_FRAMES: usize = 1024;
 
-/// Frames added into the byte lanes of one u64 before they could overflow (255 max per lane).
-const LANE_FLUSH: usize = 255;
-
 impl BinaryFrames {
     /// Memory-maps `path` (a `.npy`) holding frames `width` pixels wide: uint8 (T, H, ceil(W/8))
     /// packed, or bool/uint8 (T, H, W) unpacked.
@@ -504,24 +501,11 @@ impl BinaryFrames {
         let _ = frames;
     }
 
+    /// Adds row `y`'s samples over `frames` to `out` (unpacked and multi-bit frames; packed
+    /// ones are summed by [`Self::sum_band_packed`]).
     fn sum_row(&self, frames: Range<usize>, y: usize, out: &mut [u32]) {
         match self.layout {
-            FrameLayout::Packed => {
-                let nbytes = self.row_bytes();
-                let mut lanes = vec![0u64; nbytes];
-                let mut pending = 0;
-                for t in frames {
-                    for (acc, &byte) in lanes.iter_mut().zip(self.raw_row(t, y)) {
-                        *acc += SPREAD[byte as usize];
-                    }
-                    pending += 1;
-                    if pending == LANE_FLUSH {
-                        flush_lanes(&mut lanes, out);
-                        pending = 0;
-                    }
-                }
-                flush_lanes(&mut lanes, out);
-            }
+            FrameLayout::Packed => self.sum_band_packed(frames, y..y + 1, out),
             FrameLayout::Unpacked => {
                 for t in frames {
                     for (acc, &v) in out.iter_mut().zip(self.raw_row(t, y)) {
@@ -720,18 +704,6 @@ fn flush_planes(
         }
     }
     planes.fill(0);
-}
-
-fn flush_lanes(lanes: &mut [u64], out: &mut [u32]) {
-    for (k, acc) in lanes.iter_mut().enumerate() {
-        let bytes = acc.to_le_bytes();
-        for (i, &b) in bytes.iter().enumerate() {
-            if let Some(o) = out.get_mut(8 * k + i) {
-                *o += b as u32;
-            }
-        }
-        *acc = 0;
-    }
 }
 
 /// Packs 0/1 frames (T, H, W) into uint8 (T, H, ceil(W/8)), MSB first (`np.packbits` order).
