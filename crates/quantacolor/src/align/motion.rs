@@ -42,7 +42,9 @@ pub fn flow_at(tile_flow: &Array3<f32>, grid: &TileGrid, y: f32, x: f32) -> [f32
             return (n - 1, n - 1, 0.0);
         }
         let step = centers[1] - centers[0];
-        let i = (((v - centers[0]) / step).floor() as usize).min(n - 2);
+        // v lies past the first centre: the quotient is positive, where truncation (`as`) is
+        // the floor (and no libm call).
+        let i = (((v - centers[0]) / step) as usize).min(n - 2);
         (i, i + 1, (v - centers[i]) / step)
     };
     let (y0, y1, fy) = locate(y, &grid.tile_centers_y);

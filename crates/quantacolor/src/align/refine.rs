@@ -439,33 +439,55 @@ impl FrameMotion {
 
     /// Dense (H, W, 2) flow of camera motion `camera` plus the local residual at frame `t`.
     fn dense(&self, camera: &AffineMotion, t: f64) -> Array3<f32> {
+        self.dense_with(camera, self.local_at(t).as_ref())
+    }
+
+    /// The local residual's tile flow at frame `t` and its tiles near a residual
+    /// ([`near_local_tiles`]), when there is a residual.
+    fn local_at(&self, t: f64) -> Option<(Array3<f32>, Array2<bool>)> {
+        self.has_local.then(|| {
+            let local = frame_flow(&self.local, &self.plan, t);
+            let near = near_local_tiles(&local);
+            (local, near)
+        })
+    }
+
+    /// [`Self::dense`] with the residual of [`Self::local_at`] given.
+    fn dense_with(
+        &self,
+        camera: &AffineMotion,
+        local: Option<&(Array3<f32>, Array2<bool>)>,
+    ) -> Array3<f32> {
         let (h, w) = (self.height, self.width);
         let centre = self.centre();
-        let local = self
-            .has_local
-            .then(|| frame_flow(&self.local, &self.plan, t));
-        let near_local = local.as_ref().map(near_local_tiles);
         let stride = self.grid.tile_stride.max(1);
         let mut out = Array3::<f32>::zeros((h, w, 2));
         out.outer_iter_mut()
             .into_par_iter()
             .enumerate()
             .for_each(|(y, mut row)| {
-                for x in 0..w {
-                    let d = camera.at([y as f64 - centre[0], x as f64 - centre[1]]);
-                    let l = match (&local, &near_local) {
-                        (Some(l), Some(near)) => {
-                            let (ty, tx) = near.dim();
-                            if near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]] {
-                                flow_at(l, &self.grid, y as f32, x as f32)
-                            } else {
-                                [0.0; 2]
-                            }
+                let row = row.as_slice_mut().expect("fresh array is contiguous");
+                // `AffineMotion::at` with its row part added once: (b + m·ry) + m'·rx.
+                let ry = y as f64 - centre[0];
+                let base = [
+                    camera.b[0] + camera.m[0][0] * ry,
+                    camera.b[1] + camera.m[1][0] * ry,
+                ];
+                let near_row = local.map(|(l, near)| {
+                    let (ty, _) = near.dim();
+                    (l, near.row((y / stride).min(ty - 1)))
+                });
+                for (x, out) in row.chunks_exact_mut(2).enumerate() {
+                    let rx = x as f64 - centre[1];
+                    let d = [base[0] + camera.m[0][1] * rx, base[1] + camera.m[1][1] * rx];
+                    let l = match &near_row {
+                        Some((l, near)) if near[(x / stride).min(near.len() - 1)] => {
+                            flow_at(l, &self.grid, y as f32, x as f32)
                         }
                         _ => [0.0; 2],
                     };
-                    row[[x, 0]] = d[0] as f32 + l[0];
-                    row[[x, 1]] = d[1] as f32 + l[1];
+                    out[0] = d[0] as f32 + l[0];
+                    out[1] = d[1] as f32 + l[1];
                 }
             });
         out
@@ -480,17 +502,22 @@ impl FrameMotion {
         if let Some((matrix, offset)) = self.sub_block_reference_map(k) {
             return SubBlockMotion::Affine { matrix, offset };
         }
-        let flow = self.sub_block_flow(k);
-        match self.camera_reference_map(k) {
-            Some((matrix, offset)) if self.has_local => {
-                let r = &self.sub_blocks[k];
-                let t = (r.start + r.end - 1) as f64 / 2.0;
-                let near = near_local_tiles(&frame_flow(&self.local, &self.plan, t));
+        let r = &self.sub_blocks[k];
+        let local = self.local_at((r.start + r.end - 1) as f64 / 2.0);
+        let flow = self.dense_with(&self.camera[k], local.as_ref());
+        match (self.camera_reference_map(k), local) {
+            (Some((matrix, offset)), Some((_, near))) => {
                 let (ty, tx) = near.dim();
                 let stride = self.grid.tile_stride.max(1);
-                let local = Array2::from_shape_fn((self.height, self.width), |(y, x)| {
-                    near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]]
-                });
+                let columns: Vec<usize> =
+                    (0..self.width).map(|x| (x / stride).min(tx - 1)).collect();
+                let mut local = Array2::from_elem((self.height, self.width), false);
+                for (y, mut row) in local.outer_iter_mut().enumerate() {
+                    let near = near.row((y / stride).min(ty - 1));
+                    for (m, &c) in row.iter_mut().zip(&columns) {
+                        *m = near[c];
+                    }
+                }
                 SubBlockMotion::CameraAndLocal {
                     matrix,
                     offset,
@@ -627,6 +654,89 @@ pub(super) struct BinLayout {
     /// them for several bins at a time).
     x: Vec<f64>,
     x2: Vec<f64>,
+    /// The runs four at a time, for [`run_sums_quad_avx2`].
+    quads: RunQuads,
+}
+
+/// The runs of a [`BinLayout`] grouped four at a time (runs of similar length together), each
+/// group's bins interleaved step by step: slot `s` of a group holds bin `s` of each of its four
+/// runs in the four lanes (a shorter run's lanes past its end are padding). The fit then sums
+/// four runs lane-parallel, each lane in its run's own bin order, so that every run's sums are
+/// the ones [`run_sums`] makes, without moving lanes between registers.
+#[derive(Default)]
+struct RunQuads {
+    /// Runs of every group (`usize::MAX`: no run in that lane).
+    runs: Vec<[usize; 4]>,
+    /// Slots of group g: `slot_start[g]..slot_start[g + 1]`.
+    slot_start: Vec<usize>,
+    /// Bin of every slot and lane (`u32::MAX`: padding).
+    bin: Vec<[u32; 4]>,
+    /// Centroid column of every slot's bins, and its square (0 for padding).
+    x: Vec<[f64; 4]>,
+    x2: Vec<[f64; 4]>,
+    /// Centroid row of every group's runs (0 for an empty lane).
+    row: Vec<[f64; 4]>,
+}
+
+impl RunQuads {
+    /// Groups `runs` (bins with centroid columns `x`, squares `x2`; run r's centroid row
+    /// `rows[r]`).
+    fn new(runs: &[Range<usize>], rows: &[f64], x: &[f64], x2: &[f64]) -> RunQuads {
+        // Longest first, so that the runs of one group have similar lengths (little padding).
+        let mut order: Vec<usize> = (0..runs.len()).collect();
+        order.sort_by_key(|&r| std::cmp::Reverse(runs[r].len()));
+        let mut quads = RunQuads {
+            slot_start: vec![0],
+            ..RunQuads::default()
+        };
+        for group in order.chunks(4) {
+            let members: [usize; 4] =
+                std::array::from_fn(|l| group.get(l).copied().unwrap_or(usize::MAX));
+            let len = group.iter().map(|&r| runs[r].len()).max().unwrap_or(0);
+            for s in 0..len {
+                let mut bins = [u32::MAX; 4];
+                let (mut xs, mut x2s) = ([0.0; 4], [0.0; 4]);
+                for (l, &r) in group.iter().enumerate() {
+                    if s < runs[r].len() {
+                        let b = runs[r].start + s;
+                        bins[l] = b as u32;
+                        xs[l] = x[b];
+                        x2s[l] = x2[b];
+                    }
+                }
+                quads.bin.push(bins);
+                quads.x.push(xs);
+                quads.x2.push(x2s);
+            }
+            quads.runs.push(members);
+            quads
+                .row
+                .push(members.map(|r| if r == usize::MAX { 0.0 } else { rows[r] }));
+            quads.slot_start.push(quads.bin.len());
+        }
+        quads
+    }
+
+    /// The (mean bit rate, trials) `observation` of every bin laid out as the slots are (0 for
+    /// padding: no trials, so weight zero in the fit).
+    fn observations(
+        &self,
+        observation: impl Fn(usize) -> (f64, f64),
+    ) -> (Vec<[f64; 4]>, Vec<[f64; 4]>) {
+        let mut observed = Vec::with_capacity(self.bin.len());
+        let mut trials = Vec::with_capacity(self.bin.len());
+        for bins in &self.bin {
+            let (mut o, mut t) = ([0.0; 4], [0.0; 4]);
+            for (lane, &b) in bins.iter().enumerate() {
+                if b != u32::MAX {
+                    (o[lane], t[lane]) = observation(b as usize);
+                }
+            }
+            observed.push(o);
+            trials.push(t);
+        }
+        (observed, trials)
+    }
 }
 
 impl BinLayout {
@@ -639,6 +749,12 @@ impl BinLayout {
     pub(super) fn sites(&self, b: usize) -> &[u32] {
         &self.site_index[self.site_start[b] as usize..self.site_start[b + 1] as usize]
     }
+}
+
+/// Whether a template's pixels can be indexed in the i32 lanes of [`run_sums_quad_avx2`].
+fn quad_lanes_fit(template: &TemplateLevel) -> bool {
+    let (h, w) = (template.height, template.width);
+    h >= 2 && w >= 2 && h.saturating_mul(w) < (1 << 28)
 }
 
 /// A smoothed reference and its gradients, interleaved per pixel for the fit's inner loop.
@@ -756,7 +872,9 @@ pub(super) fn bin_layout(
         }
     }
     let x: Vec<f64> = centroid.iter().map(|c| c[1]).collect();
-    let x2 = x.iter().map(|&v| v * v).collect();
+    let x2: Vec<f64> = x.iter().map(|&v| v * v).collect();
+    let rows: Vec<f64> = runs.iter().map(|r| centroid[r.start][0]).collect();
+    let quads = RunQuads::new(&runs, &rows, &x, &x2);
     BinLayout {
         site_index,
         site_start,
@@ -764,6 +882,7 @@ pub(super) fn bin_layout(
         runs,
         x,
         x2,
+        quads,
     }
 }
 
@@ -816,7 +935,7 @@ pub(super) fn fit_sub_block(
     )
 }
 
-/// [`fit_sub_block_generic`] compiled for AVX2, with the per-run sums of [`run_sums_avx2`]: the
+/// [`fit_sub_block_generic`] compiled for AVX2, with the per-run sums of [`run_sums_quad_avx2`]: the
 /// same operations in the same order (no fused multiply-add), so the same result.
 ///
 /// # Safety
@@ -851,43 +970,62 @@ fn fit_sub_block_generic(
 ) -> Option<AffineMotion> {
     let mut params = start.params();
     for (layout, template) in layouts.iter().zip(templates) {
-        // Mean bit rate and number of trials (sites x frames) of every bin.
-        let (observed, trials): (Vec<f64>, Vec<f64>) = (0..layout.len())
-            .map(|b| {
-                let trials = layout.sites(b).len() as f64 * frames as f64;
-                let sum: u64 = layout
-                    .sites(b)
-                    .iter()
-                    .map(|&i| counts[i as usize] as u64)
-                    .sum();
-                (sum as f64 / trials.max(1.0), trials)
-            })
-            .unzip();
+        // Mean bit rate and number of trials (sites x frames) of bin b.
+        let observation = |b: usize| -> (f64, f64) {
+            let trials = layout.sites(b).len() as f64 * frames as f64;
+            let sum: u64 = layout
+                .sites(b)
+                .iter()
+                .map(|&i| counts[i as usize] as u64)
+                .sum();
+            (sum as f64 / trials.max(1.0), trials)
+        };
+        // The AVX2 sums read the observations laid out as the run groups' slots, the scalar
+        // ones bin by bin.
+        let by_quads = avx2 && quad_lanes_fit(template);
+        let (observed, trials): (Vec<f64>, Vec<f64>) = if by_quads {
+            (Vec::new(), Vec::new())
+        } else {
+            (0..layout.len()).map(observation).unzip()
+        };
+        let interleaved = by_quads.then(|| layout.quads.observations(observation));
+        let mut quad_sums = vec![[0.0f64; 13]; layout.runs.len()];
         for iteration in 0..iterations {
             let motion = AffineMotion::from_params(params);
             let mut normal = [[0.0f64; 6]; 6];
             let mut rhs = [0.0f64; 6];
-            for run in &layout.runs {
+            #[cfg(target_arch = "x86_64")]
+            if let Some((observed, trials)) = &interleaved {
+                // SAFETY: `avx2` is only set by `fit_sub_block_avx2`, whose caller checked that
+                // the CPU supports AVX2.
+                unsafe {
+                    run_sums_quad_avx2(
+                        template,
+                        &motion,
+                        centre,
+                        &layout.quads,
+                        observed,
+                        trials,
+                        &mut quad_sums,
+                    )
+                };
+            }
+            for (r, run) in layout.runs.iter().enumerate() {
                 // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
                 // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
                 // [9 + g + 2·p].
-                let bins = RunBins {
-                    row: layout.centroid[run.start][0],
-                    x: &layout.x[run.clone()],
-                    x2: &layout.x2[run.clone()],
-                    observed: &observed[run.clone()],
-                    trials: &trials[run.clone()],
-                };
-                #[cfg(target_arch = "x86_64")]
-                let sums = if avx2 {
-                    // SAFETY: `avx2` is only set by `fit_sub_block_avx2`, whose caller checked
-                    // that the CPU supports AVX2.
-                    unsafe { run_sums_avx2(template, &motion, centre, &bins) }
+                let sums = if by_quads {
+                    quad_sums[r]
                 } else {
+                    let bins = RunBins {
+                        row: layout.centroid[run.start][0],
+                        x: &layout.x[run.clone()],
+                        x2: &layout.x2[run.clone()],
+                        observed: &observed[run.clone()],
+                        trials: &trials[run.clone()],
+                    };
                     run_sums(template, &motion, centre, &bins)
                 };
-                #[cfg(not(target_arch = "x86_64"))]
-                let sums = run_sums(template, &motion, centre, &bins);
                 let y = layout.centroid[run.start][0];
                 let y_power = [1.0, y, y * y];
                 for p in 0..6 {
@@ -994,36 +1132,33 @@ fn run_sums(
     sums
 }
 
-/// [`run_sums`] four bins at a time in AVX2 registers: positions, bilinear template samples
-/// (one pixel's value and gradients per 128-bit vector), weights and the 13 terms of four bins
-/// lane-parallel, then added to the sums bin by bin in order. Every operation is the scalar
-/// one (no fused multiply-add, the same rounding and order), so the sums are bit-identical to
-/// [`run_sums`] (checked by a test).
+/// [`run_sums`] of every run of `quads`, four runs at a time in the lanes of AVX2 registers
+/// (`observed` and `trials` laid out as the groups' slots, [`RunQuads::interleave`]); run r's
+/// sums go to `out[r]`. Every lane does the scalar operations of its own run's bins in order (no
+/// fused multiply-add, the same rounding), and a bin outside the template (or a padding slot)
+/// adds weight zero, so ±0 terms: a sum that starts at +0 is never −0, so adding ±0 leaves it
+/// unchanged, as skipping the bin does. The sums are bit-identical to [`run_sums`] (checked by
+/// a test). The template must pass [`quad_lanes_fit`].
 ///
 /// # Safety
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn run_sums_avx2(
+unsafe fn run_sums_quad_avx2(
     template: &TemplateLevel,
     motion: &AffineMotion,
     centre: [f64; 2],
-    bins: &RunBins,
-) -> [f64; 13] {
+    quads: &RunQuads,
+    observed: &[[f64; 4]],
+    trials: &[[f64; 4]],
+    out: &mut [[f64; 13]],
+) {
     use std::arch::x86_64::*;
     let (h, w) = (template.height, template.width);
     // The lane arithmetic indexes pixels in i32.
-    if h < 2 || w < 2 || h.saturating_mul(w) >= (1 << 28) {
-        return run_sums(template, motion, centre, bins);
-    }
+    assert!(quad_lanes_fit(template), "template of {h}x{w} pixels");
+    assert!(observed.len() == quads.bin.len() && trials.len() == quads.bin.len());
     let samples = template.samples.as_ptr() as *const f32;
-    let mut sums = [0.0f64; 13];
-    // Per-run parts of the positions, added as `AffineMotion::at` and `sample_template` add
-    // them: y = (row + c_y) + ((b_y + m_yy·row) + m_yx·x), x = (x + c_x) + ((b_x + m_xy·row) +
-    // m_xx·x).
-    let row_y = _mm256_set1_pd(bins.row + centre[0]);
-    let base_y = _mm256_set1_pd(motion.b[0] + motion.m[0][0] * bins.row);
-    let base_x = _mm256_set1_pd(motion.b[1] + motion.m[1][0] * bins.row);
     let (m_yx, m_xx) = (
         _mm256_set1_pd(motion.m[0][1]),
         _mm256_set1_pd(motion.m[1][1]),
@@ -1046,141 +1181,136 @@ unsafe fn run_sums_avx2(
         _mm256_set1_pd(3.0),
     );
     let sign = _mm256_set1_pd(-0.0);
-    let mut terms = [[0.0f64; 4]; 13];
-    let len = bins.x.len();
-    let mut i = 0;
-    while i < len {
-        let n = (len - i).min(4);
-        let load = |v: &[f64]| -> __m256d {
-            if n == 4 {
-                _mm256_loadu_pd(v.as_ptr().add(i))
+    for (g, members) in quads.runs.iter().enumerate() {
+        // Per-run parts of the positions, added as `AffineMotion::at` and `sample_template`
+        // add them: y = (row + c_y) + ((b_y + m_yy·row) + m_yx·x), x = (x + c_x) + ((b_x +
+        // m_xy·row) + m_xx·x).
+        let rows = quads.row[g];
+        let row_y = _mm256_loadu_pd(rows.map(|r| r + centre[0]).as_ptr());
+        let base_y = _mm256_loadu_pd(rows.map(|r| motion.b[0] + motion.m[0][0] * r).as_ptr());
+        let base_x = _mm256_loadu_pd(rows.map(|r| motion.b[1] + motion.m[1][0] * r).as_ptr());
+        let mut acc = [zero; 13];
+        for s in quads.slot_start[g]..quads.slot_start[g + 1] {
+            let x = _mm256_loadu_pd(quads.x.get_unchecked(s).as_ptr());
+            let x2 = _mm256_loadu_pd(quads.x2.get_unchecked(s).as_ptr());
+            let observed = _mm256_loadu_pd(observed.get_unchecked(s).as_ptr());
+            let trials = _mm256_loadu_pd(trials.get_unchecked(s).as_ptr());
+            let py = _mm256_add_pd(row_y, _mm256_add_pd(base_y, _mm256_mul_pd(m_yx, x)));
+            let px = _mm256_add_pd(
+                _mm256_add_pd(x, centre_x),
+                _mm256_add_pd(base_x, _mm256_mul_pd(m_xx, x)),
+            );
+            // Inside the template's interior (as `sample_template`; NaN is outside).
+            let inside = _mm256_and_pd(
+                _mm256_and_pd(
+                    _mm256_cmp_pd::<_CMP_GE_OQ>(py, zero),
+                    _mm256_cmp_pd::<_CMP_GE_OQ>(px, zero),
+                ),
+                _mm256_and_pd(
+                    _mm256_cmp_pd::<_CMP_LE_OQ>(py, y_max),
+                    _mm256_cmp_pd::<_CMP_LE_OQ>(px, x_max),
+                ),
+            );
+            let all_inside = _mm256_movemask_pd(inside) == 0xF;
+            // Lanes outside sample pixel (0, 0) and get weight zero below.
+            let (py, px) = if all_inside {
+                (py, px)
             } else {
-                let mut lanes = [0.0f64; 4];
-                lanes[..n].copy_from_slice(&v[i..i + n]);
-                _mm256_loadu_pd(lanes.as_ptr())
+                (_mm256_and_pd(py, inside), _mm256_and_pd(px, inside))
+            };
+            let y0 = _mm_min_epi32(_mm256_cvttpd_epi32(py), y_last);
+            let x0 = _mm_min_epi32(_mm256_cvttpd_epi32(px), x_last);
+            let mut fy = [0.0f32; 4];
+            let mut fx = [0.0f32; 4];
+            _mm_storeu_ps(
+                fy.as_mut_ptr(),
+                _mm256_cvtpd_ps(_mm256_sub_pd(py, _mm256_cvtepi32_pd(y0))),
+            );
+            _mm_storeu_ps(
+                fx.as_mut_ptr(),
+                _mm256_cvtpd_ps(_mm256_sub_pd(px, _mm256_cvtepi32_pd(x0))),
+            );
+            let mut index = [0i32; 4];
+            _mm_storeu_si128(
+                index.as_mut_ptr() as *mut __m128i,
+                _mm_add_epi32(_mm_mullo_epi32(y0, width), x0),
+            );
+            // (value, ∂y, ∂x, 0) of every lane: pixels i, i + 1 in one load, i + w, i + w + 1
+            // in another.
+            let mut sampled = [_mm_setzero_ps(); 4];
+            for (lane, out) in sampled.iter_mut().enumerate() {
+                let top_row = samples.add(4 * index[lane] as usize);
+                let ab = _mm256_loadu_ps(top_row);
+                let cd = _mm256_loadu_ps(top_row.add(4 * w));
+                let fxl = _mm_set1_ps(fx[lane]);
+                let fyl = _mm_set1_ps(fy[lane]);
+                let (gxl, gyl) = (_mm_sub_ps(one_ps, fxl), _mm_sub_ps(one_ps, fyl));
+                let top = _mm_add_ps(
+                    _mm_mul_ps(_mm256_castps256_ps128(ab), gxl),
+                    _mm_mul_ps(_mm256_extractf128_ps::<1>(ab), fxl),
+                );
+                let bottom = _mm_add_ps(
+                    _mm_mul_ps(_mm256_castps256_ps128(cd), gxl),
+                    _mm_mul_ps(_mm256_extractf128_ps::<1>(cd), fxl),
+                );
+                *out = _mm_add_ps(_mm_mul_ps(top, gyl), _mm_mul_ps(bottom, fyl));
             }
-        };
-        let (x, x2) = (load(bins.x), load(bins.x2));
-        let (observed, trials) = (load(bins.observed), load(bins.trials));
-        let py = _mm256_add_pd(row_y, _mm256_add_pd(base_y, _mm256_mul_pd(m_yx, x)));
-        let px = _mm256_add_pd(
-            _mm256_add_pd(x, centre_x),
-            _mm256_add_pd(base_x, _mm256_mul_pd(m_xx, x)),
-        );
-        // Inside the template's interior (as `sample_template`; NaN is outside).
-        let inside = _mm256_and_pd(
-            _mm256_and_pd(
-                _mm256_cmp_pd::<_CMP_GE_OQ>(py, zero),
-                _mm256_cmp_pd::<_CMP_GE_OQ>(px, zero),
-            ),
-            _mm256_and_pd(
-                _mm256_cmp_pd::<_CMP_LE_OQ>(py, y_max),
-                _mm256_cmp_pd::<_CMP_LE_OQ>(px, x_max),
-            ),
-        );
-        let mut valid = _mm256_movemask_pd(inside) as u32 & ((1u32 << n) - 1);
-        // Lanes outside sample pixel (0, 0) and are dropped below.
-        let (py, px) = if valid == 0xF {
-            (py, px)
-        } else {
-            (_mm256_and_pd(py, inside), _mm256_and_pd(px, inside))
-        };
-        let y0 = _mm_min_epi32(_mm256_cvttpd_epi32(py), y_last);
-        let x0 = _mm_min_epi32(_mm256_cvttpd_epi32(px), x_last);
-        let mut fy = [0.0f32; 4];
-        let mut fx = [0.0f32; 4];
-        _mm_storeu_ps(
-            fy.as_mut_ptr(),
-            _mm256_cvtpd_ps(_mm256_sub_pd(py, _mm256_cvtepi32_pd(y0))),
-        );
-        _mm_storeu_ps(
-            fx.as_mut_ptr(),
-            _mm256_cvtpd_ps(_mm256_sub_pd(px, _mm256_cvtepi32_pd(x0))),
-        );
-        let mut index = [0i32; 4];
-        _mm_storeu_si128(
-            index.as_mut_ptr() as *mut __m128i,
-            _mm_add_epi32(_mm_mullo_epi32(y0, width), x0),
-        );
-        // (value, ∂y, ∂x, 0) of every lane: pixels i, i + 1 in one load, i + w, i + w + 1 in
-        // another.
-        let mut sampled = [_mm_setzero_ps(); 4];
-        for (lane, out) in sampled.iter_mut().enumerate() {
-            let top_row = samples.add(4 * index[lane] as usize);
-            let ab = _mm256_loadu_ps(top_row);
-            let cd = _mm256_loadu_ps(top_row.add(4 * w));
-            let fxl = _mm_set1_ps(fx[lane]);
-            let fyl = _mm_set1_ps(fy[lane]);
-            let (gxl, gyl) = (_mm_sub_ps(one_ps, fxl), _mm_sub_ps(one_ps, fyl));
-            let top = _mm_add_ps(
-                _mm_mul_ps(_mm256_castps256_ps128(ab), gxl),
-                _mm_mul_ps(_mm256_extractf128_ps::<1>(ab), fxl),
+            // Transposed to value, ∂y and ∂x across the lanes.
+            let low01 = _mm_unpacklo_ps(sampled[0], sampled[1]);
+            let low23 = _mm_unpacklo_ps(sampled[2], sampled[3]);
+            let high01 = _mm_unpackhi_ps(sampled[0], sampled[1]);
+            let high23 = _mm_unpackhi_ps(sampled[2], sampled[3]);
+            let t = _mm256_cvtps_pd(_mm_movelh_ps(low01, low23));
+            let gy = _mm256_cvtps_pd(_mm_movehl_ps(low23, low01));
+            let gx = _mm256_cvtps_pd(_mm_movelh_ps(high01, high23));
+            let residual = _mm256_sub_pd(observed, t);
+            let inv_variance = _mm256_div_pd(
+                trials,
+                _mm256_max_pd(_mm256_mul_pd(t, _mm256_sub_pd(one, t)), floor),
             );
-            let bottom = _mm_add_ps(
-                _mm_mul_ps(_mm256_castps256_ps128(cd), gxl),
-                _mm_mul_ps(_mm256_extractf128_ps::<1>(cd), fxl),
-            );
-            *out = _mm_add_ps(_mm_mul_ps(top, gyl), _mm_mul_ps(bottom, fyl));
-        }
-        // Transposed to value, ∂y and ∂x across the lanes.
-        let low01 = _mm_unpacklo_ps(sampled[0], sampled[1]);
-        let low23 = _mm_unpacklo_ps(sampled[2], sampled[3]);
-        let high01 = _mm_unpackhi_ps(sampled[0], sampled[1]);
-        let high23 = _mm_unpackhi_ps(sampled[2], sampled[3]);
-        let t = _mm256_cvtps_pd(_mm_movelh_ps(low01, low23));
-        let gy = _mm256_cvtps_pd(_mm_movehl_ps(low23, low01));
-        let gx = _mm256_cvtps_pd(_mm_movelh_ps(high01, high23));
-        let residual = _mm256_sub_pd(observed, t);
-        let inv_variance = _mm256_div_pd(
-            trials,
-            _mm256_max_pd(_mm256_mul_pd(t, _mm256_sub_pd(one, t)), floor),
-        );
-        let z2 = _mm256_mul_pd(_mm256_mul_pd(residual, residual), inv_variance);
-        let far = _mm256_cmp_pd::<_CMP_GT_OQ>(z2, nine);
-        let weight = if _mm256_movemask_pd(far) == 0 {
-            inv_variance
-        } else {
-            let huber = _mm256_div_pd(
-                _mm256_mul_pd(three, _mm256_sqrt_pd(inv_variance)),
-                _mm256_andnot_pd(sign, residual),
-            );
-            _mm256_blendv_pd(inv_variance, huber, far)
-        };
-        let (wgy, wgx) = (_mm256_mul_pd(weight, gy), _mm256_mul_pd(weight, gx));
-        let pairs = [
-            _mm256_mul_pd(wgy, gy),
-            _mm256_mul_pd(wgy, gx),
-            _mm256_mul_pd(wgx, gx),
-        ];
-        for (k, &v) in pairs.iter().enumerate() {
-            _mm256_storeu_pd(terms[k].as_mut_ptr(), v);
-            _mm256_storeu_pd(terms[3 + k].as_mut_ptr(), _mm256_mul_pd(v, x));
-            _mm256_storeu_pd(terms[6 + k].as_mut_ptr(), _mm256_mul_pd(v, x2));
-        }
-        let (ry, rx) = (_mm256_mul_pd(wgy, residual), _mm256_mul_pd(wgx, residual));
-        _mm256_storeu_pd(terms[9].as_mut_ptr(), ry);
-        _mm256_storeu_pd(terms[10].as_mut_ptr(), rx);
-        _mm256_storeu_pd(terms[11].as_mut_ptr(), _mm256_mul_pd(ry, x));
-        _mm256_storeu_pd(terms[12].as_mut_ptr(), _mm256_mul_pd(rx, x));
-        // Bin by bin, in order.
-        if valid == 0xF {
-            for lane in 0..4 {
-                for (s, t) in sums.iter_mut().zip(&terms) {
-                    *s += t[lane];
-                }
+            let z2 = _mm256_mul_pd(_mm256_mul_pd(residual, residual), inv_variance);
+            let far = _mm256_cmp_pd::<_CMP_GT_OQ>(z2, nine);
+            let weight = if _mm256_movemask_pd(far) == 0 {
+                inv_variance
+            } else {
+                let huber = _mm256_div_pd(
+                    _mm256_mul_pd(three, _mm256_sqrt_pd(inv_variance)),
+                    _mm256_andnot_pd(sign, residual),
+                );
+                _mm256_blendv_pd(inv_variance, huber, far)
+            };
+            let weight = if all_inside {
+                weight
+            } else {
+                _mm256_and_pd(weight, inside)
+            };
+            let (wgy, wgx) = (_mm256_mul_pd(weight, gy), _mm256_mul_pd(weight, gx));
+            let pairs = [
+                _mm256_mul_pd(wgy, gy),
+                _mm256_mul_pd(wgy, gx),
+                _mm256_mul_pd(wgx, gx),
+            ];
+            for (k, &v) in pairs.iter().enumerate() {
+                acc[k] = _mm256_add_pd(acc[k], v);
+                acc[3 + k] = _mm256_add_pd(acc[3 + k], _mm256_mul_pd(v, x));
+                acc[6 + k] = _mm256_add_pd(acc[6 + k], _mm256_mul_pd(v, x2));
             }
-        } else {
-            while valid != 0 {
-                let lane = valid.trailing_zeros() as usize;
-                valid &= valid - 1;
-                for (s, t) in sums.iter_mut().zip(&terms) {
-                    *s += t[lane];
-                }
+            let (ry, rx) = (_mm256_mul_pd(wgy, residual), _mm256_mul_pd(wgx, residual));
+            acc[9] = _mm256_add_pd(acc[9], ry);
+            acc[10] = _mm256_add_pd(acc[10], rx);
+            acc[11] = _mm256_add_pd(acc[11], _mm256_mul_pd(ry, x));
+            acc[12] = _mm256_add_pd(acc[12], _mm256_mul_pd(rx, x));
+        }
+        let mut lanes = [[0.0f64; 4]; 13];
+        for (k, a) in acc.iter().enumerate() {
+            _mm256_storeu_pd(lanes[k].as_mut_ptr(), *a);
+        }
+        for (lane, &r) in members.iter().enumerate() {
+            if r != usize::MAX {
+                out[r] = std::array::from_fn(|k| lanes[k][lane]);
             }
         }
-        i += 4;
     }
-    sums
 }
 
 /// Local quadratic fit along time of every parameter of `camera` (sub-block centres `times`)
@@ -1473,8 +1603,9 @@ mod tests {
         })
     }
 
-    /// The AVX2 run sums equal the scalar ones bit for bit: bins inside and outside the
-    /// template, Huber-weighted outliers, runs of every length modulo four.
+    /// The AVX2 run sums (four runs in the lanes) equal the scalar ones bit for bit: bins inside
+    /// and outside the template, Huber-weighted outliers, runs of every length modulo four and
+    /// groups with empty lanes.
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_run_sums_are_bit_identical_to_scalar() {
@@ -1487,17 +1618,25 @@ mod tests {
         let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         let mut checked = 0;
-        for len in 0..12usize {
+        for n_runs in [1usize, 3, 4, 6, 13] {
             for shift in [0.0, 1.7, -3.2, 30.0] {
                 let motion = AffineMotion {
                     b: [0.3 + shift, -0.7 - shift],
                     m: [[0.01, -0.02], [0.015, 0.005]],
                 };
-                let row = rng.gen_range(-20.0..20.0);
-                let x: Vec<f64> = (0..len).map(|_| rng.gen_range(-30.0..30.0)).collect();
+                let mut runs = Vec::new();
+                let mut rows = Vec::new();
+                let mut start = 0;
+                for _ in 0..n_runs {
+                    let len = rng.gen_range(1..12usize);
+                    runs.push(start..start + len);
+                    rows.push(rng.gen_range(-20.0..20.0));
+                    start += len;
+                }
+                let x: Vec<f64> = (0..start).map(|_| rng.gen_range(-30.0..30.0)).collect();
                 let x2: Vec<f64> = x.iter().map(|v| v * v).collect();
                 // Every fourth bin far from the template: a Huber-weighted outlier.
-                let observed: Vec<f64> = (0..len)
+                let observed: Vec<f64> = (0..start)
                     .map(|i| {
                         if i % 4 == 1 {
                             0.9
@@ -1506,26 +1645,42 @@ mod tests {
                         }
                     })
                     .collect();
-                let trials: Vec<f64> = (0..len).map(|_| rng.gen_range(8.0..200.0)).collect();
-                let bins = RunBins {
-                    row,
-                    x: &x,
-                    x2: &x2,
-                    observed: &observed,
-                    trials: &trials,
-                };
-                let scalar = run_sums(&template, &motion, centre, &bins);
+                let trials: Vec<f64> = (0..start).map(|_| rng.gen_range(8.0..200.0)).collect();
+                let quads = RunQuads::new(&runs, &rows, &x, &x2);
+                let mut simd = vec![[f64::NAN; 13]; runs.len()];
+                let (lanes_observed, lanes_trials) =
+                    quads.observations(|b| (observed[b], trials[b]));
                 // SAFETY: AVX2 checked above.
-                let simd = unsafe { run_sums_avx2(&template, &motion, centre, &bins) };
-                assert_eq!(
-                    scalar.map(f64::to_bits),
-                    simd.map(f64::to_bits),
-                    "{len} {shift}"
-                );
-                checked += scalar.iter().any(|&v| v != 0.0) as usize;
+                unsafe {
+                    run_sums_quad_avx2(
+                        &template,
+                        &motion,
+                        centre,
+                        &quads,
+                        &lanes_observed,
+                        &lanes_trials,
+                        &mut simd,
+                    )
+                };
+                for (r, run) in runs.iter().enumerate() {
+                    let bins = RunBins {
+                        row: rows[r],
+                        x: &x[run.clone()],
+                        x2: &x2[run.clone()],
+                        observed: &observed[run.clone()],
+                        trials: &trials[run.clone()],
+                    };
+                    let scalar = run_sums(&template, &motion, centre, &bins);
+                    assert_eq!(
+                        scalar.map(f64::to_bits),
+                        simd[r].map(f64::to_bits),
+                        "{n_runs} {shift} {r}"
+                    );
+                    checked += scalar.iter().any(|&v| v != 0.0) as usize;
+                }
             }
         }
-        assert!(checked > 20, "{checked}");
+        assert!(checked > 40, "{checked}");
     }
 
     #[test]
