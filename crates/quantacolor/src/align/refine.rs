@@ -446,6 +446,8 @@ impl FrameMotion {
             .then(|| frame_flow(&self.local, &self.plan, t));
         let near_local = local.as_ref().map(near_local_tiles);
         let stride = self.grid.tile_stride.max(1);
+        // Tile column of every x (one division per column, not per pixel).
+        let tile_x: Vec<usize> = (0..w).map(|x| x / stride).collect();
         let mut out = Array3::<f32>::zeros((h, w, 2));
         out.outer_iter_mut()
             .into_par_iter()
@@ -456,7 +458,7 @@ impl FrameMotion {
                     let l = match (&local, &near_local) {
                         (Some(l), Some(near)) => {
                             let (ty, tx) = near.dim();
-                            if near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]] {
+                            if near[[(y / stride).min(ty - 1), tile_x[x].min(tx - 1)]] {
                                 flow_at(l, &self.grid, y as f32, x as f32)
                             } else {
                                 [0.0; 2]
@@ -488,8 +490,10 @@ impl FrameMotion {
                 let near = near_local_tiles(&frame_flow(&self.local, &self.plan, t));
                 let (ty, tx) = near.dim();
                 let stride = self.grid.tile_stride.max(1);
+                let tile = |n: usize| -> Vec<usize> { (0..n).map(|i| i / stride).collect() };
+                let (tile_y, tile_x) = (tile(self.height), tile(self.width));
                 let local = Array2::from_shape_fn((self.height, self.width), |(y, x)| {
-                    near[[(y / stride).min(ty - 1), (x / stride).min(tx - 1)]]
+                    near[[tile_y[y].min(ty - 1), tile_x[x].min(tx - 1)]]
                 });
                 SubBlockMotion::CameraAndLocal {
                     matrix,

@@ -246,6 +246,12 @@ pub struct MergeAccumulator<'a> {
     bins: Vec<f32>,
 }
 
+/// Sub-blocks whose site targets are made before their samples are splatted together
+/// ([`MergeAccumulator::add`]): 8 MB of targets for 496x254 sites.
+const SPLAT_GROUP: usize = 8;
+/// Bin rows per band of the splat: 16 rows of 12 planes of 1016 bins (496 px wide at 2 bins per
+/// px) are 0.8 MB, within a core's L2 cache.
+const SPLAT_BAND_ROWS: usize = 16;
 /// Lanes of the vectorised kernel regression (eight f32: one AVX2 register).
 const LANES: usize = 8;
 /// Sums per bin: 4 channels × (Σ r·counts, Σ r·F, Σ r²·F).
@@ -663,75 +669,80 @@ impl<'a> MergeAccumulator<'a> {
             .iter()
             .map(|m| m.as_standard_layout())
             .collect();
-        let mut targets = vec![(u32::MAX, 0.0f32); h * w];
-        let mut row_bins = vec![(u32::MAX, 0u32); h];
+        let group_len = SPLAT_GROUP.min(sub_blocks.len());
+        let mut targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
+        let mut row_bins = vec![(u32::MAX, 0u32); group_len * h];
         let stride = self.stride;
-        // Bins are split into bands of rows, one band per task: every task scans all sites in
-        // order and adds those landing in its band, so each bin receives its samples in site
-        // order whatever the number of threads (the same sums as one serial pass).
-        let bands = rayon::current_num_threads().clamp(1, 16);
-        let band_floats = bins_h.div_ceil(bands) * SUMS * stride;
-        for sub in sub_blocks {
-            let counts = sub.counts.as_standard_layout();
-            let counts = counts.as_slice().expect("standard layout");
-            let own = match &sub.robustness {
-                SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
-                _ => None,
-            };
-            let robust: Option<&[f32]> = match &sub.robustness {
-                SubBlockRobustness::Full => None,
-                SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
-                SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
-            };
-            let grid = TargetGrid {
-                h,
-                w,
-                u,
-                margin,
-                bins_h,
-                bins_w,
-                stride,
-                excluded: self.excluded.as_deref(),
-                robust,
-            };
-            match &sub.flow {
-                SubBlockMotion::Affine { matrix, offset } => {
-                    grid.fill_affine(&mut targets, matrix, offset, None)
+        // Sub-blocks are splatted a group at a time: the target bins of all sites of the group
+        // first, then the samples band of bin rows by band of bin rows, one band per task (a
+        // band, ~1 MB, stays in cache while every sub-block of the group adds to it). Within a
+        // band, sub-blocks come in order and each scans its sites in order, so each bin
+        // receives its samples in (sub-block, site) order whatever the number of threads: the
+        // same sums as one serial pass.
+        let band_floats = SPLAT_BAND_ROWS * SUMS * stride;
+        for group in sub_blocks.chunks(SPLAT_GROUP) {
+            for (k, sub) in group.iter().enumerate() {
+                let targets = &mut targets[k * h * w..(k + 1) * h * w];
+                let own = match &sub.robustness {
+                    SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
+                    _ => None,
+                };
+                let robust: Option<&[f32]> = match &sub.robustness {
+                    SubBlockRobustness::Full => None,
+                    SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
+                    SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
+                };
+                let grid = TargetGrid {
+                    h,
+                    w,
+                    u,
+                    margin,
+                    bins_h,
+                    bins_w,
+                    stride,
+                    excluded: self.excluded.as_deref(),
+                    robust,
+                };
+                match &sub.flow {
+                    SubBlockMotion::Affine { matrix, offset } => {
+                        grid.fill_affine(targets, matrix, offset, None)
+                    }
+                    SubBlockMotion::CameraAndLocal {
+                        matrix,
+                        offset,
+                        flow,
+                        local,
+                    } => {
+                        let flow = flow.as_standard_layout();
+                        let flow = flow.as_slice().expect("standard layout");
+                        let mask = local.as_standard_layout();
+                        let mask = mask.as_slice().expect("standard layout");
+                        grid.fill_affine(targets, matrix, offset, Some((mask, flow)))
+                    }
+                    SubBlockMotion::Dense(flow) => {
+                        let flow = flow.as_standard_layout();
+                        let flow = flow.as_slice().expect("standard layout");
+                        grid.fill(targets, |q: [f32; 2]| reference_position(flow, h, w, q))
+                    }
                 }
-                SubBlockMotion::CameraAndLocal {
-                    matrix,
-                    offset,
-                    flow,
-                    local,
-                } => {
-                    let flow = flow.as_standard_layout();
-                    let flow = flow.as_slice().expect("standard layout");
-                    let mask = local.as_standard_layout();
-                    let mask = mask.as_slice().expect("standard layout");
-                    grid.fill_affine(&mut targets, matrix, offset, Some((mask, flow)))
-                }
-                SubBlockMotion::Dense(flow) => {
-                    let flow = flow.as_standard_layout();
-                    let flow = flow.as_slice().expect("standard layout");
-                    grid.fill(&mut targets, |q: [f32; 2]| {
-                        reference_position(flow, h, w, q)
-                    })
-                }
+                // The range of target bins of every row of sites, so that a band skips the
+                // rows that cannot reach it.
+                targets
+                    .par_chunks(w)
+                    .zip(row_bins[k * h..(k + 1) * h].par_iter_mut())
+                    .for_each(|(row, span)| {
+                        *span = row
+                            .iter()
+                            .filter(|&&(bin, _)| bin != u32::MAX)
+                            .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
+                                (lo.min(bin), hi.max(bin))
+                            });
+                    });
             }
-            // The range of target bins of every row of sites, so that a band skips the rows
-            // that cannot reach it.
-            targets
-                .par_chunks(w)
-                .zip(row_bins.par_iter_mut())
-                .for_each(|(row, span)| {
-                    *span = row
-                        .iter()
-                        .filter(|&&(bin, _)| bin != u32::MAX)
-                        .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
-                            (lo.min(bin), hi.max(bin))
-                        });
-                });
-            let frames = sub.frames as f32;
+            let counts: Vec<_> = group
+                .iter()
+                .map(|sub| sub.counts.as_standard_layout())
+                .collect();
             let (targets, codes, row_bins) = (&targets, &self.codes, &row_bins);
             self.bins
                 .par_chunks_mut(band_floats)
@@ -739,24 +750,29 @@ impl<'a> MergeAccumulator<'a> {
                 .for_each(|(band, cells)| {
                     let first = band * band_floats;
                     let end = first + cells.len();
-                    for (y, &(lo, hi)) in row_bins.iter().enumerate() {
-                        if lo == u32::MAX || (hi as usize) < first || lo as usize >= end {
-                            continue;
-                        }
-                        let sites = y * w..(y + 1) * w;
-                        for ((&(bin, r), &count), &code) in targets[sites.clone()]
-                            .iter()
-                            .zip(&counts[sites.clone()])
-                            .zip(&codes[sites])
-                        {
-                            let bin = bin as usize;
-                            if bin < first || bin >= end {
+                    for (k, sub) in group.iter().enumerate() {
+                        let frames = sub.frames as f32;
+                        let counts = counts[k].as_slice().expect("standard layout");
+                        let targets = &targets[k * h * w..(k + 1) * h * w];
+                        for (y, &(lo, hi)) in row_bins[k * h..(k + 1) * h].iter().enumerate() {
+                            if lo == u32::MAX || (hi as usize) < first || lo as usize >= end {
                                 continue;
                             }
-                            let slot = bin - first + (code as usize & 3) * 3 * stride;
-                            cells[slot] += r * count as f32;
-                            cells[slot + stride] += r * frames;
-                            cells[slot + 2 * stride] += r * r * frames;
+                            let sites = y * w..(y + 1) * w;
+                            for ((&(bin, r), &count), &code) in targets[sites.clone()]
+                                .iter()
+                                .zip(&counts[sites.clone()])
+                                .zip(&codes[sites])
+                            {
+                                let bin = bin as usize;
+                                if bin < first || bin >= end {
+                                    continue;
+                                }
+                                let slot = bin - first + (code as usize & 3) * 3 * stride;
+                                cells[slot] += r * count as f32;
+                                cells[slot + stride] += r * frames;
+                                cells[slot + 2 * stride] += r * r * frames;
+                            }
                         }
                     }
                 });
@@ -1029,15 +1045,16 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             // Each channel's own bins (a narrower ellipse: fewer); a group of lanes outside them
             // would add exact zeros to the channel's sums, so it is skipped. Channels that
             // share weights share the factor, hence the span.
-            let span: [(isize, isize); 4] = std::array::from_fn(|ch| match g.channel_limit[ch] {
+            let span_of = |ch: usize| match g.channel_limit[ch] {
                 Some(limit) => {
-                    ellipse_span(a, b2, c, dy, limit).map_or((isize::MAX, isize::MIN), |span| {
-                        let (l, h) = bins_of(span);
+                    ellipse_span(a, b2, c, dy, limit).map_or((isize::MAX, isize::MIN), |dx| {
+                        let (l, h) = bins_of(dx);
                         (l.max(lo), h.min(hi))
                     })
                 }
                 None => (lo, hi),
-            });
+            };
+            let span = [span_of(0), span_of(1), span_of(2), span_of(3)];
             let row_start = by as usize * SUMS * stride;
             let mut bx = lo;
             while bx <= hi {
