@@ -35,7 +35,7 @@ use crate::capture::Capture;
 use crate::error::{Error, Result};
 use crate::merge::{
     block_robustness, merge_guide_streamed, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide,
-    MergedBurst, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
+    MergedBurst, ReferenceStats, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
 };
 use crate::progress::Progress;
 use crate::timing::{Laps, StageTiming};
@@ -90,11 +90,12 @@ impl BurstReconstruction {
     /// the grey blocks, the reference and the estimated block motion; a merge driven by a
     /// motion oracle used the oracle's flows instead.
     pub fn robustness_maps(&self) -> Result<Vec<Array2<f32>>> {
+        let stats = ReferenceStats::new(&self.merged.reference);
         (0..self.alignment.plan.len())
             .into_par_iter()
             .map(|b| {
                 block_robustness(
-                    &self.merged.reference,
+                    &stats,
                     &self.alignment.grey,
                     &self.motion.block_flow(b),
                     b,
@@ -363,7 +364,7 @@ struct BlockRobustness<'a> {
 }
 
 impl BlockRobustness<'_> {
-    fn map(&self, reference: &Array2<f32>, b: usize) -> Result<Array2<f32>> {
+    fn map(&self, reference: &ReferenceStats, b: usize) -> Result<Array2<f32>> {
         block_robustness(
             reference,
             self.grey_blocks,
@@ -399,6 +400,7 @@ fn merge_sub_blocks(
     if let Some(hot) = &capture.hot_pixels {
         accumulator.exclude_sites(hot)?;
     }
+    let reference_stats = ReferenceStats::new(&guide.reference);
     let indices: Vec<usize> = (0..motion.sub_blocks.len()).collect();
     // Robustness maps of the blocks the current chunk needs (`maps[i]` is block
     // `map_blocks[i]`'s).
@@ -421,7 +423,7 @@ fn merge_sub_blocks(
             .collect();
         let made: Vec<Array2<f32>> = missing
             .par_iter()
-            .map(|&b| robustness.map(&guide.reference, b))
+            .map(|&b| robustness.map(&reference_stats, b))
             .collect::<Result<_>>()?;
         for (b, map) in kept.into_iter().chain(missing.into_iter().zip(made)) {
             map_blocks.push(b);

@@ -174,7 +174,9 @@ pub fn normalized_convolution_nan(values: ArrayView2<f32>, sigma: f64) -> Array2
 #[inline]
 pub fn bilinear_taps(v: f32, n: usize) -> (usize, usize, f32) {
     let v = v.clamp(0.0, (n - 1) as f32);
-    let v0 = v.floor() as usize;
+    // Truncation is the floor of a non-negative value (and 0 for NaN, as `floor` then a cast
+    // gives): no libm call.
+    let v0 = v as usize;
     (v0, (v0 + 1).min(n - 1), v - v0 as f32)
 }
 

@@ -246,6 +246,12 @@ pub struct MergeAccumulator<'a> {
     bins: Vec<f32>,
 }
 
+/// Sub-blocks whose site targets are made before their samples are splatted together
+/// ([`MergeAccumulator::add`]): 8 MB of targets for 496x254 sites.
+const SPLAT_GROUP: usize = 8;
+/// Bin rows per band of the splat: 16 rows of 12 planes of 1016 bins (496 px wide at 2 bins per
+/// px) are 0.8 MB, within a core's L2 cache.
+const SPLAT_BAND_ROWS: usize = 16;
 /// Lanes of the vectorised kernel regression (eight f32: one AVX2 register).
 const LANES: usize = 8;
 /// Sums per bin: 4 channels × (Σ r·counts, Σ r·F, Σ r²·F).
@@ -287,18 +293,15 @@ fn round_half_away(v: f32) -> f32 {
     t + ((frac >= 0.5) as i32 - (frac <= -0.5) as i32) as f32
 }
 
-/// [`round_half_away`] without a branch (a select between the two results), so that a loop
-/// over lanes vectorises: the same value for every `v`.
+/// [`round_half_away`] from the truncation `v.trunc()` (one vector instruction where the CPU
+/// has SSE4.1, e.g. in the AVX2 code; a libm call elsewhere): the same value for every `v`
+/// up to the sign of a zero result (NaN and infinities included: their truncation is
+/// themselves and their fraction NaN).
 #[inline(always)]
-fn round_half_away_select(v: f32) -> f32 {
-    let t = (v as i32) as f32;
+fn round_half_away_trunc(v: f32) -> f32 {
+    let t = v.trunc();
     let frac = v - t;
-    let near = t + ((frac >= 0.5) as i32 - (frac <= -0.5) as i32) as f32;
-    if v.is_nan() || v.abs() >= 8_388_608.0 {
-        v.round()
-    } else {
-        near
-    }
+    t + ((frac >= 0.5) as i32 - (frac <= -0.5) as i32) as f32
 }
 
 /// Reference-grid position of the sensor site `q` of a (sub-)block with forward `flow` (the
@@ -311,6 +314,43 @@ pub fn reference_position(flow: &[f32], h: usize, w: usize, q: [f32; 2]) -> [f32
     for _ in 0..3 {
         let f = flow_bilinear(flow, h, w, p[0], p[1]);
         p = [q[0] - f[0], q[1] - f[1]];
+    }
+    p
+}
+
+/// [`reference_position`] of the eight sites (`y`, `x0` + i), i < 8, lane by lane with the
+/// same operations (32-bit indices: vector instructions where the CPU has them): positions
+/// (y, x) per lane.
+#[inline(always)]
+fn reference_positions(flow: &[f32], h: usize, w: usize, y: f32, x0: f32) -> [[f32; LANES]; 2] {
+    let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
+    let (ylast, xlast) = (h.saturating_sub(2) as u32, w.saturating_sub(2) as u32);
+    let (hl, wl) = ((h - 1) as u32, (w - 1) as u32);
+    let w32 = w as u32;
+    let q: [[f32; LANES]; 2] = [[y; LANES], std::array::from_fn(|i| x0 + i as u32 as f32)];
+    let mut p = q;
+    for _ in 0..3 {
+        let mut f = [[0.0f32; LANES]; 2];
+        for i in 0..LANES {
+            // `flow_bilinear` lane-wise: the clamp passes NaN, which truncates to 0.
+            let y = p[0][i].clamp(0.0, hf);
+            let x = p[1][i].clamp(0.0, wf);
+            let y0 = (y as u32).min(ylast);
+            let x0 = (x as u32).min(xlast);
+            let (y1, x1) = ((y0 + 1).min(hl), (x0 + 1).min(wl));
+            let (fy, fx) = (y - y0 as f32, x - x0 as f32);
+            for (c, o) in f.iter_mut().enumerate() {
+                let at = |yy: u32, xx: u32| flow[((yy * w32 + xx) * 2) as usize + c];
+                let top = at(y0, x0) * (1.0 - fx) + at(y0, x1) * fx;
+                let bottom = at(y1, x0) * (1.0 - fx) + at(y1, x1) * fx;
+                o[i] = top * (1.0 - fy) + bottom * fy;
+            }
+        }
+        for a in 0..2 {
+            for i in 0..LANES {
+                p[a][i] = q[a][i] - f[a][i];
+            }
+        }
     }
     p
 }
@@ -421,7 +461,9 @@ impl TargetGrid<'_> {
         self.affine_row(y, row, matrix, offset, local)
     }
 
-    /// Targets of the sites of row `y` ([`TargetGrid::fill_affine`]).
+    /// Targets of the sites of row `y` ([`TargetGrid::fill_affine`]): lane-wise and without
+    /// branches for the affine positions (whatever their robustness and whether they land in
+    /// the bins), then the few sites that need more (local motion, excluded) one by one.
     #[inline(always)]
     fn affine_row(
         &self,
@@ -433,42 +475,104 @@ impl TargetGrid<'_> {
     ) {
         let (h, w, u, margin) = (self.h, self.w, self.u, self.margin);
         let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
+        let excluded = self.excluded.map(|e| &e[y * w..(y + 1) * w]);
         for (chunk, out) in row.chunks_mut(LANES).enumerate() {
             let x0 = chunk * LANES;
             // Lane-wise: positions, their roundings and bin coordinates.
             let mut p = [[0.0f32; LANES]; 2];
             let mut rounded = [[0.0f32; LANES]; 2];
             let mut bin = [[0.0f32; LANES]; 2];
+            let (yf, x0f) = (y as u32 as f32, x0 as u32 as f32);
             for i in 0..LANES {
-                let q = affine_position(matrix, offset, [y as f32, (x0 + i) as f32]);
+                let q = affine_position(matrix, offset, [yf, x0f + i as u32 as f32]);
                 for a in 0..2 {
                     p[a][i] = q[a];
-                    rounded[a][i] = round_half_away_select(q[a]);
-                    bin[a][i] = round_half_away_select((q[a] + margin) * u);
+                    rounded[a][i] = round_half_away_trunc(q[a]);
+                    bin[a][i] = round_half_away_trunc((q[a] + margin) * u);
+                }
+            }
+            let mut lanes = match self.robust {
+                Some(m) => self.lane_targets(&rounded, &bin, |i| m[i]),
+                None => self.lane_targets(&rounded, &bin, |_| 1.0),
+            };
+            if let Some((mask, flow)) = local {
+                // Sites whose affine position is outside the image or on a marked pixel take
+                // the inverted dense flow (all eight lanes computed when one needs it).
+                let mut dense = [false; LANES];
+                for i in 0..LANES {
+                    let (py, px) = (p[0][i], p[1][i]);
+                    let inside = (py >= 0.0) & (px >= 0.0) & (py <= hf) & (px <= wf);
+                    // Inside, the clamps change nothing: the rounded position's pixel.
+                    let ry = rounded[0][i].max(0.0).min(hf) as u32 as usize;
+                    let rx = rounded[1][i].max(0.0).min(wf) as u32 as usize;
+                    dense[i] = !inside || mask[ry * w + rx];
+                }
+                if dense[..out.len()].contains(&true) {
+                    let q = reference_positions(flow, h, w, yf, x0f);
+                    let mut rounded = [[0.0f32; LANES]; 2];
+                    let mut bin = [[0.0f32; LANES]; 2];
+                    for a in 0..2 {
+                        for i in 0..LANES {
+                            rounded[a][i] = round_half_away_trunc(q[a][i]);
+                            bin[a][i] = round_half_away_trunc((q[a][i] + margin) * u);
+                        }
+                    }
+                    let moved = match self.robust {
+                        Some(m) => self.lane_targets(&rounded, &bin, |i| m[i]),
+                        None => self.lane_targets(&rounded, &bin, |_| 1.0),
+                    };
+                    for i in 0..LANES {
+                        if dense[i] {
+                            lanes[i] = moved[i];
+                        }
+                    }
                 }
             }
             for (i, target) in out.iter_mut().enumerate() {
-                let x = x0 + i;
-                if self.excluded.is_some_and(|e| e[y * w + x]) {
-                    *target = (u32::MAX, 0.0);
-                    continue;
-                }
-                let (mut r, mut b) = ([rounded[0][i], rounded[1][i]], [bin[0][i], bin[1][i]]);
-                if let Some((mask, flow)) = local {
-                    let (py, px) = (p[0][i], p[1][i]);
-                    let inside = py >= 0.0 && px >= 0.0 && py <= hf && px <= wf;
-                    if !inside || mask[r[0] as usize * w + r[1] as usize] {
-                        let q = reference_position(flow, h, w, [y as f32, x as f32]);
-                        r = [round_half_away(q[0]), round_half_away(q[1])];
-                        b = [
-                            round_half_away((q[0] + margin) * u),
-                            round_half_away((q[1] + margin) * u),
-                        ];
-                    }
-                }
-                *target = self.target(r, b);
+                *target = if excluded.is_some_and(|e| e[x0 + i]) {
+                    (u32::MAX, 0.0)
+                } else {
+                    lanes[i]
+                };
             }
         }
+    }
+
+    /// [`TargetGrid::target`] of eight sites at once, without branches: `robust(i)` reads the
+    /// robustness map at row-major index i (inside the image).
+    #[inline(always)]
+    fn lane_targets(
+        &self,
+        rounded: &[[f32; LANES]; 2],
+        bin: &[[f32; LANES]; 2],
+        robust: impl Fn(usize) -> f32,
+    ) -> [(u32, f32); LANES] {
+        // 32-bit integers throughout (vector conversions); the clamps are taken on the
+        // integral floats, whose bounds (image sides) are exact in f32.
+        let (hf, wf) = ((self.h - 1) as f32, (self.w - 1) as f32);
+        let w = self.w as i32;
+        let (bins_h, bins_w) = (self.bins_h as f32, self.bins_w as f32);
+        let row_floats = (SUMS * self.stride) as i32;
+        let mut index = [0i32; LANES];
+        let mut outside = [false; LANES];
+        let mut at = [0i32; LANES];
+        for i in 0..LANES {
+            let ry = rounded[0][i].max(0.0).min(hf) as i32;
+            let rx = rounded[1][i].max(0.0).min(wf) as i32;
+            at[i] = ry * w + rx;
+            let (by, bx) = (bin[0][i], bin[1][i]);
+            outside[i] = (by < 0.0) | (bx < 0.0) | (by >= bins_h) | (bx >= bins_w);
+            // Wrapping: the index of a lane left out is discarded.
+            index[i] = (by as i32).wrapping_mul(row_floats).wrapping_add(bx as i32);
+        }
+        let mut out = [(u32::MAX, 0.0f32); LANES];
+        for i in 0..LANES {
+            let r = robust(at[i] as usize);
+            if !(outside[i] | (r <= 0.0)) {
+                out[i] = (index[i] as u32, r);
+            }
+        }
+        out
     }
 }
 
@@ -565,75 +669,80 @@ impl<'a> MergeAccumulator<'a> {
             .iter()
             .map(|m| m.as_standard_layout())
             .collect();
-        let mut targets = vec![(u32::MAX, 0.0f32); h * w];
-        let mut row_bins = vec![(u32::MAX, 0u32); h];
+        let group_len = SPLAT_GROUP.min(sub_blocks.len());
+        let mut targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
+        let mut row_bins = vec![(u32::MAX, 0u32); group_len * h];
         let stride = self.stride;
-        // Bins are split into bands of rows, one band per task: every task scans all sites in
-        // order and adds those landing in its band, so each bin receives its samples in site
-        // order whatever the number of threads (the same sums as one serial pass).
-        let bands = rayon::current_num_threads().clamp(1, 16);
-        let band_floats = bins_h.div_ceil(bands) * SUMS * stride;
-        for sub in sub_blocks {
-            let counts = sub.counts.as_standard_layout();
-            let counts = counts.as_slice().expect("standard layout");
-            let own = match &sub.robustness {
-                SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
-                _ => None,
-            };
-            let robust: Option<&[f32]> = match &sub.robustness {
-                SubBlockRobustness::Full => None,
-                SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
-                SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
-            };
-            let grid = TargetGrid {
-                h,
-                w,
-                u,
-                margin,
-                bins_h,
-                bins_w,
-                stride,
-                excluded: self.excluded.as_deref(),
-                robust,
-            };
-            match &sub.flow {
-                SubBlockMotion::Affine { matrix, offset } => {
-                    grid.fill_affine(&mut targets, matrix, offset, None)
+        // Sub-blocks are splatted a group at a time: the target bins of all sites of the group
+        // first, then the samples band of bin rows by band of bin rows, one band per task (a
+        // band, ~1 MB, stays in cache while every sub-block of the group adds to it). Within a
+        // band, sub-blocks come in order and each scans its sites in order, so each bin
+        // receives its samples in (sub-block, site) order whatever the number of threads: the
+        // same sums as one serial pass.
+        let band_floats = SPLAT_BAND_ROWS * SUMS * stride;
+        for group in sub_blocks.chunks(SPLAT_GROUP) {
+            for (k, sub) in group.iter().enumerate() {
+                let targets = &mut targets[k * h * w..(k + 1) * h * w];
+                let own = match &sub.robustness {
+                    SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
+                    _ => None,
+                };
+                let robust: Option<&[f32]> = match &sub.robustness {
+                    SubBlockRobustness::Full => None,
+                    SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
+                    SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
+                };
+                let grid = TargetGrid {
+                    h,
+                    w,
+                    u,
+                    margin,
+                    bins_h,
+                    bins_w,
+                    stride,
+                    excluded: self.excluded.as_deref(),
+                    robust,
+                };
+                match &sub.flow {
+                    SubBlockMotion::Affine { matrix, offset } => {
+                        grid.fill_affine(targets, matrix, offset, None)
+                    }
+                    SubBlockMotion::CameraAndLocal {
+                        matrix,
+                        offset,
+                        flow,
+                        local,
+                    } => {
+                        let flow = flow.as_standard_layout();
+                        let flow = flow.as_slice().expect("standard layout");
+                        let mask = local.as_standard_layout();
+                        let mask = mask.as_slice().expect("standard layout");
+                        grid.fill_affine(targets, matrix, offset, Some((mask, flow)))
+                    }
+                    SubBlockMotion::Dense(flow) => {
+                        let flow = flow.as_standard_layout();
+                        let flow = flow.as_slice().expect("standard layout");
+                        grid.fill(targets, |q: [f32; 2]| reference_position(flow, h, w, q))
+                    }
                 }
-                SubBlockMotion::CameraAndLocal {
-                    matrix,
-                    offset,
-                    flow,
-                    local,
-                } => {
-                    let flow = flow.as_standard_layout();
-                    let flow = flow.as_slice().expect("standard layout");
-                    let mask = local.as_standard_layout();
-                    let mask = mask.as_slice().expect("standard layout");
-                    grid.fill_affine(&mut targets, matrix, offset, Some((mask, flow)))
-                }
-                SubBlockMotion::Dense(flow) => {
-                    let flow = flow.as_standard_layout();
-                    let flow = flow.as_slice().expect("standard layout");
-                    grid.fill(&mut targets, |q: [f32; 2]| {
-                        reference_position(flow, h, w, q)
-                    })
-                }
+                // The range of target bins of every row of sites, so that a band skips the
+                // rows that cannot reach it.
+                targets
+                    .par_chunks(w)
+                    .zip(row_bins[k * h..(k + 1) * h].par_iter_mut())
+                    .for_each(|(row, span)| {
+                        *span = row
+                            .iter()
+                            .filter(|&&(bin, _)| bin != u32::MAX)
+                            .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
+                                (lo.min(bin), hi.max(bin))
+                            });
+                    });
             }
-            // The range of target bins of every row of sites, so that a band skips the rows
-            // that cannot reach it.
-            targets
-                .par_chunks(w)
-                .zip(row_bins.par_iter_mut())
-                .for_each(|(row, span)| {
-                    *span = row
-                        .iter()
-                        .filter(|&&(bin, _)| bin != u32::MAX)
-                        .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
-                            (lo.min(bin), hi.max(bin))
-                        });
-                });
-            let frames = sub.frames as f32;
+            let counts: Vec<_> = group
+                .iter()
+                .map(|sub| sub.counts.as_standard_layout())
+                .collect();
             let (targets, codes, row_bins) = (&targets, &self.codes, &row_bins);
             self.bins
                 .par_chunks_mut(band_floats)
@@ -641,24 +750,29 @@ impl<'a> MergeAccumulator<'a> {
                 .for_each(|(band, cells)| {
                     let first = band * band_floats;
                     let end = first + cells.len();
-                    for (y, &(lo, hi)) in row_bins.iter().enumerate() {
-                        if lo == u32::MAX || (hi as usize) < first || lo as usize >= end {
-                            continue;
-                        }
-                        let sites = y * w..(y + 1) * w;
-                        for ((&(bin, r), &count), &code) in targets[sites.clone()]
-                            .iter()
-                            .zip(&counts[sites.clone()])
-                            .zip(&codes[sites])
-                        {
-                            let bin = bin as usize;
-                            if bin < first || bin >= end {
+                    for (k, sub) in group.iter().enumerate() {
+                        let frames = sub.frames as f32;
+                        let counts = counts[k].as_slice().expect("standard layout");
+                        let targets = &targets[k * h * w..(k + 1) * h * w];
+                        for (y, &(lo, hi)) in row_bins[k * h..(k + 1) * h].iter().enumerate() {
+                            if lo == u32::MAX || (hi as usize) < first || lo as usize >= end {
                                 continue;
                             }
-                            let slot = bin - first + (code as usize & 3) * 3 * stride;
-                            cells[slot] += r * count as f32;
-                            cells[slot + stride] += r * frames;
-                            cells[slot + 2 * stride] += r * r * frames;
+                            let sites = y * w..(y + 1) * w;
+                            for ((&(bin, r), &count), &code) in targets[sites.clone()]
+                                .iter()
+                                .zip(&counts[sites.clone()])
+                                .zip(&codes[sites])
+                            {
+                                let bin = bin as usize;
+                                if bin < first || bin >= end {
+                                    continue;
+                                }
+                                let slot = bin - first + (code as usize & 3) * 3 * stride;
+                                cells[slot] += r * count as f32;
+                                cells[slot + stride] += r * frames;
+                                cells[slot + 2 * stride] += r * r * frames;
+                            }
                         }
                     }
                 });
@@ -712,6 +826,11 @@ impl<'a> MergeAccumulator<'a> {
             present,
             reuse,
             ellipse_limit: (min_inv_scale > 0.0).then(|| cutoff as f64 / min_inv_scale as f64),
+            // A channel with a larger factor (W of a W-rich CFA) has its own, narrower ellipse.
+            channel_limit: std::array::from_fn(|ch| {
+                (min_inv_scale > 0.0 && present[ch] && inv_scale[ch] > min_inv_scale)
+                    .then(|| cutoff as f64 / inv_scale[ch] as f64)
+            }),
         };
         let mut sums = vec![[0.0f32; SUMS]; hs * ws];
         sums.par_chunks_mut(ws)
@@ -846,6 +965,9 @@ struct Gather<'g> {
     reuse: [bool; 4],
     /// Bound of the quadratic form inside which some channel's weight is non-zero.
     ellipse_limit: Option<f64>,
+    /// Bound of the quadratic form inside which channel c's weight is non-zero, for the
+    /// channels whose ellipse is narrower than `ellipse_limit`'s (`None`: that one).
+    channel_limit: [Option<f64>; 4],
 }
 
 /// The regression sums of output row `oy` into `row` (W·scale pixels).
@@ -902,22 +1024,37 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             let dy = by as f32 * inv_u - margin - py;
             let ady2 = a * dy * dy;
             let bdy = b2 * dy;
+            // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
+            let bins_of = |(dx_lo, dx_hi): (f64, f64)| {
+                (
+                    bx0.max(
+                        ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64).floor() as isize,
+                    ),
+                    bx1.min(
+                        ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64).ceil() as isize,
+                    ),
+                )
+            };
             let (lo, hi) = match g.ellipse_limit {
                 Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
-                    Some((dx_lo, dx_hi)) => (
-                        bx0.max(
-                            ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64).floor()
-                                as isize,
-                        ),
-                        bx1.min(
-                            ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64).ceil()
-                                as isize,
-                        ),
-                    ),
+                    Some(span) => bins_of(span),
                     None => continue,
                 },
                 None => (bx0, bx1),
             };
+            // Each channel's own bins (a narrower ellipse: fewer); a group of lanes outside them
+            // would add exact zeros to the channel's sums, so it is skipped. Channels that
+            // share weights share the factor, hence the span.
+            let span_of = |ch: usize| match g.channel_limit[ch] {
+                Some(limit) => {
+                    ellipse_span(a, b2, c, dy, limit).map_or((isize::MAX, isize::MIN), |dx| {
+                        let (l, h) = bins_of(dx);
+                        (l.max(lo), h.min(hi))
+                    })
+                }
+                None => (lo, hi),
+            };
+            let span = [span_of(0), span_of(1), span_of(2), span_of(3)];
             let row_start = by as usize * SUMS * stride;
             let mut bx = lo;
             while bx <= hi {
@@ -931,7 +1068,7 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 let mut weight = [0.0f32; LANES];
                 let first = row_start + bx as usize;
                 for (ch, acc) in acc.iter_mut().enumerate() {
-                    if !g.present[ch] {
+                    if !g.present[ch] || bx + (LANES as isize - 1) < span[ch].0 || bx > span[ch].1 {
                         continue;
                     }
                     if !g.reuse[ch] {
@@ -1210,10 +1347,10 @@ mod tests {
         values.extend([f32::INFINITY, f32::NEG_INFINITY, 3e9, -3e9, 2_147_483_520.0]);
         for v in values {
             assert_eq!(round_half_away(v), v.round(), "{v}");
-            assert_eq!(round_half_away_select(v), v.round(), "{v}");
+            assert_eq!(round_half_away_trunc(v), v.round(), "{v}");
         }
         assert!(round_half_away(f32::NAN).is_nan());
-        assert!(round_half_away_select(f32::NAN).is_nan());
+        assert!(round_half_away_trunc(f32::NAN).is_nan());
     }
 
     #[test]

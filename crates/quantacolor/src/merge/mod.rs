@@ -30,7 +30,7 @@ pub use accumulate::{
 };
 pub use kernels::{kernel_field, KernelConfig, KernelField};
 pub use reference::{reference_image, reference_image_streamed, WienerConfig};
-pub use robustness::{robustness, RobustnessConfig};
+pub use robustness::{robustness, robustness_against, ReferenceStats, RobustnessConfig};
 pub use warp::warp_to_reference;
 
 use crate::cfa::Cfa;
@@ -156,10 +156,11 @@ pub fn merge_guide(
         noise,
         config,
     )?;
+    let stats = ReferenceStats::new(&guide.reference);
     guide.robustness = (0..blocks)
         .map(|k| {
             block_robustness(
-                &guide.reference,
+                &stats,
                 grey_blocks,
                 &block_flows[k],
                 k,
@@ -202,9 +203,10 @@ pub fn merge_guide_streamed(
 }
 
 /// Robustness map of block `k` (stage 3 of [`merge_guide`]): all ones for the reference block,
-/// else [`robustness`] of its grey image at `flow` against `reference`.
+/// else [`robustness`] of its grey image at `flow` against the reference of `reference`'s
+/// statistics ([`ReferenceStats`], made once for all blocks).
 pub fn block_robustness(
-    reference: &Array2<f32>,
+    reference: &ReferenceStats,
     grey_blocks: &[Array2<f32>],
     flow: &Array3<f32>,
     k: usize,
@@ -215,7 +217,7 @@ pub fn block_robustness(
     if k == reference_block {
         Ok(Array2::ones(reference.dim()))
     } else {
-        robustness(reference, &grey_blocks[k], flow, noise, config)
+        robustness_against(reference, &grey_blocks[k], flow, noise, config)
     }
 }
 

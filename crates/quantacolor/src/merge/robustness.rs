@@ -97,19 +97,24 @@ fn row_extreme(img: &Array2<f32>, r: usize, take_max: bool) -> Array2<f32> {
             let n = padded.len();
             prefix.resize(n, fill);
             suffix.resize(n, fill);
+            // `phase` = i mod k, stepped instead of divided.
+            let mut phase = 0;
             for (i, &v) in padded.iter().enumerate() {
-                prefix[i] = if i % k == 0 {
+                prefix[i] = if phase == 0 {
                     v
                 } else {
                     pick(prefix[i - 1], v)
                 };
+                phase = if phase == k - 1 { 0 } else { phase + 1 };
             }
+            let mut phase = (n - 1) % k;
             for i in (0..n).rev() {
-                suffix[i] = if i % k == k - 1 || i == n - 1 {
+                suffix[i] = if phase == k - 1 || i == n - 1 {
                     padded[i]
                 } else {
                     pick(suffix[i + 1], padded[i])
                 };
+                phase = if phase == 0 { k - 1 } else { phase - 1 };
             }
             for (x, o) in lane.iter_mut().enumerate() {
                 *o = pick(suffix[x], prefix[x + k - 1]);
@@ -164,6 +169,43 @@ pub fn robustness(
     noise: impl Into<GreyNoise>,
     config: &RobustnessConfig,
 ) -> Result<Array2<f32>> {
+    robustness_against(
+        &ReferenceStats::new(reference),
+        grey_block,
+        flow,
+        noise,
+        config,
+    )
+}
+
+/// The reference's 3x3 local mean μ and std σ_ref that [`robustness`] compares every block
+/// with: made once per reference, whatever the number of blocks.
+#[derive(Debug, Clone)]
+pub struct ReferenceStats {
+    mean: Array2<f32>,
+    std: Array2<f32>,
+}
+
+impl ReferenceStats {
+    pub fn new(reference: &Array2<f32>) -> Self {
+        let (mean, std) = local_stats(reference);
+        ReferenceStats { mean, std }
+    }
+
+    /// (H, W) of the reference.
+    pub fn dim(&self) -> (usize, usize) {
+        self.mean.dim()
+    }
+}
+
+/// [`robustness`] against a reference's [`ReferenceStats`] (the same map).
+pub fn robustness_against(
+    reference: &ReferenceStats,
+    grey_block: &Array2<f32>,
+    flow: &Array3<f32>,
+    noise: impl Into<GreyNoise>,
+    config: &RobustnessConfig,
+) -> Result<Array2<f32>> {
     let noise: GreyNoise = noise.into();
     let (h, w) = reference.dim();
     if grey_block.dim() != (h, w) {
@@ -178,7 +220,7 @@ pub fn robustness(
     }
     let warped = warp_to_reference(grey_block, flow)?;
     let (mean_k, _) = local_stats(&warped);
-    let (mean_ref, std_ref) = local_stats(reference);
+    let (mean_ref, std_ref) = (&reference.mean, &reference.std);
     let spread_y = local_spread(
         &flow.index_axis(Axis(2), 0).to_owned(),
         config.motion_radius,
@@ -190,8 +232,8 @@ pub fn robustness(
     let mut out = Array2::<f32>::zeros((h, w));
     ndarray::Zip::from(&mut out)
         .and(&mean_k)
-        .and(&mean_ref)
-        .and(&std_ref)
+        .and(mean_ref)
+        .and(std_ref)
         .and(&spread_y)
         .and(&spread_x)
         .par_for_each(|r, &mk, &mu, &sd, &sy, &sx| {

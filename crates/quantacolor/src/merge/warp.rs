@@ -18,7 +18,12 @@ pub(crate) fn check_flow(flow: &Array3<f32>, h: usize, w: usize, what: &str) -> 
             flow.dim()
         )));
     }
-    if flow.iter().any(|v| !v.is_finite()) {
+    let non_finite = match flow.as_slice_memory_order() {
+        // A plain slice scan vectorises.
+        Some(values) => values.iter().any(|v| !v.is_finite()),
+        None => flow.iter().any(|v| !v.is_finite()),
+    };
+    if non_finite {
         return Err(Error::invalid(format!(
             "{what}: flow holds non-finite values"
         )));
