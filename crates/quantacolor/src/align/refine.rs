@@ -31,7 +31,7 @@ use crate::error::{Error, Result};
 use crate::filters::gaussian_blur;
 use crate::merge::{warp_to_reference, SubBlockMotion};
 use crate::progress::Progress;
-use ndarray::{s, Array2, Array3};
+use ndarray::{s, Array2, Array3, Axis};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
@@ -256,6 +256,13 @@ pub struct FrameMotion {
     has_local: bool,
 }
 
+/// Smallest tile residual from a block's camera fit that counts as local motion (px; this
+/// project's heuristic). Below it the tile follows the camera: a residual of hundredths of a
+/// pixel is the difference between two robust fits, not a moving object, and on the chart
+/// (handheld, 10,000 frames) such residuals covered whole blocks, which sent their sub-blocks
+/// through the dense flow inversion of the merge instead of the camera's affine map.
+const MIN_LOCAL_RESIDUAL_PX: f32 = 0.25;
+
 /// Tiles of `residual` (tiles_y, tiles_x, 2) that the camera does not explain, kept only in
 /// connected groups of at least `min_tiles` tiles (4-neighbours whose residuals differ by at
 /// most 1 px): a moving object moves many neighbouring tiles alike, while tiles matched a
@@ -381,7 +388,11 @@ impl FrameMotion {
                     camera.push(affine_from_tiles(&fit, &grid, centre));
                     let mut residual = local.slice_mut(s![b, .., .., ..]);
                     residual -= &fit;
-                    residual.mapv_inplace(|v| if v.abs() < 1e-4 { 0.0 } else { v });
+                    for mut tile in residual.lanes_mut(Axis(2)) {
+                        if tile[0].hypot(tile[1]) < MIN_LOCAL_RESIDUAL_PX {
+                            tile.fill(0.0);
+                        }
+                    }
                 }
                 None => {
                     camera.push(AffineMotion::default());
