@@ -263,6 +263,18 @@ pub struct FrameMotion {
 /// through the dense flow inversion of the merge instead of the camera's affine map.
 const MIN_LOCAL_RESIDUAL_PX: f32 = 0.25;
 
+/// `tiles − fit` (tiles_y, tiles_x, 2), zero on the tiles whose residual is under
+/// [`MIN_LOCAL_RESIDUAL_PX`].
+fn unexplained_residual(tiles: &Array3<f32>, fit: &Array3<f32>) -> Array3<f32> {
+    let mut residual = tiles - fit;
+    for mut tile in residual.lanes_mut(Axis(2)) {
+        if tile[0].hypot(tile[1]) < MIN_LOCAL_RESIDUAL_PX {
+            tile.fill(0.0);
+        }
+    }
+    residual
+}
+
 /// Tiles of `residual` (tiles_y, tiles_x, 2) that the camera does not explain, kept only in
 /// connected groups of at least `min_tiles` tiles (4-neighbours whose residuals differ by at
 /// most 1 px): a moving object moves many neighbouring tiles alike, while tiles matched a
@@ -386,13 +398,9 @@ impl FrameMotion {
             match affine_fit_field(&tiles, &grid, tolerance_px.max(1.0)) {
                 Some(fit) => {
                     camera.push(affine_from_tiles(&fit, &grid, centre));
-                    let mut residual = local.slice_mut(s![b, .., .., ..]);
-                    residual -= &fit;
-                    for mut tile in residual.lanes_mut(Axis(2)) {
-                        if tile[0].hypot(tile[1]) < MIN_LOCAL_RESIDUAL_PX {
-                            tile.fill(0.0);
-                        }
-                    }
+                    local
+                        .slice_mut(s![b, .., .., ..])
+                        .assign(&unexplained_residual(&tiles, &fit));
                 }
                 None => {
                     camera.push(AffineMotion::default());
@@ -1612,6 +1620,35 @@ mod tests {
             let p = scene(y as f64 + e[0], x as f64 + e[1]);
             Binomial::new(frames as u64, p).unwrap().sample(&mut rng) as u32
         })
+    }
+
+    #[test]
+    fn residuals_under_a_quarter_pixel_are_not_local_motion() {
+        // A camera fit, tiles off it by ±0.1 px everywhere (two robust fits' difference) and
+        // by (1, −2) px on a 12 x 12 object.
+        let fit = Array3::from_shape_fn((20, 30, 2), |(i, j, c)| {
+            0.01 * i as f32 - 0.02 * j as f32 + c as f32
+        });
+        let mut tiles = fit.clone();
+        tiles.indexed_iter_mut().for_each(|((i, j, c), v)| {
+            *v += if (i + j + c) % 2 == 0 { 0.1 } else { -0.1 };
+            if (4..16).contains(&i) && (10..22).contains(&j) {
+                *v += [1.0, -2.0][c];
+            }
+        });
+        let residual = unexplained_residual(&tiles, &fit);
+        for ((i, j, c), &r) in residual.indexed_iter() {
+            let object = (4..16).contains(&i) && (10..22).contains(&j);
+            let expected = if object {
+                tiles[[i, j, c]] - fit[[i, j, c]]
+            } else {
+                0.0
+            };
+            assert_eq!(r, expected, "tile ({i}, {j}) component {c}");
+        }
+        // Its coherent group survives; the ±0.1 px field no longer links the whole block.
+        let kept = coherent_residual(&residual, 80);
+        assert_eq!(kept.iter().filter(|&&v| v != 0.0).count(), 12 * 12 * 2);
     }
 
     /// The AVX2 run sums (four runs in the lanes) equal the scalar ones bit for bit: bins inside
