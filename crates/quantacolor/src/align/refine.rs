@@ -513,7 +513,8 @@ impl FrameMotion {
     }
 
     /// Sub-block `k`'s motion as the merge takes it: its affine reference map
-    /// ([`FrameMotion::sub_block_reference_map`]) without a local residual, else that map with
+    /// ([`FrameMotion::sub_block_reference_map`]) without a local residual (in the capture, or
+    /// at the sub-block's time), else that map with
     /// the dense flow and the pixels where the residual may act
     /// ([`SubBlockMotion::CameraAndLocal`]: most sites skip the dense flow's inversion); the
     /// dense flow alone when the camera motion cannot be inverted.
@@ -523,6 +524,15 @@ impl FrameMotion {
         }
         let r = &self.sub_blocks[k];
         let local = self.local_at((r.start + r.end - 1) as f64 / 2.0);
+        if let Some((_, near)) = &local {
+            if !near.iter().any(|&n| n) {
+                // No residual at this sub-block's time (other blocks have one): the camera
+                // alone, whose affine map places even the sites that leave the image exactly.
+                if let Some((matrix, offset)) = self.camera_reference_map(k) {
+                    return SubBlockMotion::Affine { matrix, offset };
+                }
+            }
+        }
         let flow = self.dense_with(&self.camera[k], local.as_ref());
         match (self.camera_reference_map(k), local) {
             (Some((matrix, offset)), Some((_, near))) => {
@@ -1649,6 +1659,46 @@ mod tests {
         // Its coherent group survives; the ±0.1 px field no longer links the whole block.
         let kept = coherent_residual(&residual, 80);
         assert_eq!(kept.iter().filter(|&&v| v != 0.0).count(), 12 * 12 * 2);
+    }
+
+    #[test]
+    fn sub_blocks_away_from_local_motion_take_the_camera_map() {
+        // Ten blocks of 100 frames; a 10 x 10-tile object moves in block 2 only.
+        let (h, w) = (96, 160);
+        let grid = TileGrid::new(h, w, 16, 8);
+        let plan = BlockPlan::new(1000, 100, 500).unwrap();
+        let blocks = plan.len();
+        let mut local = Flow::zeros((blocks, grid.tiles_y, grid.tiles_x, 2));
+        local.slice_mut(s![2, 1..11, 2..12, 1]).fill(3.0);
+        let camera = vec![
+            AffineMotion {
+                b: [0.5, -1.0],
+                m: [[0.001, 0.0], [0.0, -0.001]],
+            };
+            blocks
+        ];
+        let motion = FrameMotion {
+            height: h,
+            width: w,
+            sub_blocks: plan.blocks.clone(),
+            block_of: (0..blocks).collect(),
+            plan,
+            grid,
+            camera,
+            local,
+            has_local: true,
+        };
+        let camera_map = motion.camera_reference_map(8).unwrap();
+        match motion.sub_block_motion(8) {
+            SubBlockMotion::Affine { matrix, offset } => assert_eq!((matrix, offset), camera_map),
+            other => panic!("block 8 has no residual at its time, got {other:?}"),
+        }
+        match motion.sub_block_motion(2) {
+            SubBlockMotion::CameraAndLocal { local, .. } => {
+                assert!(local.iter().any(|&m| m) && !local.iter().all(|&m| m))
+            }
+            other => panic!("block 2 holds the object, got {other:?}"),
+        }
     }
 
     /// The AVX2 run sums (four runs in the lanes) equal the scalar ones bit for bit: bins inside
