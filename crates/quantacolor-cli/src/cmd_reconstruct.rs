@@ -141,8 +141,15 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
         Some(path) => {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("{}: cannot read", path.display()))?;
-            toml::from_str::<ReconstructConfig>(&text)
-                .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?
+            let config = toml::from_str::<ReconstructConfig>(&text)
+                .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
+            // Before any work: a bad denoiser setting would otherwise surface after the merge.
+            config
+                .denoise
+                .bm3d_config()
+                .validate()
+                .map_err(|e| anyhow::anyhow!("{}: [denoise]: {e}", path.display()))?;
+            config
         }
         None => ReconstructConfig::default(),
     };

@@ -183,6 +183,23 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     );
     std::fs::write(cap.join("capture.toml"), toml).unwrap();
 
+    // A bad BM3D setting in --config: named with its file before any work.
+    let bad_config = tmp.path().join("bad.toml");
+    std::fs::write(&bad_config, "[denoise.bm3d]\nstep = 0\n").unwrap();
+    let err = expect_failure(
+        &[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            out_s,
+            "--config",
+            bad_config.to_str().unwrap(),
+        ],
+        "bad.toml",
+    );
+    assert!(err.contains("step"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
+
     // Reference frame outside the capture.
     expect_failure(
         &[

@@ -137,7 +137,8 @@ impl Default for Bm3dConfig {
 }
 
 impl Bm3dConfig {
-    fn validate(&self) -> Result<()> {
+    /// Checks every parameter (the error names the bad one); BM3D runs it too.
+    pub fn validate(&self) -> Result<()> {
         let bad = |what: &str| Err(Error::invalid(format!("BM3D config: {what}")));
         if !(1..=32).contains(&self.block_size) {
             return bad(&format!("block_size {} not in 1..=32", self.block_size));

@@ -118,6 +118,16 @@ pub struct DenoiseConfig {
     pub bm3d: Bm3dConfig,
 }
 
+impl DenoiseConfig {
+    /// The BM3D settings the denoiser runs with: `bm3d` with `noise_correlation_px`.
+    pub fn bm3d_config(&self) -> Bm3dConfig {
+        Bm3dConfig {
+            noise_correlation_px: self.noise_correlation_px,
+            ..self.bm3d.clone()
+        }
+    }
+}
+
 impl Default for DenoiseConfig {
     fn default() -> Self {
         DenoiseConfig {
@@ -332,10 +342,7 @@ pub fn denoise_linear(
         relative_variance.as_ref().map(|v| v.view()),
         chroma_scales,
         config.coarse_sigma_factor,
-        &Bm3dConfig {
-            noise_correlation_px: config.noise_correlation_px,
-            ..config.bm3d.clone()
-        },
+        &config.bm3d_config(),
     )?;
     denoised.mapv_inplace(|v| v / scale);
 
