@@ -244,6 +244,10 @@ pub struct MergeAccumulator<'a> {
     /// (padding columns stay 0); bin (by, bx) sits at reference position
     /// (by/u − margin, bx/u − margin).
     bins: Vec<f32>,
+    /// Scratch of [`MergeAccumulator::add`], kept between calls: the target of every site of
+    /// a group of sub-blocks, and the range of targets of each of their rows.
+    targets: Vec<(u32, f32)>,
+    row_bins: Vec<(u32, u32)>,
 }
 
 /// Sub-blocks whose site targets are made before their samples are splatted together
@@ -632,6 +636,8 @@ impl<'a> MergeAccumulator<'a> {
             bins_w,
             stride,
             bins: vec![0.0; len],
+            targets: Vec::new(),
+            row_bins: Vec::new(),
         })
     }
 
@@ -669,9 +675,16 @@ impl<'a> MergeAccumulator<'a> {
             .iter()
             .map(|m| m.as_standard_layout())
             .collect();
+        // The site targets and row spans of a group, kept from one call to the next (the
+        // targets are 8 MB: fresh pages and their zeroing cost more than the splat of a small
+        // group). Every entry a group uses is written before it is read.
         let group_len = SPLAT_GROUP.min(sub_blocks.len());
-        let mut targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
-        let mut row_bins = vec![(u32::MAX, 0u32); group_len * h];
+        let mut targets = std::mem::take(&mut self.targets);
+        let mut row_bins = std::mem::take(&mut self.row_bins);
+        if targets.len() < group_len * h * w {
+            targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
+            row_bins = vec![(u32::MAX, 0u32); group_len * h];
+        }
         let stride = self.stride;
         // Sub-blocks are splatted a group at a time: the target bins of all sites of the group
         // first, then the samples band of bin rows by band of bin rows, one band per task (a
@@ -777,6 +790,8 @@ impl<'a> MergeAccumulator<'a> {
                     }
                 });
         }
+        self.targets = targets;
+        self.row_bins = row_bins;
         Ok(())
     }
 
@@ -1025,36 +1040,35 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             let ady2 = a * dy * dy;
             let bdy = b2 * dy;
             // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
-            let bins_of = |(dx_lo, dx_hi): (f64, f64)| {
-                (
-                    bx0.max(
-                        ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64).floor() as isize,
-                    ),
-                    bx1.min(
-                        ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64).ceil() as isize,
-                    ),
-                )
+            let cols = BinSpan {
+                bx0,
+                bx1,
+                inv_u: inv_u as f64,
+                centre: (margin + px) as f64,
+                u: u as f64,
             };
             let (lo, hi) = match g.ellipse_limit {
                 Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
-                    Some(span) => bins_of(span),
+                    Some(span) => cols.of(span),
                     None => continue,
                 },
                 None => (bx0, bx1),
             };
             // Each channel's own bins (a narrower ellipse: fewer); a group of lanes outside them
             // would add exact zeros to the channel's sums, so it is skipped. Channels that
-            // share weights share the factor, hence the span.
-            let span_of = |ch: usize| match g.channel_limit[ch] {
-                Some(limit) => {
-                    ellipse_span(a, b2, c, dy, limit).map_or((isize::MAX, isize::MIN), |dx| {
-                        let (l, h) = bins_of(dx);
-                        (l.max(lo), h.min(hi))
-                    })
+            // share weights share the factor, hence the span. (Plain functions, not closures,
+            // so that they are compiled with the caller's instruction set: no libm calls for
+            // `floor` and `ceil`.)
+            let mut span = [(lo, hi); 4];
+            for (ch, span) in span.iter_mut().enumerate() {
+                if let Some(limit) = g.channel_limit[ch] {
+                    *span =
+                        ellipse_span(a, b2, c, dy, limit).map_or((isize::MAX, isize::MIN), |dx| {
+                            let (l, h) = cols.of(dx);
+                            (l.max(lo), h.min(hi))
+                        });
                 }
-                None => (lo, hi),
-            };
-            let span = [span_of(0), span_of(1), span_of(2), span_of(3)];
+            }
             let row_start = by as usize * SUMS * stride;
             let mut bx = lo;
             while bx <= hi {
@@ -1101,6 +1115,29 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     }
 }
 
+/// The bins of a row of the regression between `bx0` and `bx1` inside a dx interval of an
+/// ellipse, widened by a bin each side ([`gather_row_generic`]).
+struct BinSpan {
+    bx0: isize,
+    bx1: isize,
+    inv_u: f64,
+    /// Margin plus the output pixel's reference x.
+    centre: f64,
+    u: f64,
+}
+
+impl BinSpan {
+    #[inline(always)]
+    fn of(&self, (dx_lo, dx_hi): (f64, f64)) -> (isize, isize) {
+        (
+            self.bx0
+                .max(((dx_lo - self.inv_u + self.centre) * self.u).floor() as isize),
+            self.bx1
+                .min(((dx_hi + self.inv_u + self.centre) * self.u).ceil() as isize),
+        )
+    }
+}
+
 /// The sum of eight lanes in a fixed order (pairs of halves, then of quarters, then the two).
 #[inline(always)]
 fn lane_sum(l: &[f32; LANES]) -> f32 {
@@ -1129,6 +1166,7 @@ fn w_trust(bit_rate: f32, effective_frames: f32, censoring_zeros: f32) -> f32 {
 /// a·dy² + 2b·dy·dx + c·dx² (`b2` = 2b) is below `limit`, widened by 0.1 % and 10⁻³ px against
 /// rounding; `None` when the whole row is at least 0.1 % above it. Not positive definite:
 /// an unbounded interval.
+#[inline(always)]
 fn ellipse_span(a: f32, b2: f32, c: f32, dy: f32, limit: f64) -> Option<(f64, f64)> {
     let (a, b, c, dy) = (a as f64, b2 as f64 / 2.0, c as f64, dy as f64);
     let det = a * c - b * b;
