@@ -297,6 +297,18 @@ fn round_half_away(v: f32) -> f32 {
     t + ((frac >= 0.5) as i32 - (frac <= -0.5) as i32) as f32
 }
 
+/// `v.max(0.0).min(hi) as i32` (NaN gives 0, as `as` does) for a finite `hi` in [0, 2³¹):
+/// without the saturation checks of `as`, which keep the compiler from converting eight lanes
+/// with one vector instruction. The same value as `v as i32` for every `v` in [0, hi] and NaN.
+#[inline(always)]
+fn index_in(v: f32, hi: f32) -> i32 {
+    debug_assert!((0.0..2_147_483_648.0).contains(&hi));
+    // `max` returns 0 for NaN: the value is finite and in [0, hi] here.
+    let v = v.max(0.0).min(hi);
+    // SAFETY: v is finite, non-negative and below 2³¹, so its truncation is an i32.
+    unsafe { v.to_int_unchecked::<i32>() }
+}
+
 /// [`round_half_away`] from the truncation `v.trunc()` (one vector instruction where the CPU
 /// has SSE4.1, e.g. in the AVX2 code; a libm call elsewhere): the same value for every `v`
 /// up to the sign of a zero result (NaN and infinities included: their truncation is
@@ -339,8 +351,8 @@ fn reference_positions(flow: &[f32], h: usize, w: usize, y: f32, x0: f32) -> [[f
             // `flow_bilinear` lane-wise: the clamp passes NaN, which truncates to 0.
             let y = p[0][i].clamp(0.0, hf);
             let x = p[1][i].clamp(0.0, wf);
-            let y0 = (y as u32).min(ylast);
-            let x0 = (x as u32).min(xlast);
+            let y0 = (index_in(y, hf) as u32).min(ylast);
+            let x0 = (index_in(x, wf) as u32).min(xlast);
             let (y1, x1) = ((y0 + 1).min(hl), (x0 + 1).min(wl));
             let (fy, fx) = (y - y0 as f32, x - x0 as f32);
             for (c, o) in f.iter_mut().enumerate() {
@@ -507,8 +519,8 @@ impl TargetGrid<'_> {
                     let (py, px) = (p[0][i], p[1][i]);
                     let inside = (py >= 0.0) & (px >= 0.0) & (py <= hf) & (px <= wf);
                     // Inside, the clamps change nothing: the rounded position's pixel.
-                    let ry = rounded[0][i].max(0.0).min(hf) as u32 as usize;
-                    let rx = rounded[1][i].max(0.0).min(wf) as u32 as usize;
+                    let ry = index_in(rounded[0][i], hf) as usize;
+                    let rx = index_in(rounded[1][i], wf) as usize;
                     dense[i] = !inside || mask[ry * w + rx];
                 }
                 if dense[..out.len()].contains(&true) {
@@ -561,13 +573,17 @@ impl TargetGrid<'_> {
         let mut outside = [false; LANES];
         let mut at = [0i32; LANES];
         for i in 0..LANES {
-            let ry = rounded[0][i].max(0.0).min(hf) as i32;
-            let rx = rounded[1][i].max(0.0).min(wf) as i32;
+            let ry = index_in(rounded[0][i], hf);
+            let rx = index_in(rounded[1][i], wf);
             at[i] = ry * w + rx;
             let (by, bx) = (bin[0][i], bin[1][i]);
             outside[i] = (by < 0.0) | (bx < 0.0) | (by >= bins_h) | (bx >= bins_w);
-            // Wrapping: the index of a lane left out is discarded.
-            index[i] = (by as i32).wrapping_mul(row_floats).wrapping_add(bx as i32);
+            // Wrapping: the index of a lane left out is discarded (and a lane is kept only
+            // where 0 <= by < bins_h and 0 <= bx < bins_w, or NaN: there the clamped
+            // conversion is `by as i32`).
+            index[i] = index_in(by, bins_h)
+                .wrapping_mul(row_floats)
+                .wrapping_add(index_in(bx, bins_w));
         }
         let mut out = [(u32::MAX, 0.0f32); LANES];
         for i in 0..LANES {
@@ -1363,6 +1379,22 @@ mod tests {
                 }
             });
             assert_eq!(fast, plain, "camera and local {matrix:?} {offset:?}");
+        }
+    }
+
+    #[test]
+    fn index_in_is_the_saturating_cast_inside_its_range() {
+        for hi in [0.0f32, 1.0, 253.0, 1015.0, 16_777_216.0, 2_147_483_520.0] {
+            let mut values = vec![0.0, -0.0, hi, f32::NAN, 0.999_999_9];
+            values.extend((0..1000).map(|i| hi * i as f32 / 999.0));
+            values.extend((0..100).map(|i| (i as f32 * 0.37).min(hi)));
+            for v in values {
+                assert_eq!(index_in(v, hi), v as i32, "{v} in [0, {hi}]");
+            }
+            // Outside: clamped (the callers discard those lanes).
+            assert_eq!(index_in(-5.0, hi), 0);
+            assert_eq!(index_in(f32::INFINITY, hi), hi as i32);
+            assert_eq!(index_in(f32::NEG_INFINITY, hi), 0);
         }
     }
 
