@@ -244,6 +244,10 @@ pub struct MergeAccumulator<'a> {
     /// (padding columns stay 0); bin (by, bx) sits at reference position
     /// (by/u − margin, bx/u − margin).
     bins: Vec<f32>,
+    /// Scratch of [`MergeAccumulator::add`], kept between calls: the target of every site of
+    /// a group of sub-blocks, and the range of targets of each of their rows.
+    targets: Vec<(u32, f32)>,
+    row_bins: Vec<(u32, u32)>,
 }
 
 /// Sub-blocks whose site targets are made before their samples are splatted together
@@ -293,6 +297,18 @@ fn round_half_away(v: f32) -> f32 {
     t + ((frac >= 0.5) as i32 - (frac <= -0.5) as i32) as f32
 }
 
+/// `v.max(0.0).min(hi) as i32` (NaN gives 0, as `as` does) for a finite `hi` in [0, 2³¹):
+/// without the saturation checks of `as`, which keep the compiler from converting eight lanes
+/// with one vector instruction. The same value as `v as i32` for every `v` in [0, hi] and NaN.
+#[inline(always)]
+fn index_in(v: f32, hi: f32) -> i32 {
+    debug_assert!((0.0..2_147_483_648.0).contains(&hi));
+    // `max` returns 0 for NaN: the value is finite and in [0, hi] here.
+    let v = v.max(0.0).min(hi);
+    // SAFETY: v is finite, non-negative and below 2³¹, so its truncation is an i32.
+    unsafe { v.to_int_unchecked::<i32>() }
+}
+
 /// [`round_half_away`] from the truncation `v.trunc()` (one vector instruction where the CPU
 /// has SSE4.1, e.g. in the AVX2 code; a libm call elsewhere): the same value for every `v`
 /// up to the sign of a zero result (NaN and infinities included: their truncation is
@@ -335,8 +351,8 @@ fn reference_positions(flow: &[f32], h: usize, w: usize, y: f32, x0: f32) -> [[f
             // `flow_bilinear` lane-wise: the clamp passes NaN, which truncates to 0.
             let y = p[0][i].clamp(0.0, hf);
             let x = p[1][i].clamp(0.0, wf);
-            let y0 = (y as u32).min(ylast);
-            let x0 = (x as u32).min(xlast);
+            let y0 = (index_in(y, hf) as u32).min(ylast);
+            let x0 = (index_in(x, wf) as u32).min(xlast);
             let (y1, x1) = ((y0 + 1).min(hl), (x0 + 1).min(wl));
             let (fy, fx) = (y - y0 as f32, x - x0 as f32);
             for (c, o) in f.iter_mut().enumerate() {
@@ -503,8 +519,8 @@ impl TargetGrid<'_> {
                     let (py, px) = (p[0][i], p[1][i]);
                     let inside = (py >= 0.0) & (px >= 0.0) & (py <= hf) & (px <= wf);
                     // Inside, the clamps change nothing: the rounded position's pixel.
-                    let ry = rounded[0][i].max(0.0).min(hf) as u32 as usize;
-                    let rx = rounded[1][i].max(0.0).min(wf) as u32 as usize;
+                    let ry = index_in(rounded[0][i], hf) as usize;
+                    let rx = index_in(rounded[1][i], wf) as usize;
                     dense[i] = !inside || mask[ry * w + rx];
                 }
                 if dense[..out.len()].contains(&true) {
@@ -557,13 +573,17 @@ impl TargetGrid<'_> {
         let mut outside = [false; LANES];
         let mut at = [0i32; LANES];
         for i in 0..LANES {
-            let ry = rounded[0][i].max(0.0).min(hf) as i32;
-            let rx = rounded[1][i].max(0.0).min(wf) as i32;
+            let ry = index_in(rounded[0][i], hf);
+            let rx = index_in(rounded[1][i], wf);
             at[i] = ry * w + rx;
             let (by, bx) = (bin[0][i], bin[1][i]);
             outside[i] = (by < 0.0) | (bx < 0.0) | (by >= bins_h) | (bx >= bins_w);
-            // Wrapping: the index of a lane left out is discarded.
-            index[i] = (by as i32).wrapping_mul(row_floats).wrapping_add(bx as i32);
+            // Wrapping: the index of a lane left out is discarded (and a lane is kept only
+            // where 0 <= by < bins_h and 0 <= bx < bins_w, or NaN: there the clamped
+            // conversion is `by as i32`).
+            index[i] = index_in(by, bins_h)
+                .wrapping_mul(row_floats)
+                .wrapping_add(index_in(bx, bins_w));
         }
         let mut out = [(u32::MAX, 0.0f32); LANES];
         for i in 0..LANES {
@@ -632,6 +652,8 @@ impl<'a> MergeAccumulator<'a> {
             bins_w,
             stride,
             bins: vec![0.0; len],
+            targets: Vec::new(),
+            row_bins: Vec::new(),
         })
     }
 
@@ -669,9 +691,16 @@ impl<'a> MergeAccumulator<'a> {
             .iter()
             .map(|m| m.as_standard_layout())
             .collect();
+        // The site targets and row spans of a group, kept from one call to the next (the
+        // targets are 8 MB: fresh pages and their zeroing cost more than the splat of a small
+        // group). Every entry a group uses is written before it is read.
         let group_len = SPLAT_GROUP.min(sub_blocks.len());
-        let mut targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
-        let mut row_bins = vec![(u32::MAX, 0u32); group_len * h];
+        let mut targets = std::mem::take(&mut self.targets);
+        let mut row_bins = std::mem::take(&mut self.row_bins);
+        if targets.len() < group_len * h * w {
+            targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
+            row_bins = vec![(u32::MAX, 0u32); group_len * h];
+        }
         let stride = self.stride;
         // Sub-blocks are splatted a group at a time: the target bins of all sites of the group
         // first, then the samples band of bin rows by band of bin rows, one band per task (a
@@ -777,6 +806,8 @@ impl<'a> MergeAccumulator<'a> {
                     }
                 });
         }
+        self.targets = targets;
+        self.row_bins = row_bins;
         Ok(())
     }
 
@@ -1011,6 +1042,21 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     let iy = (py.round().max(0.0) as usize).min(g.h - 1);
     let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
     let by1 = (((py + radius + margin) * u).floor() as isize).min(g.bins_h - 1);
+    // Row offsets of the bin rows from the pixel row, and each pixel's dx interval of every
+    // ellipse in each bin row (the main one, then each channel's own), made for all rows at
+    // once ([`ellipse_spans`]).
+    let dys: Vec<f32> = (by0..=by1)
+        .map(|by| by as f32 * inv_u - margin - py)
+        .collect();
+    let rows = dys.len();
+    let mut main_span = vec![[0.0f64; 2]; rows];
+    let mut channel_span: [Vec<[f64; 2]>; 4] = std::array::from_fn(|ch| {
+        if g.channel_limit[ch].is_some() {
+            vec![[0.0f64; 2]; rows]
+        } else {
+            Vec::new()
+        }
+    });
     for (ox, out) in row.iter_mut().enumerate() {
         let px = ox as f32 * g.inv_s + g.offset;
         let ix = (px.round().max(0.0) as usize).min(g.w - 1);
@@ -1018,43 +1064,44 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
         let (a, b2, c) = (g.inv_cov[k], 2.0 * g.inv_cov[k + 1], g.inv_cov[k + 2]);
         let bx0 = (((px - radius + margin) * u).ceil() as isize).max(0);
         let bx1 = (((px + radius + margin) * u).floor() as isize).min(g.bins_w - 1);
+        if let Some(limit) = g.ellipse_limit {
+            ellipse_spans(a, b2, c, &dys, limit, &mut main_span);
+        }
+        for (ch, spans) in channel_span.iter_mut().enumerate() {
+            if let Some(limit) = g.channel_limit[ch] {
+                ellipse_spans(a, b2, c, &dys, limit, spans);
+            }
+        }
         // acc[channel][sum][lane]
         let mut acc = [[[0.0f32; LANES]; 3]; 4];
-        for by in by0..=by1 {
-            let dy = by as f32 * inv_u - margin - py;
+        for (row, by) in (by0..=by1).enumerate() {
+            let dy = dys[row];
             let ady2 = a * dy * dy;
             let bdy = b2 * dy;
             // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
-            let bins_of = |(dx_lo, dx_hi): (f64, f64)| {
-                (
-                    bx0.max(
-                        ((dx_lo - inv_u as f64 + (margin + px) as f64) * u as f64).floor() as isize,
-                    ),
-                    bx1.min(
-                        ((dx_hi + inv_u as f64 + (margin + px) as f64) * u as f64).ceil() as isize,
-                    ),
-                )
+            let cols = BinSpan {
+                bx0,
+                bx1,
+                inv_u: inv_u as f64,
+                centre: (margin + px) as f64,
+                u: u as f64,
             };
             let (lo, hi) = match g.ellipse_limit {
-                Some(limit) => match ellipse_span(a, b2, c, dy, limit) {
-                    Some(span) => bins_of(span),
-                    None => continue,
-                },
+                Some(_) => cols.of(main_span[row]),
                 None => (bx0, bx1),
             };
             // Each channel's own bins (a narrower ellipse: fewer); a group of lanes outside them
             // would add exact zeros to the channel's sums, so it is skipped. Channels that
-            // share weights share the factor, hence the span.
-            let span_of = |ch: usize| match g.channel_limit[ch] {
-                Some(limit) => {
-                    ellipse_span(a, b2, c, dy, limit).map_or((isize::MAX, isize::MIN), |dx| {
-                        let (l, h) = bins_of(dx);
-                        (l.max(lo), h.min(hi))
-                    })
+            // share weights share the factor, hence the span. (Plain functions, not closures,
+            // so that they are compiled with the caller's instruction set: no libm calls for
+            // `floor` and `ceil`.)
+            let mut span = [(lo, hi); 4];
+            for (ch, span) in span.iter_mut().enumerate() {
+                if g.channel_limit[ch].is_some() {
+                    let (l, h) = cols.of(channel_span[ch][row]);
+                    *span = (l.max(lo), h.min(hi));
                 }
-                None => (lo, hi),
-            };
-            let span = [span_of(0), span_of(1), span_of(2), span_of(3)];
+            }
             let row_start = by as usize * SUMS * stride;
             let mut bx = lo;
             while bx <= hi {
@@ -1101,6 +1148,29 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     }
 }
 
+/// The bins of a row of the regression between `bx0` and `bx1` inside a dx interval of an
+/// ellipse, widened by a bin each side ([`gather_row_generic`]).
+struct BinSpan {
+    bx0: isize,
+    bx1: isize,
+    inv_u: f64,
+    /// Margin plus the output pixel's reference x.
+    centre: f64,
+    u: f64,
+}
+
+impl BinSpan {
+    #[inline(always)]
+    fn of(&self, [dx_lo, dx_hi]: [f64; 2]) -> (isize, isize) {
+        (
+            self.bx0
+                .max(((dx_lo - self.inv_u + self.centre) * self.u).floor() as isize),
+            self.bx1
+                .min(((dx_hi + self.inv_u + self.centre) * self.u).ceil() as isize),
+        )
+    }
+}
+
 /// The sum of eight lanes in a fixed order (pairs of halves, then of quarters, then the two).
 #[inline(always)]
 fn lane_sum(l: &[f32; LANES]) -> f32 {
@@ -1125,10 +1195,38 @@ fn w_trust(bit_rate: f32, effective_frames: f32, censoring_zeros: f32) -> f32 {
     }
 }
 
+/// [`ellipse_span`] of every row offset of `dys` into `spans`, a row where the whole row is
+/// above the limit getting (+∞, −∞) (whose bins, [`BinSpan::of`], are an empty range). The same
+/// operations per row in a loop without branches, which the compiler vectorises (four rows
+/// per instruction with AVX2: divisions and square roots were most of the regression's
+/// per-row cost), so the same values.
+#[inline(always)]
+fn ellipse_spans(a: f32, b2: f32, c: f32, dys: &[f32], limit: f64, spans: &mut [[f64; 2]]) {
+    let (a, b, c) = (a as f64, b2 as f64 / 2.0, c as f64);
+    let det = a * c - b * b;
+    if !(c > 0.0 && det > 0.0) {
+        spans.fill([f64::NEG_INFINITY, f64::INFINITY]);
+        return;
+    }
+    let slack = limit * 1e-3 + 1e-6;
+    for (&dy, span) in dys.iter().zip(spans) {
+        let dy = dy as f64;
+        let min = dy * dy * det / c;
+        let half = ((limit + slack - min).max(0.0) / c).sqrt() * 1.001 + 1e-3;
+        let centre = -b * dy / c;
+        *span = if min > limit + slack {
+            [f64::INFINITY, f64::NEG_INFINITY]
+        } else {
+            [centre - half, centre + half]
+        };
+    }
+}
+
 /// The dx interval of row offset `dy` where the kernel's quadratic form
 /// a·dy² + 2b·dy·dx + c·dx² (`b2` = 2b) is below `limit`, widened by 0.1 % and 10⁻³ px against
 /// rounding; `None` when the whole row is at least 0.1 % above it. Not positive definite:
-/// an unbounded interval.
+/// an unbounded interval. The reference of [`ellipse_spans`].
+#[cfg(test)]
 fn ellipse_span(a: f32, b2: f32, c: f32, dy: f32, limit: f64) -> Option<(f64, f64)> {
     let (a, b, c, dy) = (a as f64, b2 as f64 / 2.0, c as f64, dy as f64);
     let det = a * c - b * b;
@@ -1329,6 +1427,22 @@ mod tests {
     }
 
     #[test]
+    fn index_in_is_the_saturating_cast_inside_its_range() {
+        for hi in [0.0f32, 1.0, 253.0, 1015.0, 16_777_216.0, 2_147_483_520.0] {
+            let mut values = vec![0.0, -0.0, hi, f32::NAN, 0.999_999_9];
+            values.extend((0..1000).map(|i| hi * i as f32 / 999.0));
+            values.extend((0..100).map(|i| (i as f32 * 0.37).min(hi)));
+            for v in values {
+                assert_eq!(index_in(v, hi), v as i32, "{v} in [0, {hi}]");
+            }
+            // Outside: clamped (the callers discard those lanes).
+            assert_eq!(index_in(-5.0, hi), 0);
+            assert_eq!(index_in(f32::INFINITY, hi), hi as i32);
+            assert_eq!(index_in(f32::NEG_INFINITY, hi), 0);
+        }
+    }
+
+    #[test]
     fn round_half_away_matches_f32_round() {
         let mut values = vec![
             0.0,
@@ -1371,5 +1485,35 @@ mod tests {
         }
         // A row entirely outside the ellipse.
         assert_eq!(ellipse_span(1.0, 0.0, 1.0, 10.0, limit), None);
+    }
+
+    #[test]
+    fn ellipse_spans_are_the_rows_ellipse_spans() {
+        // The vectorised form against the per-row one, bit for bit, empty rows and
+        // non-definite forms included.
+        let dys: Vec<f32> = (0..41).map(|i| i as f32 * 0.25 - 5.1).collect();
+        let mut spans = vec![[0.0f64; 2]; dys.len()];
+        for limit in [9.0f64, 12.0, 108.0] {
+            for (a, b2, c) in [
+                (1.0f32, 0.0f32, 1.0f32),
+                (4.0, 3.0, 1.5),
+                (0.3, -0.5, 2.0),
+                (16.0, 31.9, 16.0),
+                (1.0, 4.0, 1.0),
+                (1.0, 0.0, 0.0),
+                (f32::NAN, 0.0, 1.0),
+            ] {
+                ellipse_spans(a, b2, c, &dys, limit, &mut spans);
+                for (&dy, span) in dys.iter().zip(&spans) {
+                    let want = ellipse_span(a, b2, c, dy, limit)
+                        .map_or([f64::INFINITY, f64::NEG_INFINITY], |(l, h)| [l, h]);
+                    assert_eq!(
+                        span.map(f64::to_bits),
+                        want.map(f64::to_bits),
+                        "{a} {b2} {c} {dy} {limit}"
+                    );
+                }
+            }
+        }
     }
 }
