@@ -42,6 +42,8 @@ impl Default for RobustnessConfig {
 /// 3x3 local mean and standard deviation (edge-clamped windows).
 fn local_stats(image: &Array2<f32>) -> (Array2<f32>, Array2<f32>) {
     let (h, w) = image.dim();
+    let image = image.as_standard_layout();
+    let pixels = image.as_slice().expect("standard layout");
     let mut mean = Array2::<f32>::zeros((h, w));
     let mut std = Array2::<f32>::zeros((h, w));
     mean.axis_iter_mut(Axis(0))
@@ -49,11 +51,14 @@ fn local_stats(image: &Array2<f32>) -> (Array2<f32>, Array2<f32>) {
         .zip(std.axis_iter_mut(Axis(0)))
         .enumerate()
         .for_each(|(y, (mut m_row, mut s_row))| {
+            let rows: Vec<&[f32]> = (y.saturating_sub(1)..(y + 2).min(h))
+                .map(|yy| &pixels[yy * w..(yy + 1) * w])
+                .collect();
             for x in 0..w {
                 let (mut s1, mut s2, mut n) = (0.0f32, 0.0f32, 0.0f32);
-                for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                        let v = image[[yy, xx]];
+                // Window rows top to bottom, columns left to right (the sums' order).
+                for row in &rows {
+                    for &v in &row[x.saturating_sub(1)..(x + 2).min(w)] {
                         s1 += v;
                         s2 += v * v;
                         n += 1.0;
@@ -221,32 +226,78 @@ pub fn robustness_against(
     let warped = warp_to_reference(grey_block, flow)?;
     let (mean_k, _) = local_stats(&warped);
     let (mean_ref, std_ref) = (&reference.mean, &reference.std);
-    let spread_y = local_spread(
-        &flow.index_axis(Axis(2), 0).to_owned(),
-        config.motion_radius,
-    );
-    let spread_x = local_spread(
-        &flow.index_axis(Axis(2), 1).to_owned(),
-        config.motion_radius,
-    );
-    let mut out = Array2::<f32>::zeros((h, w));
-    ndarray::Zip::from(&mut out)
-        .and(&mean_k)
-        .and(mean_ref)
-        .and(std_ref)
-        .and(&spread_y)
-        .and(&spread_x)
-        .par_for_each(|r, &mk, &mu, &sd, &sy, &sx| {
-            let sigma2 = (sd * sd + noise.variance(mu)).max(1e-12);
-            let d = mk - mu;
-            let s = if (sy * sy + sx * sx).sqrt() > config.motion_threshold {
-                config.s_motion
-            } else {
-                config.s
-            };
-            *r = (s * (-d * d / sigma2).exp() - config.t).clamp(0.0, 1.0);
+    let flow_range = [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
+    // Every window's spread is at most the whole flow's (max − min over a subset): when that
+    // is under the threshold, no pixel takes `s_motion` and the running extrema are skipped.
+    let spread = if spread_exceeds(flow_range[0], flow_range[1], config) {
+        Some([0, 1].map(|c| {
+            local_spread(
+                &flow.index_axis(Axis(2), c).to_owned(),
+                config.motion_radius,
+            )
+        }))
+    } else {
+        None
+    };
+    Ok(weights(&mean_k, reference, spread.as_ref(), noise, config))
+}
+
+/// Whether a flow spread (max − min of dy and dx) is above `config.motion_threshold`.
+fn spread_exceeds(dy: f32, dx: f32, config: &RobustnessConfig) -> bool {
+    (dy * dy + dx * dx).sqrt() > config.motion_threshold
+}
+
+/// R of every pixel (supplement Eq. 4–6) from the warped block's local means `mean_k`, the
+/// reference's statistics and the flow's local `spread` (dy, dx); `None`: no spread above the
+/// threshold anywhere.
+fn weights(
+    mean_k: &Array2<f32>,
+    reference: &ReferenceStats,
+    spread: Option<&[Array2<f32>; 2]>,
+    noise: GreyNoise,
+    config: &RobustnessConfig,
+) -> Array2<f32> {
+    let weight = |mk: f32, mu: f32, sd: f32, s: f32| {
+        let sigma2 = (sd * sd + noise.variance(mu)).max(1e-12);
+        let d = mk - mu;
+        (s * (-d * d / sigma2).exp() - config.t).clamp(0.0, 1.0)
+    };
+    let mut out = Array2::<f32>::zeros(mean_k.dim());
+    let pixels = ndarray::Zip::from(&mut out)
+        .and(mean_k)
+        .and(&reference.mean)
+        .and(&reference.std);
+    match spread {
+        None => pixels.par_for_each(|r, &mk, &mu, &sd| *r = weight(mk, mu, sd, config.s)),
+        Some([spread_y, spread_x]) => {
+            pixels
+                .and(spread_y)
+                .and(spread_x)
+                .par_for_each(|r, &mk, &mu, &sd, &sy, &sx| {
+                    let s = if spread_exceeds(sy, sx, config) {
+                        config.s_motion
+                    } else {
+                        config.s
+                    };
+                    *r = weight(mk, mu, sd, s);
+                })
+        }
+    }
+    out
+}
+
+/// Max − min of all of `values` (0 for none).
+fn value_range(values: ndarray::ArrayView2<f32>) -> f32 {
+    let (lo, hi) = values
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| {
+            (lo.min(v), hi.max(v))
         });
-    Ok(out)
+    if hi >= lo {
+        hi - lo
+    } else {
+        0.0
+    }
 }
 
 #[cfg(test)]
@@ -268,6 +319,42 @@ mod tests {
             }
             hi - lo
         })
+    }
+
+    /// Under the threshold everywhere, the weights without the running extrema are the
+    /// weights with them, bit for bit (a smooth flow whose whole range is 9 px).
+    #[test]
+    fn a_flow_spread_under_the_threshold_skips_the_local_spread() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (h, w) = (40, 60);
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.1f32..0.6));
+        let block = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.1f32..0.6));
+        let config = RobustnessConfig::default();
+        let flow = Array3::from_shape_fn((h, w, 2), |(y, x, c)| {
+            if c == 0 {
+                0.05 * y as f32
+            } else {
+                9.0 * x as f32 / (w - 1) as f32 - 0.5
+            }
+        });
+        let range = [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
+        assert!(!spread_exceeds(range[0], range[1], &config));
+        let stats = ReferenceStats::new(&reference);
+        let (mean_k, _) = local_stats(&warp_to_reference(&block, &flow).unwrap());
+        let spread = [0, 1].map(|c| {
+            local_spread(
+                &flow.index_axis(Axis(2), c).to_owned(),
+                config.motion_radius,
+            )
+        });
+        let noise = GreyNoise::from(64.0f32);
+        let with = weights(&mean_k, &stats, Some(&spread), noise, &config);
+        let without = weights(&mean_k, &stats, None, noise, &config);
+        assert_eq!(with, without);
+        assert_eq!(
+            robustness_against(&stats, &block, &flow, 64.0f32, &config).unwrap(),
+            without
+        );
     }
 
     #[test]
