@@ -225,7 +225,6 @@ pub fn robustness_against(
     }
     let warped = warp_to_reference(grey_block, flow)?;
     let (mean_k, _) = local_stats(&warped);
-    let (mean_ref, std_ref) = (&reference.mean, &reference.std);
     let flow_range = [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
     // Every window's spread is at most the whole flow's (max − min over a subset): when that
     // is under the threshold, no pixel takes `s_motion` and the running extrema are skipped.
