@@ -707,12 +707,7 @@ fn read_burst_config(path: Option<&Path>) -> Result<BurstConfig> {
 /// A configuration table read from the TOML file `path`, or the defaults without one.
 fn read_toml_config<T: serde::de::DeserializeOwned + Default>(path: Option<&Path>) -> Result<T> {
     match path {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("{}: cannot read", path.display()))?;
-            toml::from_str::<T>(&text)
-                .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))
-        }
+        Some(path) => crate::config_file::read(path),
         None => Ok(T::default()),
     }
 }

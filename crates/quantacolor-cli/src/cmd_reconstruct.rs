@@ -139,10 +139,7 @@ pub fn preview_options(
 pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
     let mut config = match &args.config {
         Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("{}: cannot read", path.display()))?;
-            let config = toml::from_str::<ReconstructConfig>(&text)
-                .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.message()))?;
+            let config: ReconstructConfig = crate::config_file::read(path)?;
             // Before any work: a bad denoiser setting would otherwise surface after the merge.
             config
                 .denoise

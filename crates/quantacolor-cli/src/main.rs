@@ -12,6 +12,7 @@ mod cmd_experiment;
 mod cmd_reconstruct;
 mod cmd_report;
 mod cmd_simulate;
+mod config_file;
 mod output;
 mod progress;
 

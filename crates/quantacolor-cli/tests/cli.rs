@@ -199,6 +199,27 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     );
     assert!(err.contains("step"), "{err}");
     assert!(!out.exists(), "partial output left behind");
+    // A misspelt key in --config is named, not silently left at its default.
+    std::fs::write(
+        &bad_config,
+        "[burst.refine]
+pases = 1
+",
+    )
+    .unwrap();
+    let err = expect_failure(
+        &[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            out_s,
+            "--config",
+            bad_config.to_str().unwrap(),
+        ],
+        "bad.toml",
+    );
+    assert!(err.contains("`burst.refine.pases`"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
 
     // Reference frame outside the capture.
     expect_failure(

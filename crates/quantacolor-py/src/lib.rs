@@ -299,7 +299,7 @@ fn config_arg<T: serde::de::DeserializeOwned + Default>(
     // Through TOML text, so that an error shows the key at fault.
     let text = toml::to_string(&to_toml("config", obj)?)
         .map_err(|e| PyValueError::new_err(format!("config: {e}")))?;
-    toml::from_str::<T>(&text)
+    quantacolor::config_toml::parse::<T>(&text)
         .map_err(|e| PyValueError::new_err(format!("config: {}", e.to_string().trim_end())))
 }
 

@@ -240,6 +240,8 @@ def test_from_arrays_bad_input(kwargs, exc, words):
         (lambda c: qc.reconstruct(c, config=[1]), TypeError, ["config", "dict"]),
         (lambda c: qc.reconstruct(c, config={"denoise": {"luma_gain": "x"}}), ValueError,
          ["config", "luma_gain"]),
+        (lambda c: qc.reconstruct(c, config={"burst": {"refine": {"pases": 1}}}), ValueError,
+         ["config", "burst.refine.pases"]),
         (lambda c: qc.reconstruct(c, sigma_y=-1.0), ValueError, ["sigma_y"]),
         (lambda c: qc.reconstruct(c, progress=3), TypeError, ["progress", "callable"]),
         (lambda c: qc.display(np.zeros((4, 4))), ValueError, ["linear", "(H, W, 3)"]),

@@ -15,6 +15,7 @@ pub mod burst;
 pub mod capture;
 pub mod cfa;
 pub mod color;
+pub mod config_toml;
 pub mod convert;
 pub mod denoise;
 pub mod display;
