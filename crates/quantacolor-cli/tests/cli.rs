@@ -185,39 +185,25 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
 
     // A bad BM3D setting in --config: named with its file before any work.
     let bad_config = tmp.path().join("bad.toml");
-    std::fs::write(&bad_config, "[denoise.bm3d]\nstep = 0\n").unwrap();
-    let err = expect_failure(
-        &[
-            "reconstruct",
-            cap.to_str().unwrap(),
-            "--out",
-            out_s,
-            "--config",
-            bad_config.to_str().unwrap(),
-        ],
-        "bad.toml",
-    );
+    let reconstruct_with_config = |text: &str| {
+        std::fs::write(&bad_config, text).unwrap();
+        expect_failure(
+            &[
+                "reconstruct",
+                cap.to_str().unwrap(),
+                "--out",
+                out_s,
+                "--config",
+                bad_config.to_str().unwrap(),
+            ],
+            "bad.toml",
+        )
+    };
+    let err = reconstruct_with_config("[denoise.bm3d]\nstep = 0\n");
     assert!(err.contains("step"), "{err}");
     assert!(!out.exists(), "partial output left behind");
     // A misspelt key in --config is named, not silently left at its default.
-    std::fs::write(
-        &bad_config,
-        "[burst.refine]
-pases = 1
-",
-    )
-    .unwrap();
-    let err = expect_failure(
-        &[
-            "reconstruct",
-            cap.to_str().unwrap(),
-            "--out",
-            out_s,
-            "--config",
-            bad_config.to_str().unwrap(),
-        ],
-        "bad.toml",
-    );
+    let err = reconstruct_with_config("[burst.refine]\npases = 1\n");
     assert!(err.contains("`burst.refine.pases`"), "{err}");
     assert!(!out.exists(), "partial output left behind");
 
