@@ -17,8 +17,7 @@
 
 use super::grey::GreyMethod;
 use super::refine::{
-    bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FitSettings, FrameMotion,
-    RefineLevel,
+    bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FrameMotion, RefineLevel,
 };
 use crate::capture::Capture;
 use crate::cfa::Channel;
@@ -211,11 +210,7 @@ pub fn track_fast_camera_motion(
                         &templates.iter().collect::<Vec<_>>(),
                         start,
                         centre,
-                        FitSettings {
-                            iterations: config.iterations,
-                            fine_iterations: config.iterations,
-                            fine_information: 1.0,
-                        },
+                        config.iterations,
                     )
                 })
                 .and_then(|inverse| inverse.inverse())
