@@ -179,62 +179,6 @@ fn tile_cost(
     }
     let rs = reference.as_slice().expect("standard layout");
     let as_ = alternate.as_slice().expect("standard layout");
-    let n = (x1 - x0) as usize;
-    let row = |y: isize| {
-        let r0 = (y * w + x0) as usize;
-        let a0 = ((y + dy) * w + x0 + dx) as usize;
-        (&rs[r0..r0 + n], &as_[a0..a0 + n])
-    };
-    let term = |r: f32, a: f32| match norm {
-        Norm::L1 => (r - a).abs(),
-        Norm::L2 => (r - a) * (r - a),
-    };
-    // Each row is summed in column order from zero and the row sums are added in row order
-    // (the numbers of [`tile_cost_rowwise`]); `ROWS` rows at a time, so that their independent
-    // sums overlap in time instead of waiting on one chain of additions.
-    const ROWS: usize = 8;
-    let mut cost = 0.0f32;
-    let mut y = y0;
-    while y + ROWS as isize <= y1 {
-        let rows: [(&[f32], &[f32]); ROWS] = std::array::from_fn(|k| row(y + k as isize));
-        let mut sums = [0.0f32; ROWS];
-        for i in 0..n {
-            for (s, (r, a)) in sums.iter_mut().zip(&rows) {
-                *s += term(r[i], a[i]);
-            }
-        }
-        for s in sums {
-            cost += s;
-        }
-        y += ROWS as isize;
-    }
-    for y in y..y1 {
-        let (r, a) = row(y);
-        cost += r.iter().zip(a).fold(0.0f32, |s, (&r, &a)| s + term(r, a));
-    }
-    cost / ((y1 - y0) * (x1 - x0)) as f32
-}
-
-/// [`tile_cost`] one row at a time (the plain form its interleaved rows must match bit for bit).
-#[cfg(test)]
-fn tile_cost_rowwise(
-    reference: &Array2<f32>,
-    alternate: &Array2<f32>,
-    (oy, ox): (usize, usize),
-    ts: usize,
-    (dy, dx): (isize, isize),
-    norm: Norm,
-) -> f32 {
-    let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
-    let (oy, ox) = (oy as isize, ox as isize);
-    let ts = ts as isize;
-    let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
-    let (x0, x1) = (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
-    if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
-        return f32::INFINITY;
-    }
-    let rs = reference.as_slice().expect("standard layout");
-    let as_ = alternate.as_slice().expect("standard layout");
     let mut cost = 0.0f32;
     for y in y0..y1 {
         let r0 = (y * w + x0) as usize;
@@ -1224,38 +1168,6 @@ mod tests {
                                 assert_eq!(c.to_bits(), expected.to_bits(), "{oy} {ox} {d:?}");
                                 finite += c.is_finite() as usize;
                             }
-                        }
-                    }
-                }
-            }
-        }
-        assert!(finite > 1000, "{finite}");
-    }
-
-    /// [`tile_cost`]'s interleaved rows give the numbers of the plain row-by-row sum bit for
-    /// bit: tiles of fewer and more rows than one interleaved group, at every border, offsets
-    /// past the image, both norms (values spanning many magnitudes, so that a changed order of
-    /// additions would show).
-    #[test]
-    fn tile_cost_equals_rowwise_sum() {
-        let mut rng = ChaCha8Rng::seed_from_u64(11);
-        let (h, w) = (37usize, 45usize);
-        let mut value =
-            |rng: &mut ChaCha8Rng| rng.gen_range(0.0f32..1.0) * 10f32.powi(rng.gen_range(-4..4));
-        let reference = Array2::from_shape_fn((h, w), |_| value(&mut rng));
-        let alternate = Array2::from_shape_fn((h, w), |_| value(&mut rng));
-        let mut finite = 0;
-        for norm in [Norm::L1, Norm::L2] {
-            for ts in [2usize, 5, 8, 13, 16, 24] {
-                for oy in (0..h).step_by(4) {
-                    for ox in (0..w).step_by(5) {
-                        for _ in 0..3 {
-                            let d = (rng.gen_range(-9isize..=9), rng.gen_range(-9isize..=9));
-                            let got = tile_cost(&reference, &alternate, (oy, ox), ts, d, norm);
-                            let expected =
-                                tile_cost_rowwise(&reference, &alternate, (oy, ox), ts, d, norm);
-                            assert_eq!(got.to_bits(), expected.to_bits(), "{oy} {ox} {ts} {d:?}");
-                            finite += got.is_finite() as usize;
                         }
                     }
                 }
