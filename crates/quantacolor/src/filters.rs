@@ -142,15 +142,37 @@ pub fn normalized_convolution_masked(
     mask: &Array2<bool>,
     sigma: f32,
 ) -> Array2<f32> {
+    let den = normalized_convolution_weights(mask, sigma);
+    normalized_convolution_masked_with(values, mask, sigma, &den)
+}
+
+/// The denominator `G * m` of [`normalized_convolution_masked`] for `mask` and `sigma`: it
+/// depends on the mask alone, so images sharing a mask (every block of a burst) make it once.
+pub fn normalized_convolution_weights(mask: &Array2<bool>, sigma: f32) -> Array2<f32> {
+    let weights = mask.mapv(|m| m as u8 as f32);
+    separable(&weights, &gaussian_taps(sigma))
+}
+
+/// [`normalized_convolution_masked`] with its denominator `den` made beforehand by
+/// [`normalized_convolution_weights`] for the same `mask` and `sigma` (the same numbers).
+pub fn normalized_convolution_masked_with(
+    values: &Array2<f32>,
+    mask: &Array2<bool>,
+    sigma: f32,
+    den: &Array2<f32>,
+) -> Array2<f32> {
+    assert_eq!(
+        den.dim(),
+        mask.dim(),
+        "normalized convolution: denominator shape"
+    );
     let kernel = gaussian_taps(sigma);
     let weighted = Zip::from(values)
         .and(mask)
         .map_collect(|&v, &m| if m { v } else { 0.0 });
-    let weights = mask.mapv(|m| m as u8 as f32);
     let num = separable(&weighted, &kernel);
-    let den = separable(&weights, &kernel);
     Zip::from(&num)
-        .and(&den)
+        .and(den)
         .map_collect(|&n, &d| if d > 1e-6 { n / d } else { 0.0 })
 }
 

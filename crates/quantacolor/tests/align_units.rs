@@ -679,4 +679,45 @@ fn second_motion_follows_a_moving_square_over_a_still_background() {
         aligner.follow_second_motion(&block, &flow, &camera, 2.0, 16, 1000),
         flow
     );
+    // With the block's pyramid from the tile search (its levels 0 and 1 reused): the same
+    // numbers bit for bit, for the default pyramid, one without pre-smoothing and one whose
+    // level 1 is not downsampled.
+    for config in [
+        PatchConfig::default(),
+        PatchConfig {
+            presmooth_sigma: 0.0,
+            ..PatchConfig::default()
+        },
+        PatchConfig {
+            downsample_factors: vec![1, 1, 4, 4],
+            ..PatchConfig::default()
+        },
+    ] {
+        let aligner = ReferenceAligner::new(&reference, &config).unwrap();
+        let grid = aligner.grid().clone();
+        let (ty, tx) = (grid.tiles_y, grid.tiles_x);
+        let camera = Array3::<f32>::zeros((ty, tx, 2));
+        let flow = Array3::from_shape_fn((ty, tx, 2), |(i, j, c)| {
+            let on = on_square(
+                grid.tile_centers_y[i] as usize,
+                grid.tile_centers_x[j] as usize,
+            );
+            if on {
+                [3.0, -7.0][c] + rng.gen_range(-2.0..2.0)
+            } else {
+                0.0
+            }
+        });
+        let (_, _, pyramid) = aligner.align_with_pyramid(&block).unwrap();
+        let plain = aligner.follow_second_motion(&block, &flow, &camera, 2.0, 16, 4);
+        let reused = aligner.follow_second_motion_in(&block, &pyramid, &flow, &camera, 2.0, 16, 4);
+        assert_ne!(plain, flow, "{config:?}: no second motion to compare");
+        assert!(
+            plain
+                .iter()
+                .zip(&reused)
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "{config:?}"
+        );
+    }
 }

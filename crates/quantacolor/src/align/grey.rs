@@ -8,7 +8,7 @@
 
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
-use crate::filters::normalized_convolution_masked;
+use crate::filters::{normalized_convolution_masked_with, normalized_convolution_weights};
 use ndarray::{Array2, Zip};
 use serde::{Deserialize, Serialize};
 
@@ -102,7 +102,7 @@ impl GreyMethod {
 /// Grey image `(H, W)` of one block sum `counts` over `frames` frames, in mean detections per
 /// frame (the mean sample per frame: bit rate, or digital number of multi-bit frames), by
 /// `method` for `cfa`. The one grey image of the crate: alignment blocks, the Wiener reference
-/// and the robustness weights all compare these.
+/// and the robustness weights all compare these. Many blocks of one CFA: [`GreyImager`].
 ///
 /// Errors if `counts` and the CFA differ in shape or `frames` is 0.
 pub fn grey_image(
@@ -111,51 +111,91 @@ pub fn grey_image(
     cfa: &Cfa,
     method: GreyMethod,
 ) -> Result<Array2<f32>> {
-    if counts.dim() != cfa.codes().dim() {
-        return Err(Error::invalid(format!(
-            "grey image: counts have shape {:?}, the CFA is {:?}",
-            counts.dim(),
-            cfa.codes().dim()
-        )));
-    }
-    if frames == 0 {
-        return Err(Error::invalid("grey image: zero frames"));
-    }
-    let scale = 1.0 / frames as f32;
-    let values = counts.mapv(|c| c as f32 * scale);
-    Ok(match method {
-        GreyMethod::TileAverage { py, px } => tile_average(&values, py, px),
-        GreyMethod::InterpolateW => {
-            let w_mask = cfa.mask(Channel::W);
-            let smooth = normalized_convolution_masked(&values, &w_mask, 0.75);
-            let mut out = values;
-            Zip::from(&mut out)
-                .and(&w_mask)
-                .and(&smooth)
-                .for_each(|o, &m, &s| {
-                    if !m {
-                        *o = s;
+    GreyImager::new(cfa, method).image(counts, frames)
+}
+
+/// [`grey_image`] for many block sums of one CFA: the CFA masks and the normalized
+/// convolutions' denominators (which depend on the masks alone) are made once, not per block.
+/// The same numbers as [`grey_image`].
+#[derive(Debug, Clone)]
+pub struct GreyImager {
+    codes_dim: (usize, usize),
+    method: GreyMethod,
+    /// Per plane: mask, Gaussian σ (px) and denominator `G * mask`.
+    planes: Vec<(Array2<bool>, f32, Array2<f32>)>,
+}
+
+impl GreyImager {
+    /// Masks and denominators of `method` on `cfa`.
+    pub fn new(cfa: &Cfa, method: GreyMethod) -> GreyImager {
+        let mut planes = Vec::new();
+        let mut plane = |mask: Array2<bool>, sigma: f32| {
+            let den = normalized_convolution_weights(&mask, sigma);
+            planes.push((mask, sigma, den));
+        };
+        match method {
+            GreyMethod::TileAverage { .. } => {}
+            GreyMethod::InterpolateW => plane(cfa.mask(Channel::W), 0.75),
+            GreyMethod::Demosaic => {
+                let frac = cfa.fractions();
+                for ch in Channel::ALL {
+                    let f = frac[ch.index()];
+                    if f == 0.0 {
+                        continue;
                     }
-                });
-            out
-        }
-        GreyMethod::Demosaic => {
-            let frac = cfa.fractions();
-            let mut out = Array2::<f32>::zeros(values.dim());
-            let mut planes = 0.0f32;
-            for ch in Channel::ALL {
-                let f = frac[ch.index()];
-                if f == 0.0 {
-                    continue;
+                    plane(cfa.mask(ch), (0.6 / f.sqrt()) as f32);
                 }
-                let sigma = (0.6 / f.sqrt()) as f32;
-                let plane = normalized_convolution_masked(&values, &cfa.mask(ch), sigma);
-                out += &plane;
-                planes += 1.0;
             }
-            out / planes
         }
-    })
+        GreyImager {
+            codes_dim: cfa.codes().dim(),
+            method,
+            planes,
+        }
+    }
+
+    /// Grey image of one block sum (see [`grey_image`]).
+    pub fn image(&self, counts: &Array2<u32>, frames: usize) -> Result<Array2<f32>> {
+        if counts.dim() != self.codes_dim {
+            return Err(Error::invalid(format!(
+                "grey image: counts have shape {:?}, the CFA is {:?}",
+                counts.dim(),
+                self.codes_dim
+            )));
+        }
+        if frames == 0 {
+            return Err(Error::invalid("grey image: zero frames"));
+        }
+        let scale = 1.0 / frames as f32;
+        let values = counts.mapv(|c| c as f32 * scale);
+        Ok(match self.method {
+            GreyMethod::TileAverage { py, px } => tile_average(&values, py, px),
+            GreyMethod::InterpolateW => {
+                let (w_mask, sigma, den) = &self.planes[0];
+                let smooth = normalized_convolution_masked_with(&values, w_mask, *sigma, den);
+                let mut out = values;
+                Zip::from(&mut out)
+                    .and(w_mask)
+                    .and(&smooth)
+                    .for_each(|o, &m, &s| {
+                        if !m {
+                            *o = s;
+                        }
+                    });
+                out
+            }
+            GreyMethod::Demosaic => {
+                let mut out = Array2::<f32>::zeros(values.dim());
+                let mut planes = 0.0f32;
+                for (mask, sigma, den) in &self.planes {
+                    let plane = normalized_convolution_masked_with(&values, mask, *sigma, den);
+                    out += &plane;
+                    planes += 1.0;
+                }
+                out / planes
+            }
+        })
+    }
 }
 
 /// Mean of the `py` x `px` window starting at each pixel (clamped at the far edges).
@@ -174,4 +214,94 @@ fn tile_average(values: &Array2<f32>, py: usize, px: usize) -> Array2<f32> {
         }
         s / n
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cfa::{generate, Pattern};
+    use crate::filters::normalized_convolution_masked;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// The grey image as it was made before [`GreyImager`]: every normalized convolution with
+    /// its own denominator.
+    fn grey_image_direct(
+        counts: &Array2<u32>,
+        frames: usize,
+        cfa: &Cfa,
+        method: GreyMethod,
+    ) -> Array2<f32> {
+        let scale = 1.0 / frames as f32;
+        let values = counts.mapv(|c| c as f32 * scale);
+        match method {
+            GreyMethod::TileAverage { py, px } => tile_average(&values, py, px),
+            GreyMethod::InterpolateW => {
+                let w_mask = cfa.mask(Channel::W);
+                let smooth = normalized_convolution_masked(&values, &w_mask, 0.75);
+                let mut out = values;
+                Zip::from(&mut out)
+                    .and(&w_mask)
+                    .and(&smooth)
+                    .for_each(|o, &m, &s| {
+                        if !m {
+                            *o = s;
+                        }
+                    });
+                out
+            }
+            GreyMethod::Demosaic => {
+                let frac = cfa.fractions();
+                let mut out = Array2::<f32>::zeros(values.dim());
+                let mut planes = 0.0f32;
+                for ch in Channel::ALL {
+                    let f = frac[ch.index()];
+                    if f == 0.0 {
+                        continue;
+                    }
+                    let sigma = (0.6 / f.sqrt()) as f32;
+                    out += &normalized_convolution_masked(&values, &cfa.mask(ch), sigma);
+                    planes += 1.0;
+                }
+                out / planes
+            }
+        }
+    }
+
+    /// One [`GreyImager`] over many blocks gives every block the numbers of the per-block
+    /// computation bit for bit, for every method on RGBW, Bayer and random CFAs.
+    #[test]
+    fn imager_equals_per_block_grey_image() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let random = Cfa::new(Array2::from_shape_fn((23, 31), |_| rng.gen_range(0..4u8))).unwrap();
+        let cfas = [
+            generate(&Pattern::Rgbw75Regular, 24, 40, 0).unwrap(),
+            generate(&Pattern::Bayer, 18, 26, 0).unwrap(),
+            random,
+        ];
+        for cfa in &cfas {
+            for method in [
+                GreyMethod::InterpolateW,
+                GreyMethod::Demosaic,
+                GreyMethod::TileAverage { py: 2, px: 2 },
+            ] {
+                let imager = GreyImager::new(cfa, method);
+                for frames in [1usize, 7, 250] {
+                    let counts = cfa.codes().mapv(|_| rng.gen_range(0..=frames as u32));
+                    let got = imager.image(&counts, frames).unwrap();
+                    let expected = grey_image_direct(&counts, frames, cfa, method);
+                    assert_eq!(got.dim(), expected.dim());
+                    for (g, e) in got.iter().zip(&expected) {
+                        assert_eq!(g.to_bits(), e.to_bits(), "{method:?} {frames}");
+                    }
+                    // (W interpolation on a CFA without W has nothing to interpolate.)
+                    let has_w = cfa.fractions()[Channel::W.index()] > 0.0;
+                    if method != GreyMethod::InterpolateW || has_w {
+                        assert!(got.iter().any(|&v| v > 0.0), "{method:?} {frames}");
+                    }
+                }
+                assert!(imager.image(&cfa.codes().mapv(|_| 1u32), 0).is_err());
+            }
+        }
+    }
 }

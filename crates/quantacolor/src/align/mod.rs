@@ -24,7 +24,7 @@ pub mod track;
 pub mod trajectory;
 
 pub use blocks::{BlockConfig, BlockPlan};
-pub use grey::{grey_image, GreyChoice, GreyMethod};
+pub use grey::{grey_image, GreyChoice, GreyImager, GreyMethod};
 pub use hot_pixels::{
     dark_count_rate_map, detect_hot_pixels, hot_pixel_mask, HotPixelConfig, HotPixelCorrector,
     HotPixelDetectConfig,
@@ -378,6 +378,7 @@ pub fn align(
         .map(|m| HotPixelCorrector::new(cfa, m, config.hot_pixels.k, config.hot_pixels.seed))
         .transpose()?;
 
+    let imager = GreyImager::new(cfa, grey_method);
     progress.start("block sums", plan.len() as u64);
     let grey: Vec<Array2<f32>> = plan
         .blocks
@@ -388,7 +389,7 @@ pub fn align(
                 Some(c) => c.corrected_block_sum(frames, range.clone()),
                 None => frames.shared_sum(range.clone()),
             };
-            let image = grey_image(&sums, range.len(), cfa, grey_method);
+            let image = imager.image(&sums, range.len());
             progress.advance(1);
             image
         })
@@ -440,14 +441,15 @@ pub fn align_grey_blocks(
                 progress.advance(1);
                 return Ok(None);
             }
-            let (f, valid) = aligner.align_with_validity(block)?;
+            let (f, valid, alt) = aligner.align_with_pyramid(block)?;
             let f = median_filter_valid_flow(&f, &valid, config.median_radius);
             let mut f = snap_to_affine_fit(&f, &grid, config.affine_tolerance_px);
             let fit = affine_fit_field(&f, &grid, config.affine_tolerance_px);
             if let Some(fit) = &fit {
                 if config.second_motion_radius_px > 0 {
-                    f = aligner.follow_second_motion(
+                    f = aligner.follow_second_motion_in(
                         block,
+                        &alt,
                         &f,
                         fit,
                         config.affine_tolerance_px,

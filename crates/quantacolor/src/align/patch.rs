@@ -403,6 +403,16 @@ impl ReferenceAligner {
     /// precision (`false`: flat or one-directional tile, or the iterations left the ±1 px
     /// window, and the flow is the integer search result).
     pub fn align_with_validity(&self, block: &Array2<f32>) -> Result<(Array3<f32>, Array2<bool>)> {
+        let (flow, valid, _) = self.align_with_pyramid(block)?;
+        Ok((flow, valid))
+    }
+
+    /// [`ReferenceAligner::align_with_validity`] and the block's pyramid it searched (for
+    /// [`ReferenceAligner::follow_second_motion_in`], which then need not build it again).
+    pub fn align_with_pyramid(
+        &self,
+        block: &Array2<f32>,
+    ) -> Result<(Array3<f32>, Array2<bool>, Pyramid)> {
         if block.dim() != self.dim() {
             return Err(Error::invalid(format!(
                 "block image is {:?}, the reference is {:?}",
@@ -503,7 +513,7 @@ impl ReferenceAligner {
             }
             coarse = Some(arr);
         }
-        Ok((coarse.expect("at least one level"), valid))
+        Ok((coarse.expect("at least one level"), valid, alt))
     }
 
     /// Lucas–Kanade refinement of tile `k` from the integer offset `start`: minimises
@@ -725,6 +735,39 @@ impl ReferenceAligner {
         radius: usize,
         min_tiles: usize,
     ) -> Array3<f32> {
+        self.second_motion(block, None, flow, camera, tolerance, radius, min_tiles)
+    }
+
+    /// [`ReferenceAligner::follow_second_motion`] with the block's pyramid `alt` from
+    /// [`ReferenceAligner::align_with_pyramid`]: its levels 0 and 1 are the smoothed block and
+    /// its level-1 downsampling that the second motion scores, so they are not made again
+    /// (where the finest level is not downsampled; otherwise they are made from `block`).
+    /// The same numbers as [`ReferenceAligner::follow_second_motion`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn follow_second_motion_in(
+        &self,
+        block: &Array2<f32>,
+        alt: &Pyramid,
+        flow: &Array3<f32>,
+        camera: &Array3<f32>,
+        tolerance: f32,
+        radius: usize,
+        min_tiles: usize,
+    ) -> Array3<f32> {
+        self.second_motion(block, Some(alt), flow, camera, tolerance, radius, min_tiles)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn second_motion(
+        &self,
+        block: &Array2<f32>,
+        alt: Option<&Pyramid>,
+        flow: &Array3<f32>,
+        camera: &Array3<f32>,
+        tolerance: f32,
+        radius: usize,
+        min_tiles: usize,
+    ) -> Array3<f32> {
         let grid = &self.grids[0];
         let (ty, tx) = (grid.tiles_y, grid.tiles_x);
         if block.dim() != self.dim() || flow.dim() != (ty, tx, 2) || camera.dim() != flow.dim() {
@@ -742,31 +785,47 @@ impl ReferenceAligner {
         if components.is_empty() {
             return flow.clone();
         }
-        let alt0 = if self.config.presmooth_sigma > 0.0 {
-            gaussian_blur(
-                &block.as_standard_layout().to_owned(),
-                self.config.presmooth_sigma,
-            )
-        } else {
-            block.as_standard_layout().to_owned()
-        };
         // Level 1 of both pyramids (level 0 alone when the pyramid has one level).
         let f = if self.grids.len() > 1 {
             self.config.downsample_factors[1]
         } else {
             1
         };
-        let alt1 = crate::filters::box_downsample(&alt0, f);
+        // The smoothed block and its level-1 downsampling: the block pyramid's levels 0 and 1
+        // where level 0 is not downsampled (`box_downsample` by 1 is a copy).
+        let made;
+        let (alt0, alt1) = match alt {
+            Some(p)
+                if self.config.downsample_factors[0] == 1
+                    && p.levels.len() >= self.grids.len()
+                    && p.levels[0].dim() == block.dim() =>
+            {
+                (&p.levels[0], &p.levels[if f > 1 { 1 } else { 0 }])
+            }
+            _ => {
+                let alt0 = if self.config.presmooth_sigma > 0.0 {
+                    gaussian_blur(
+                        &block.as_standard_layout().to_owned(),
+                        self.config.presmooth_sigma,
+                    )
+                } else {
+                    block.as_standard_layout().to_owned()
+                };
+                let alt1 = crate::filters::box_downsample(&alt0, f);
+                made = (alt0, alt1);
+                (&made.0, &made.1)
+            }
+        };
         let ref0 = &self.pyramid.levels[0];
         let ref1 = if f > 1 { &self.pyramid.levels[1] } else { ref0 };
         let ts = grid.tile_size;
         let origin = |i: usize, j: usize| (i * grid.tile_stride, j * grid.tile_stride);
         let cost0 = |i: usize, j: usize, d: (isize, isize)| {
-            tile_cost(ref0, &alt0, origin(i, j), ts, d, Norm::L1)
+            tile_cost(ref0, alt0, origin(i, j), ts, d, Norm::L1)
         };
         let cost1 = |i: usize, j: usize, d: (isize, isize)| {
             let (oy, ox) = origin(i, j);
-            tile_cost(ref1, &alt1, (oy / f, ox / f), (ts / f).max(2), d, Norm::L1)
+            tile_cost(ref1, alt1, (oy / f, ox / f), (ts / f).max(2), d, Norm::L1)
         };
         let dilate = |tiles: &[(usize, usize)], dist: usize| {
             let mut mask = Array2::from_elem((ty, tx), false);
@@ -780,13 +839,13 @@ impl ReferenceAligner {
             mask
         };
         let row0 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
-            window_row_costs(ref0, &alt0, origin(i, j), ts, d, Norm::L1, out)
+            window_row_costs(ref0, alt0, origin(i, j), ts, d, Norm::L1, out)
         };
         let row1 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
             let (oy, ox) = origin(i, j);
             window_row_costs(
                 ref1,
-                &alt1,
+                alt1,
                 (oy / f, ox / f),
                 (ts / f).max(2),
                 d,
@@ -884,7 +943,7 @@ impl ReferenceAligner {
             let start = (best.0 as f32, best.1 as f32);
             let refined: Vec<(f32, f32)> = component
                 .iter()
-                .filter_map(|&(i, j)| self.refine(i * tx + j, &alt0, origin(i, j), start))
+                .filter_map(|&(i, j)| self.refine(i * tx + j, alt0, origin(i, j), start))
                 .collect();
             let translation = if refined.is_empty() {
                 start
