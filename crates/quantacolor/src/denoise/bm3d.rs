@@ -637,7 +637,7 @@ impl Transforms {
             let coeffs: &[f32; 64] = coeffs[..64].try_into().expect("8 x 8 block");
             let out: &mut [f32; 64] = (&mut out[..64]).try_into().expect("8 x 8 block");
             let mut t = [0.0f32; 64];
-            matmul8_skip_zero_rows(dt, coeffs, &mut t);
+            matmul8(dt, coeffs, &mut t);
             matmul8(&t, d, out);
             return;
         }
@@ -667,38 +667,6 @@ fn matmul8(a: &[f32; 64], b: &[f32; 64], out: &mut [f32; 64]) {
     for r in 0..8 {
         let mut row = [0.0f32; 8];
         for i in 0..8 {
-            let s = a[r * 8 + i];
-            for j in 0..8 {
-                row[j] += s * b[i * 8 + j];
-            }
-        }
-        out[r * 8..r * 8 + 8].copy_from_slice(&row);
-    }
-}
-
-/// [`matmul8`] that leaves out the rows of `b` that are all zero (common after hard
-/// thresholding): their products are ±0, and adding ±0 to a running sum that starts at +0 never
-/// changes it (a sum of finite values is −0 only when both addends are −0), so the result is the
-/// same bits for finite inputs.
-#[inline(always)]
-fn matmul8_skip_zero_rows(a: &[f32; 64], b: &[f32; 64], out: &mut [f32; 64]) {
-    let mut rows = 0u32;
-    for i in 0..8 {
-        let nonzero = b[i * 8..i * 8 + 8]
-            .iter()
-            .fold(false, |acc, &v| acc | (v != 0.0));
-        rows |= (nonzero as u32) << i;
-    }
-    if rows == 0xff {
-        matmul8(a, b, out);
-        return;
-    }
-    for r in 0..8 {
-        let mut row = [0.0f32; 8];
-        let mut left = rows;
-        while left != 0 {
-            let i = left.trailing_zeros() as usize;
-            left &= left - 1;
             let s = a[r * 8 + i];
             for j in 0..8 {
                 row[j] += s * b[i * 8 + j];
@@ -1804,37 +1772,6 @@ mod tests {
             assert_eq!(out, general(&block, false));
             tr.inverse(&block, &mut tmp, &mut out);
             assert_eq!(out, general(&block, true));
-        }
-    }
-
-    #[test]
-    fn matmul_without_zero_rows_is_the_full_product_bit_for_bit() {
-        let a: [f32; 64] = random(64, 11).try_into().unwrap();
-        for (case, zero_rows) in [0u32, 0x01, 0x80, 0xfe, 0xff, 0b1010_0110]
-            .iter()
-            .enumerate()
-        {
-            let mut b: [f32; 64] = random(64, 12 + case as u64).try_into().unwrap();
-            for i in 0..8 {
-                if zero_rows >> i & 1 == 1 {
-                    for j in 0..8 {
-                        // Both zeros: a −0 row is left out just the same.
-                        b[i * 8 + j] = if j % 2 == 0 { 0.0 } else { -0.0 };
-                    }
-                }
-            }
-            // A row with only some zeros stays in.
-            b[3 * 8 + 1] = 0.0;
-            let (mut full, mut skip) = ([0.0f32; 64], [0.0f32; 64]);
-            matmul8(&a, &b, &mut full);
-            matmul8_skip_zero_rows(&a, &b, &mut skip);
-            for k in 0..64 {
-                assert_eq!(
-                    full[k].to_bits(),
-                    skip[k].to_bits(),
-                    "case {case} entry {k}"
-                );
-            }
         }
     }
 
