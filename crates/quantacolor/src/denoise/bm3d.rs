@@ -1048,27 +1048,27 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
         // Image rows are independent, so they are split among the threads; each row still adds
         // the strips that cover it in reference-row order.
         let strips: Vec<(usize, usize)> = batch.iter().map(|&yr| strip_of(yr)).collect();
-        let add_rows =
-            |acc: &mut [f32], first: usize, pick: fn(&(Vec<f32>, Vec<f32>)) -> &[f32]| {
-                for (k, dst) in acc.chunks_exact_mut(w).enumerate() {
-                    let (c, y) = ((first + k) / h, (first + k) % h);
-                    for (&(y0, rows), buffer) in strips.iter().zip(&buffers) {
-                        if (y0..y0 + rows).contains(&y) {
-                            let src = &pick(buffer)[(c * rows + y - y0) * w..][..w];
-                            for (d, s) in dst.iter_mut().zip(src) {
-                                *d += s;
-                            }
+        let add_rows = |acc: &mut [f32], first: usize, numerator: bool| {
+            for (k, dst) in acc.chunks_exact_mut(w).enumerate() {
+                let (c, y) = ((first + k) / h, (first + k) % h);
+                for (&(y0, rows), buffer) in strips.iter().zip(&buffers) {
+                    if (y0..y0 + rows).contains(&y) {
+                        let strip = if numerator { &buffer.0 } else { &buffer.1 };
+                        let src = &strip[(c * rows + y - y0) * w..][..w];
+                        for (d, s) in dst.iter_mut().zip(src) {
+                            *d += s;
                         }
                     }
                 }
-            };
+            }
+        };
         const SUM_ROWS: usize = 16;
         num.par_chunks_mut(SUM_ROWS * w)
             .zip(den.par_chunks_mut(SUM_ROWS * w))
             .enumerate()
             .for_each(|(i, (num, den))| {
-                add_rows(num, i * SUM_ROWS, |b| &b.0);
-                add_rows(den, i * SUM_ROWS, |b| &b.1);
+                add_rows(num, i * SUM_ROWS, true);
+                add_rows(den, i * SUM_ROWS, false);
             });
     }
     (0..channels)
