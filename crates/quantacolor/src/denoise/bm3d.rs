@@ -1045,20 +1045,31 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
             },
         );
         // Sum the strips in reference-row order: the same float additions for any thread count.
-        for (&yr, (strip_num, strip_den)) in batch.iter().zip(&buffers) {
-            let (y0, rows) = strip_of(yr);
-            let len = rows * w;
-            for c in 0..channels {
-                let src = c * len..(c + 1) * len;
-                let dst = c * h * w + y0 * w..c * h * w + y0 * w + len;
-                for (d, s) in num[dst.clone()].iter_mut().zip(&strip_num[src.clone()]) {
-                    *d += s;
-                }
-                for (d, s) in den[dst].iter_mut().zip(&strip_den[src]) {
-                    *d += s;
+        // Image rows are independent, so they are split among the threads; each row still adds
+        // the strips that cover it in reference-row order.
+        let strips: Vec<(usize, usize)> = batch.iter().map(|&yr| strip_of(yr)).collect();
+        let add_rows = |acc: &mut [f32], first: usize, numerator: bool| {
+            for (k, dst) in acc.chunks_exact_mut(w).enumerate() {
+                let (c, y) = ((first + k) / h, (first + k) % h);
+                for (&(y0, rows), buffer) in strips.iter().zip(&buffers) {
+                    if (y0..y0 + rows).contains(&y) {
+                        let strip = if numerator { &buffer.0 } else { &buffer.1 };
+                        let src = &strip[(c * rows + y - y0) * w..][..w];
+                        for (d, s) in dst.iter_mut().zip(src) {
+                            *d += s;
+                        }
+                    }
                 }
             }
-        }
+        };
+        const SUM_ROWS: usize = 16;
+        num.par_chunks_mut(SUM_ROWS * w)
+            .zip(den.par_chunks_mut(SUM_ROWS * w))
+            .enumerate()
+            .for_each(|(i, (num, den))| {
+                add_rows(num, i * SUM_ROWS, true);
+                add_rows(den, i * SUM_ROWS, false);
+            });
     }
     (0..channels)
         .map(|c| {
