@@ -12,7 +12,7 @@ pub fn parse<T: DeserializeOwned>(text: &str) -> Result<T> {
     let value: T = serde_ignored::deserialize(toml::Deserializer::new(text), |key| {
         unknown.push(key.to_string())
     })
-    .map_err(|e| Error::invalid(e.message().to_string()))?;
+    .map_err(|e| Error::invalid(e.to_string().trim_end().to_string()))?;
     match unknown.as_slice() {
         [] => Ok(value),
         keys => Err(Error::invalid(format!(
@@ -48,6 +48,14 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("`burst.align.blocks.min_block`"), "{err}");
+    }
+
+    #[test]
+    fn a_value_of_the_wrong_type_is_shown_with_its_key() {
+        let err = parse::<ReconstructConfig>("[denoise]\nluma_gain = \"x\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("luma_gain"), "{err}");
     }
 
     #[test]
