@@ -942,6 +942,63 @@ fn low_partial_distances(low: &LowPlanes, reference: &[f32], y: usize, x: usize)
     sum
 }
 
+/// [`low_partial_distances`], through [`low_partial_distances_avx2`] when `AVX2`.
+#[inline(always)]
+fn low_partials<const AVX2: bool>(
+    low: &LowPlanes,
+    reference: &[f32],
+    y: usize,
+    x: usize,
+) -> [f32; LANES8] {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if AVX2 {
+            // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
+            return unsafe { low_partial_distances_avx2(low, reference, y, x) };
+        }
+    }
+    low_partial_distances(low, reference, y, x)
+}
+
+/// [`low_partial_distances`] in AVX2 registers: the eight positions are the eight lanes of one
+/// register, and every lane does the same subtractions, products and sums in the same order
+/// (no fused multiply-add), so the same bits. (The compiler did not vectorise the portable
+/// version well: it split the lanes into 4 + 1 + 1 + 2.)
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn low_partial_distances_avx2(
+    low: &LowPlanes,
+    reference: &[f32],
+    y: usize,
+    x: usize,
+) -> [f32; LANES8] {
+    use std::arch::x86_64::*;
+    let stride = low.stride;
+    let row = y * LOW_COEFFS * stride + x;
+    // Every load below stays inside (`low.planes` is padded by eight lanes per row).
+    assert!(
+        reference.len() >= LOW_COEFFS
+            && row + (LOW_COEFFS - 1) * stride + LANES8 <= low.planes.len()
+    );
+    let base = low.planes.as_ptr().add(row);
+    let mut sum = _mm256_setzero_ps();
+    for j in 0..8 {
+        let c0 = _mm256_loadu_ps(base.add(j * stride));
+        let c1 = _mm256_loadu_ps(base.add((j + 8) * stride));
+        let d0 = _mm256_sub_ps(_mm256_set1_ps(reference[j]), c0);
+        let d1 = _mm256_sub_ps(_mm256_set1_ps(reference[j + 8]), c1);
+        let acc = _mm256_add_ps(_mm256_mul_ps(d0, d0), _mm256_mul_ps(d1, d1));
+        sum = if j == 0 { acc } else { _mm256_add_ps(sum, acc) };
+    }
+    let mut out = [0.0f32; LANES8];
+    _mm256_storeu_ps(out.as_mut_ptr(), sum);
+    out
+}
+
 /// What differs between the two steps.
 struct StepParams<'a> {
     /// Coefficients that matching compares (channel 0 of noisy or basic estimate).
@@ -1107,11 +1164,14 @@ fn process_row(
             return;
         }
     }
-    process_row_generic(p, geo, tr, yr, s, strip);
+    process_row_generic::<false>(p, geo, tr, yr, s, strip);
 }
 
+/// The reference blocks of row `yr`; `AVX2` selects the explicit AVX2 kernels
+/// ([`low_partial_distances_avx2`], [`hard_threshold_avx2`], [`wiener_shrink_avx2`]), which
+/// give the same bits as the portable ones.
 #[inline(always)]
-fn process_row_generic(
+fn process_row_generic<const AVX2: bool>(
     p: &StepParams,
     geo: &Geometry,
     tr: &Transforms,
@@ -1120,7 +1180,7 @@ fn process_row_generic(
     strip: &mut Strip<'_>,
 ) {
     for &xr in &geo.ref_xs {
-        process_reference(p, geo, tr, yr, xr, s, strip);
+        process_reference::<AVX2>(p, geo, tr, yr, xr, s, strip);
     }
 }
 
@@ -1138,13 +1198,14 @@ unsafe fn process_row_avx2(
     s: &mut Scratch,
     strip: &mut Strip<'_>,
 ) {
-    process_row_generic(p, geo, tr, yr, s, strip);
+    // `true`: this function is the AVX2 build, and its callers checked the CPU.
+    process_row_generic::<true>(p, geo, tr, yr, s, strip);
 }
 
 /// Groups the blocks similar to reference `(yr, xr)`, filters the group in every channel with
 /// σ > 0, and aggregates the block estimates into `strip`.
 #[inline(always)]
-fn process_reference(
+fn process_reference<const AVX2: bool>(
     p: &StepParams,
     geo: &Geometry,
     tr: &Transforms,
@@ -1155,7 +1216,7 @@ fn process_reference(
 ) {
     let n = geo.n;
     let n2 = n * n;
-    find_group(p, geo, yr, xr, s);
+    find_group::<AVX2>(p, geo, yr, xr, s);
     let m = s.group.len();
     let w = geo.w;
     let channels = p.noisy.len();
@@ -1183,7 +1244,8 @@ fn process_reference(
                 // weight 1/(σ²·N_har) (Eq. 10).
                 // With correlated noise each 2D coefficient k has its own σ·profile[k], and
                 // N_har becomes the retained coefficients' summed relative variance.
-                let retained = hard_threshold(group, &p.profiles[c], p.lambda_3d * sigma);
+                let retained =
+                    hard_threshold_dispatch::<AVX2>(group, &p.profiles[c], p.lambda_3d * sigma);
                 if retained > 0.0 {
                     1.0 / (sigma * sigma * retained)
                 } else {
@@ -1202,7 +1264,7 @@ fn process_reference(
                 let bgroup = &mut s.basic_group[..m * n2];
                 haar_forward(bgroup, m, n2, &mut s.haar_tmp);
                 let s2 = sigma * sigma;
-                let w_norm = wiener_shrink(group, bgroup, &p.profiles[c], s2);
+                let w_norm = wiener_shrink_dispatch::<AVX2>(group, bgroup, &p.profiles[c], s2);
                 if w_norm > 0.0 {
                     1.0 / (s2 * w_norm)
                 } else {
@@ -1284,6 +1346,105 @@ fn hard_threshold(group: &mut [f32], profile: &[f32], threshold: f32) -> f32 {
         }
     }
     lane_total(lanes)
+}
+
+/// [`hard_threshold`], through [`hard_threshold_avx2`] when `AVX2` and the rows are whole
+/// lane chunks.
+#[inline(always)]
+fn hard_threshold_dispatch<const AVX2: bool>(
+    group: &mut [f32],
+    profile: &[f32],
+    threshold: f32,
+) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if AVX2 && profile.len() % SHRINK_LANES == 0 {
+            // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
+            return unsafe { hard_threshold_avx2(group, profile, threshold) };
+        }
+    }
+    hard_threshold(group, profile, threshold)
+}
+
+/// [`hard_threshold`] for rows of whole lane chunks, lane `l` of [`SHRINK_LANES`] in lane `l`
+/// of an AVX2 register: the same comparison, the same products added in the same order (a
+/// zeroed coefficient adds `+0.0`, as in the portable version), so the same bits.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn hard_threshold_avx2(group: &mut [f32], profile: &[f32], threshold: f32) -> f32 {
+    use std::arch::x86_64::*;
+    let n2 = profile.len();
+    assert!(n2 % SHRINK_LANES == 0 && group.len() % n2.max(1) == 0);
+    let t = _mm256_set1_ps(threshold);
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let mut lanes = _mm256_setzero_ps();
+    for row in group.chunks_exact_mut(n2) {
+        for k in (0..n2).step_by(SHRINK_LANES) {
+            let v = _mm256_loadu_ps(row.as_ptr().add(k));
+            let q = _mm256_loadu_ps(profile.as_ptr().add(k));
+            let keep = _mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_and_ps(v, abs_mask), _mm256_mul_ps(t, q));
+            _mm256_storeu_ps(row.as_mut_ptr().add(k), _mm256_and_ps(v, keep));
+            lanes = _mm256_add_ps(lanes, _mm256_and_ps(_mm256_mul_ps(q, q), keep));
+        }
+    }
+    let mut out = [0.0f32; SHRINK_LANES];
+    _mm256_storeu_ps(out.as_mut_ptr(), lanes);
+    lane_total(out)
+}
+
+/// [`wiener_shrink`], through [`wiener_shrink_avx2`] when `AVX2` and the rows are whole lane
+/// chunks.
+#[inline(always)]
+fn wiener_shrink_dispatch<const AVX2: bool>(
+    group: &mut [f32],
+    basic: &[f32],
+    profile: &[f32],
+    s2: f32,
+) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if AVX2 && profile.len() % SHRINK_LANES == 0 {
+            // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
+            return unsafe { wiener_shrink_avx2(group, basic, profile, s2) };
+        }
+    }
+    wiener_shrink(group, basic, profile, s2)
+}
+
+/// [`wiener_shrink`] for rows of whole lane chunks in AVX2 registers: the same operations in
+/// the same order per lane (IEEE division, no fused multiply-add), so the same bits.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn wiener_shrink_avx2(group: &mut [f32], basic: &[f32], profile: &[f32], s2: f32) -> f32 {
+    use std::arch::x86_64::*;
+    let n2 = profile.len();
+    assert!(n2 % SHRINK_LANES == 0 && basic.len() >= group.len() && group.len() % n2.max(1) == 0);
+    let s2v = _mm256_set1_ps(s2);
+    let mut lanes = _mm256_setzero_ps();
+    for (r, row) in group.chunks_exact_mut(n2).enumerate() {
+        let brow = basic.as_ptr().add(r * n2);
+        for k in (0..n2).step_by(SHRINK_LANES) {
+            let v = _mm256_loadu_ps(row.as_ptr().add(k));
+            let b = _mm256_loadu_ps(brow.add(k));
+            let q = _mm256_loadu_ps(profile.as_ptr().add(k));
+            let b2 = _mm256_mul_ps(b, b);
+            let q2 = _mm256_mul_ps(q, q);
+            let wc = _mm256_div_ps(b2, _mm256_add_ps(b2, _mm256_mul_ps(s2v, q2)));
+            _mm256_storeu_ps(row.as_mut_ptr().add(k), _mm256_mul_ps(v, wc));
+            lanes = _mm256_add_ps(lanes, _mm256_mul_ps(_mm256_mul_ps(wc, wc), q2));
+        }
+    }
+    let mut out = [0.0f32; SHRINK_LANES];
+    _mm256_storeu_ps(out.as_mut_ptr(), lanes);
+    lane_total(out)
 }
 
 /// Empirical Wiener shrinkage of `group` (rows of `profile.len()`) with the basic estimate's
@@ -1381,7 +1542,13 @@ fn copy_coefficients(dst: &mut [f32], src: &[f32]) {
 /// candidate the group can take is still summed in full: the group is the one of a full scan
 /// (the test `bounded_search_finds_the_full_search_group` compares them).
 #[inline(always)]
-fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scratch) {
+fn find_group<const AVX2: bool>(
+    p: &StepParams,
+    geo: &Geometry,
+    yr: usize,
+    xr: usize,
+    s: &mut Scratch,
+) {
     let hw = geo.half_window;
     let pw = geo.pw;
     let ref_pos = yr * pw + xr;
@@ -1435,7 +1602,7 @@ fn find_group(p: &StepParams, geo: &Geometry, yr: usize, xr: usize, s: &mut Scra
                 // read the next positions or the padding and are not used).
                 let mut x = x0;
                 while x <= x1 {
-                    let partial = low_partial_distances(low, reference, y, x);
+                    let partial = low_partials::<AVX2>(low, reference, y, x);
                     // Lanes that pass the check, as bits (the bound of the chunk's start: a
                     // lower one found meanwhile only saves work, `consider` applies it).
                     let mut pass = 0u32;
@@ -1931,6 +2098,57 @@ mod tests {
         }
     }
 
+    /// The AVX2 shrinkages give the portable versions' bits: the shrunk coefficients and the
+    /// lane sums, for groups of 1 to 32 blocks of 8x8 and of 4x4 coefficients, with
+    /// coefficients exactly at the threshold, zeros (a zero basic coefficient with a zero
+    /// profile entry makes W = 0/0) and both signs.
+    #[test]
+    fn avx2_shrinkages_are_bit_identical_to_portable() {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if !std::arch::is_x86_feature_detected!("avx2") {
+                return;
+            }
+            for n2 in [64usize, 16] {
+                for m in [1usize, 2, 4, 8, 16, 32] {
+                    let mut group = random(m * n2, 10 + m as u64);
+                    let mut basic = random(m * n2, 20 + m as u64);
+                    let mut profile: Vec<f32> =
+                        (0..n2).map(|k| 0.5 + (k % 7) as f32 * 0.2).collect();
+                    let threshold = 0.6f32;
+                    // On the threshold exactly (kept only if strictly above), zeros, -0.0.
+                    group[0] = threshold * profile[0];
+                    group[1] = -threshold * profile[1];
+                    group[2] = 0.0;
+                    group[3] = -0.0;
+                    basic[4] = 0.0;
+                    profile[4] = 0.0;
+                    basic[5] = -0.0;
+                    for s2 in [0.3f32, 0.0, 7.5] {
+                        let (mut a, mut b) = (group.clone(), group.clone());
+                        let ra = hard_threshold(&mut a, &profile, threshold);
+                        // SAFETY: AVX2 checked above.
+                        let rb = unsafe { hard_threshold_avx2(&mut b, &profile, threshold) };
+                        assert_eq!(ra.to_bits(), rb.to_bits(), "n2 {n2} m {m}");
+                        assert_eq!(
+                            a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                            b.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+                        );
+                        let (mut a, mut b) = (group.clone(), group.clone());
+                        let wa = wiener_shrink(&mut a, &basic, &profile, s2);
+                        // SAFETY: AVX2 checked above.
+                        let wb = unsafe { wiener_shrink_avx2(&mut b, &basic, &profile, s2) };
+                        assert_eq!(wa.to_bits(), wb.to_bits(), "n2 {n2} m {m} s2 {s2}");
+                        assert_eq!(
+                            a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                            b.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn kaiser_window_matches_closed_form() {
         // I0(0) = 1; I0(2) = 2.2795853023360673.
@@ -2018,14 +2236,22 @@ mod tests {
                 // One worker's scratch across many references, so that the bound from the
                 // previous group is used (and sometimes from another row).
                 let mut s = Scratch::new(64, max_group);
+                #[cfg(target_arch = "x86_64")]
+                let mut s_avx2 = Scratch::new(64, max_group);
                 for &yr in &geo.ref_ys {
                     for &xr in &geo.ref_xs {
-                        find_group(&p, &geo, yr, xr, &mut s);
+                        let full = full_search_group(&p, &geo, yr, xr);
+                        find_group::<false>(&p, &geo, yr, xr, &mut s);
                         assert_eq!(
-                            s.group,
-                            full_search_group(&p, &geo, yr, xr),
+                            s.group, full,
                             "tau {tau_sum}, group {max_group}, low {with_low}, ({yr}, {xr})"
                         );
+                        #[cfg(target_arch = "x86_64")]
+                        if std::arch::is_x86_feature_detected!("avx2") {
+                            // The AVX2 kernels, with the worker's own scratch.
+                            find_group::<true>(&p, &geo, yr, xr, &mut s_avx2);
+                            assert_eq!(s_avx2.group, full, "AVX2 ({yr}, {xr})");
+                        }
                     }
                 }
             }
@@ -2046,6 +2272,16 @@ mod tests {
         for y in 0..geo.ph {
             for x0 in (0..geo.pw).step_by(8) {
                 let lanes = low_partial_distances(&low, reference, y, x0);
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: AVX2 checked just above.
+                    let wide = unsafe { low_partial_distances_avx2(&low, reference, y, x0) };
+                    assert_eq!(
+                        wide.map(f32::to_bits),
+                        lanes.map(f32::to_bits),
+                        "({y}, {x0})"
+                    );
+                }
                 for (l, &got) in lanes.iter().enumerate().take(geo.pw - x0) {
                     let block = coeffs.block(y * geo.pw + x0 + l);
                     let mut acc = [0.0f32; 8];
@@ -2085,7 +2321,7 @@ mod tests {
             profiles: &[vec![1.0; 64]],
         };
         let mut s = Scratch::new(64, 16);
-        find_group(&p, &geo, 6, 6, &mut s);
+        find_group::<false>(&p, &geo, 6, 6, &mut s);
         assert_eq!(s.group.len(), 16);
         assert_eq!(s.group[0], 6 * geo.pw + 6);
         let mut unique = s.group.clone();
