@@ -33,10 +33,13 @@
 //!   the paper; [`Bm3dConfig::data_range`] says what 255 corresponds to in the caller's units.
 //! - The search window is the `NS × NS` window centred on the reference, truncated at borders.
 //!
-//! Memory: the 2D DCT of every block position is computed once per step and stored,
-//! `(H−N1+1)·(W−N1+1)·N1²` f32 per channel (noisy, and in Step 2 also the basic estimate), so
-//! matching is a cheap distance on stored coefficients. That is about 65 MB per channel per
-//! image for 512×512 and 250 MB for 1000×1000: fine for images up to about 1000×1000.
+//! Memory: the 2D DCT of every block position of the matching channel (channel 0: noisy in
+//! Step 1, basic estimate in Step 2) is computed once per step and stored,
+//! `(H−N1+1)·(W−N1+1)·N1²` f32 (about 65 MB for 512×512 and 250 MB for 1000×1000), so
+//! matching is a cheap distance on stored coefficients; Step 2 keeps noisy channel 0's as well.
+//! The other channels' blocks are transformed when a group takes them ([`BlockSource`]): each
+//! position is a group member only about once or twice per step, so that is cheaper than
+//! storing every position (the same bits either way).
 //! For 8×8 blocks the matching channel's first two coefficient rows are also stored as planes
 //! over the positions (a quarter more), so that the first check of a candidate runs on eight
 //! positions at once; matching stops summing a candidate once it cannot enter the group
@@ -274,13 +277,12 @@ pub(crate) fn bm3d_planes(
         .outer_iter()
         .map(|p| p.iter().copied().collect())
         .collect();
-    let noisy_coeffs: Vec<BlockCoeffs> = planes
-        .iter()
-        .map(|p| BlockCoeffs::compute(p, &geo, &tr))
-        .collect();
+    let noisy_coeffs = BlockCoeffs::compute(&planes[0], &geo, &tr);
+    let noisy = block_sources(&noisy_coeffs, &planes);
     let regime = NoiseRegime::of(sigmas[0], config);
     let shared = SharedParams {
-        noisy: &noisy_coeffs,
+        noisy: &noisy,
+        noisy_coeffs: &noisy_coeffs,
         block_variance: block_variance.as_deref(),
         profiles: &profiles,
         geo: &geo,
@@ -388,7 +390,10 @@ impl NoiseRegime {
 
 /// What both steps read: the noisy coefficients, noise model and geometry.
 struct SharedParams<'a> {
-    noisy: &'a [BlockCoeffs],
+    /// Per channel, where the noisy blocks' coefficients come from.
+    noisy: &'a [BlockSource<'a>],
+    /// The stored coefficients of noisy channel 0 (Step 1 matches on them).
+    noisy_coeffs: &'a BlockCoeffs,
     block_variance: Option<&'a [Vec<f32>]>,
     profiles: &'a [Vec<f32>],
     geo: &'a Geometry,
@@ -406,10 +411,12 @@ fn hard_threshold_step(
 ) -> Vec<Vec<f32>> {
     let thresholded;
     let matching = if regime.high_noise && config.lambda_2d > 0.0 {
-        thresholded = shared.noisy[0].hard_thresholded(config.lambda_2d * sigmas[0]);
+        thresholded = shared
+            .noisy_coeffs
+            .hard_thresholded(config.lambda_2d * sigmas[0]);
         &thresholded
     } else {
-        &shared.noisy[0]
+        shared.noisy_coeffs
     };
     let low = low_planes(matching, shared.geo);
     let step = StepParams {
@@ -444,13 +451,11 @@ fn wiener_step(
     config: &Bm3dConfig,
     basic: &[Vec<f32>],
 ) -> Vec<Vec<f32>> {
-    let basic_coeffs: Vec<BlockCoeffs> = basic
-        .iter()
-        .map(|p| BlockCoeffs::compute(p, shared.geo, shared.tr))
-        .collect();
-    let low = low_planes(&basic_coeffs[0], shared.geo);
+    let basic_coeffs = BlockCoeffs::compute(&basic[0], shared.geo, shared.tr);
+    let basic_sources = block_sources(&basic_coeffs, basic);
+    let low = low_planes(&basic_coeffs, shared.geo);
     let step = StepParams {
-        matching: &basic_coeffs[0],
+        matching: &basic_coeffs,
         low: low.as_ref(),
         tau_sum: regime.tau_sum(
             config.tau_match_wiener,
@@ -459,7 +464,7 @@ fn wiener_step(
         ),
         max_group: config.max_group_wiener,
         noisy: shared.noisy,
-        basic: Some(&basic_coeffs),
+        basic: Some(&basic_sources),
         sigmas,
         block_variance: shared.block_variance,
         lambda_3d: config.lambda_3d,
@@ -812,6 +817,63 @@ impl BlockCoeffs {
     }
 }
 
+/// Where a step reads the 2D DCT coefficients of a channel's blocks: stored for every
+/// position (channel 0, which groups are matched on and which is read at every position of
+/// every search window), or computed from the plane for each group member (the other
+/// channels: with the reference grid's stride of 5 and groups of up to 16 / 32, a position is
+/// a group member about once or twice per step on average, so storing every position's
+/// coefficients, tens of MB per channel, cost more in page faults and cache misses than
+/// transforming the members; measured with perf). Both give the same bits
+/// ([`Transforms::forward`] is [`BlockCoeffs`]' transform, test
+/// `block_coefficients_are_each_blocks_own_transform_bit_for_bit`).
+enum BlockSource<'a> {
+    Stored(&'a BlockCoeffs),
+    Plane(&'a [f32]),
+}
+
+impl BlockSource<'_> {
+    /// The coefficients of the block at position `pos` into `out` (`n²`); `pixels` and `tmp`
+    /// are scratch of `n²`.
+    #[inline(always)]
+    fn block_into(
+        &self,
+        pos: usize,
+        geo: &Geometry,
+        tr: &Transforms,
+        (pixels, tmp): (&mut [f32], &mut [f32]),
+        out: &mut [f32],
+    ) {
+        match self {
+            BlockSource::Stored(coeffs) => copy_coefficients(out, coeffs.block(pos)),
+            BlockSource::Plane(plane) => {
+                let (n, w) = (geo.n, geo.w);
+                let (y, x) = (pos / geo.pw, pos % geo.pw);
+                if n == 8 {
+                    let mut block = [0.0f32; 64];
+                    for (i, row) in block.chunks_exact_mut(8).enumerate() {
+                        let at = (y + i) * w + x;
+                        row.copy_from_slice(&plane[at..at + 8]);
+                    }
+                    tr.forward(&block, tmp, out);
+                    return;
+                }
+                for i in 0..n {
+                    let at = (y + i) * w + x;
+                    pixels[i * n..(i + 1) * n].copy_from_slice(&plane[at..at + n]);
+                }
+                tr.forward(pixels, tmp, out);
+            }
+        }
+    }
+}
+
+/// Channel 0 from its stored coefficients, the others from their planes.
+fn block_sources<'a>(channel0: &'a BlockCoeffs, planes: &'a [Vec<f32>]) -> Vec<BlockSource<'a>> {
+    std::iter::once(BlockSource::Stored(channel0))
+        .chain(planes[1..].iter().map(|p| BlockSource::Plane(p)))
+        .collect()
+}
+
 /// Squared L2 distance with eight partial sums (vectorises; fixed order, so deterministic).
 #[cfg(test)]
 fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
@@ -1010,9 +1072,9 @@ struct StepParams<'a> {
     tau_sum: f32,
     max_group: usize,
     /// Noisy coefficients per channel.
-    noisy: &'a [BlockCoeffs],
+    noisy: &'a [BlockSource<'a>],
     /// Basic-estimate coefficients per channel: `Some` selects Step 2 (Wiener).
-    basic: Option<&'a [BlockCoeffs]>,
+    basic: Option<&'a [BlockSource<'a>]>,
     sigmas: &'a [f32],
     /// Per channel, the mean relative noise variance of every block position (`None`: 1).
     block_variance: Option<&'a [Vec<f32>]>,
@@ -1231,9 +1293,12 @@ fn process_reference<const AVX2: bool>(
             sigma *= mean.sqrt();
         }
         for (g, &pos) in s.group.iter().enumerate() {
-            copy_coefficients(
+            p.noisy[c].block_into(
+                pos,
+                geo,
+                tr,
+                (&mut s.pixels, &mut s.tmp),
                 &mut s.noisy_group[g * n2..(g + 1) * n2],
-                p.noisy[c].block(pos),
             );
         }
         let group = &mut s.noisy_group[..m * n2];
@@ -1256,9 +1321,12 @@ fn process_reference<const AVX2: bool>(
                 // Step 2: empirical Wiener shrinkage W = |B|²/(|B|² + σ²) (§III-B, Eq. 7–8) and
                 // weight 1/(σ²·‖W‖²) (Eq. 12).
                 for (g, &pos) in s.group.iter().enumerate() {
-                    copy_coefficients(
+                    basic[c].block_into(
+                        pos,
+                        geo,
+                        tr,
+                        (&mut s.pixels, &mut s.tmp),
                         &mut s.basic_group[g * n2..(g + 1) * n2],
-                        basic[c].block(pos),
                     );
                 }
                 let bgroup = &mut s.basic_group[..m * n2];
@@ -1573,7 +1641,9 @@ fn find_group<const AVX2: bool>(
     s.warm.clear();
     for &pos in &s.previous_group {
         if in_window(pos) {
-            if let Some(d) = distance_at_most(reference, p.matching.block(pos), bound) {
+            if let Some(d) =
+                distance_at_most_dispatch::<AVX2>(reference, p.matching.block(pos), bound)
+            {
                 s.warm.push(d);
             }
         }
@@ -1586,14 +1656,7 @@ fn find_group<const AVX2: bool>(
     // lowered to the last of them) whenever it reaches `cap`.
     let cap = 2 * keep.max(8);
     let consider = |pos: usize, bound: &mut f32, candidates: &mut Vec<(f32, u32)>| {
-        if let Some(d) = distance_at_most(reference, p.matching.block(pos), *bound) {
-            candidates.push((d, pos as u32));
-            if candidates.len() == cap {
-                candidates.select_nth_unstable_by(keep - 1, order);
-                candidates.truncate(keep);
-                *bound = candidates[keep - 1].0;
-            }
-        }
+        consider_candidate::<AVX2>(reference, p.matching, pos, bound, candidates, keep, cap);
     };
     for y in y0..=y1 {
         match p.low {
@@ -1643,6 +1706,87 @@ fn find_group<const AVX2: bool>(
     );
     s.previous_group.clear();
     s.previous_group.extend_from_slice(&s.group);
+}
+
+/// One candidate of [`find_group`]'s scan: its distance to `reference` when at most `bound`
+/// joins `candidates`, which are cut back to the best `keep` (and `bound` lowered to the last
+/// of them) whenever they reach `cap`. A function rather than a closure, so that it is inlined
+/// into the AVX2 build (the closure was compiled on its own, without AVX2).
+#[inline(always)]
+fn consider_candidate<const AVX2: bool>(
+    reference: &[f32],
+    matching: &BlockCoeffs,
+    pos: usize,
+    bound: &mut f32,
+    candidates: &mut Vec<(f32, u32)>,
+    keep: usize,
+    cap: usize,
+) {
+    if let Some(d) = distance_at_most_dispatch::<AVX2>(reference, matching.block(pos), *bound) {
+        candidates.push((d, pos as u32));
+        if candidates.len() == cap {
+            *bound = cut_candidates(candidates, keep);
+        }
+    }
+}
+
+/// Keeps the best `keep` of `candidates` (ascending distance, ties by position: the order of
+/// [`find_group`]) and returns the last one's distance.
+#[inline(never)]
+fn cut_candidates(candidates: &mut Vec<(f32, u32)>, keep: usize) -> f32 {
+    let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+    candidates.select_nth_unstable_by(keep - 1, order);
+    candidates.truncate(keep);
+    candidates[keep - 1].0
+}
+
+/// [`distance_at_most`], through [`distance_at_most_avx2`] when `AVX2` and the blocks are
+/// 8 × 8.
+#[inline(always)]
+fn distance_at_most_dispatch<const AVX2: bool>(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if AVX2 {
+            if let (Ok(a), Ok(b)) = (<&[f32; 64]>::try_from(a), <&[f32; 64]>::try_from(b)) {
+                // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked
+                // the CPU.
+                return unsafe { distance_at_most_avx2(a, b, limit) };
+            }
+        }
+    }
+    distance_at_most(a, b, limit)
+}
+
+/// [`distance_at_most`] of 8 × 8 blocks with its eight partial sums as the lanes of one AVX2
+/// register: the same differences, squares and sums in the same order, and the lanes totalled
+/// by the same in-order sum, so the same bits and the same early exits.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn distance_at_most_avx2(a: &[f32; 64], b: &[f32; 64], limit: f32) -> Option<f32> {
+    use std::arch::x86_64::*;
+    let total = |acc: __m256| {
+        let mut lanes = [0.0f32; 8];
+        _mm256_storeu_ps(lanes.as_mut_ptr(), acc);
+        lanes.iter().sum::<f32>()
+    };
+    let mut acc = _mm256_setzero_ps();
+    for chunk in 0..8 {
+        if (chunk == 2 || chunk == 4) && total(acc) > limit {
+            return None;
+        }
+        let d = _mm256_sub_ps(
+            _mm256_loadu_ps(a.as_ptr().add(chunk * 8)),
+            _mm256_loadu_ps(b.as_ptr().add(chunk * 8)),
+        );
+        acc = _mm256_add_ps(acc, _mm256_mul_ps(d, d));
+    }
+    // `+ 0.0`: as in `distance_at_most`.
+    let d = total(acc) + 0.0;
+    (d <= limit).then_some(d)
 }
 
 /// Largest power of two ≤ `k` (`k ≥ 1`).
@@ -1893,6 +2037,24 @@ mod tests {
                         assert_eq!(bounded.map(f32::to_bits), Some(full.to_bits()));
                     } else {
                         assert_eq!(bounded, None);
+                    }
+                    // The 8 x 8 kernels: the portable one and the AVX2 one, the same bits and
+                    // the same `None`s (also for limits between the early checks' sums).
+                    if len == 64 {
+                        let (a8, b8): (&[f32; 64], &[f32; 64]) =
+                            (a[..].try_into().unwrap(), b[..].try_into().unwrap());
+                        let portable = distance_at_most(&a, &b, limit);
+                        assert_eq!(portable.map(f32::to_bits), bounded.map(f32::to_bits));
+                        #[cfg(target_arch = "x86_64")]
+                        if std::arch::is_x86_feature_detected!("avx2") {
+                            for l in [limit, full * 0.1, full * 0.3, full * 0.6] {
+                                // SAFETY: AVX2 checked just above.
+                                let wide = unsafe { distance_at_most_avx2(a8, b8, l) };
+                                let portable = distance_at_most(&a, &b, l);
+                                assert_eq!(wide.map(f32::to_bits), portable.map(f32::to_bits));
+                            }
+                        }
+                        let _ = (a8, b8);
                     }
                 }
             }
@@ -2149,6 +2311,31 @@ mod tests {
         }
     }
 
+    /// A block's coefficients computed from the plane are the stored ones, bit for bit (8 x 8
+    /// and the general path).
+    #[test]
+    fn block_source_from_the_plane_is_the_stored_coefficients() {
+        for n in [8usize, 5] {
+            let (h, w) = (23usize, 31usize);
+            let image = random(h * w, 40 + n as u64);
+            let geo = Geometry::new(h, w, n, &Bm3dConfig::default());
+            let tr = Transforms::new(n, 2.0);
+            let coeffs = BlockCoeffs::compute(&image, &geo, &tr);
+            let (stored, plane) = (BlockSource::Stored(&coeffs), BlockSource::Plane(&image));
+            let (mut pixels, mut tmp) = (vec![0.0f32; n * n], vec![0.0f32; n * n]);
+            let (mut a, mut b) = (vec![0.0f32; n * n], vec![0.0f32; n * n]);
+            for pos in 0..geo.ph * geo.pw {
+                stored.block_into(pos, &geo, &tr, (&mut pixels, &mut tmp), &mut a);
+                plane.block_into(pos, &geo, &tr, (&mut pixels, &mut tmp), &mut b);
+                assert_eq!(
+                    a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    "n {n}, position {pos}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn kaiser_window_matches_closed_form() {
         // I0(0) = 1; I0(2) = 2.2795853023360673.
@@ -2226,7 +2413,7 @@ mod tests {
                     low: with_low.then_some(&low),
                     tau_sum,
                     max_group,
-                    noisy: &coeffs,
+                    noisy: &[BlockSource::Stored(&coeffs[0])],
                     basic: None,
                     sigmas: &[20.0],
                     block_variance: None,
@@ -2313,7 +2500,7 @@ mod tests {
             low: None,
             tau_sum: 1.0,
             max_group: 16,
-            noisy: &noisy,
+            noisy: &[BlockSource::Stored(&noisy[0])],
             basic: None,
             sigmas: &[1.0],
             block_variance: None,
