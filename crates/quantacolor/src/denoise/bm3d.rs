@@ -1673,6 +1673,9 @@ fn find_group<const AVX2: bool>(
                         pass |= ((part <= bound) as u32) << l;
                     }
                     pass &= (1u32 << (x1 + 1 - x).min(LANES8)) - 1;
+                    if AVX2 {
+                        prefetch_blocks(p.matching, y * pw + x, pass);
+                    }
                     while pass != 0 {
                         let pos = y * pw + x + pass.trailing_zeros() as usize;
                         pass &= pass - 1;
@@ -1706,6 +1709,30 @@ fn find_group<const AVX2: bool>(
     );
     s.previous_group.clear();
     s.previous_group.extend_from_slice(&s.group);
+}
+
+/// Asks the CPU to start loading the coefficients of the positions `first + l` for every bit
+/// `l` of `lanes` (all of them before any is summed, so that their cache misses overlap). A
+/// hint only: no result depends on it.
+#[inline(always)]
+fn prefetch_blocks(coeffs: &BlockCoeffs, first: usize, lanes: u32) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let mut bits = lanes;
+        while bits != 0 {
+            let pos = first + bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let block = coeffs.block(pos);
+            // One prefetch per 64-byte line (16 f32) of the block.
+            for line in block.chunks(16) {
+                // SAFETY: prefetching reads nothing and cannot fault; the pointer is in bounds.
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast::<i8>()) };
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (coeffs, first, lanes);
 }
 
 /// One candidate of [`find_group`]'s scan: its distance to `reference` when at most `bound`
