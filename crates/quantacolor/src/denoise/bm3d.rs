@@ -1426,7 +1426,8 @@ fn hard_threshold_dispatch<const AVX2: bool>(
 ) -> f32 {
     #[cfg(target_arch = "x86_64")]
     {
-        if AVX2 && profile.len() % SHRINK_LANES == 0 {
+        let rem = profile.len() % SHRINK_LANES; // not is_multiple_of: rust-version is 1.80
+        if AVX2 && rem == 0 {
             // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
             return unsafe { hard_threshold_avx2(group, profile, threshold) };
         }
@@ -1446,7 +1447,8 @@ fn hard_threshold_dispatch<const AVX2: bool>(
 unsafe fn hard_threshold_avx2(group: &mut [f32], profile: &[f32], threshold: f32) -> f32 {
     use std::arch::x86_64::*;
     let n2 = profile.len();
-    assert!(n2 % SHRINK_LANES == 0 && group.len() % n2.max(1) == 0);
+    let (rem, rows_rem) = (n2 % SHRINK_LANES, group.len() % n2.max(1)); // rust-version 1.80
+    assert!(rem == 0 && rows_rem == 0);
     let t = _mm256_set1_ps(threshold);
     let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
     let mut lanes = _mm256_setzero_ps();
@@ -1475,7 +1477,8 @@ fn wiener_shrink_dispatch<const AVX2: bool>(
 ) -> f32 {
     #[cfg(target_arch = "x86_64")]
     {
-        if AVX2 && profile.len() % SHRINK_LANES == 0 {
+        let rem = profile.len() % SHRINK_LANES; // not is_multiple_of: rust-version is 1.80
+        if AVX2 && rem == 0 {
             // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
             return unsafe { wiener_shrink_avx2(group, basic, profile, s2) };
         }
@@ -1494,7 +1497,8 @@ fn wiener_shrink_dispatch<const AVX2: bool>(
 unsafe fn wiener_shrink_avx2(group: &mut [f32], basic: &[f32], profile: &[f32], s2: f32) -> f32 {
     use std::arch::x86_64::*;
     let n2 = profile.len();
-    assert!(n2 % SHRINK_LANES == 0 && basic.len() >= group.len() && group.len() % n2.max(1) == 0);
+    let (rem, rows_rem) = (n2 % SHRINK_LANES, group.len() % n2.max(1)); // rust-version 1.80
+    assert!(rem == 0 && rows_rem == 0 && basic.len() >= group.len());
     let s2v = _mm256_set1_ps(s2);
     let mut lanes = _mm256_setzero_ps();
     for (r, row) in group.chunks_exact_mut(n2).enumerate() {
