@@ -260,6 +260,10 @@ const SPLAT_BAND_ROWS: usize = 16;
 const LANES: usize = 8;
 /// Sums per bin: 4 channels × (Σ r·counts, Σ r·F, Σ r²·F).
 const SUMS: usize = 12;
+/// A channel's own ellipse bounds its bins in the regression ([`gather_row_generic`]) when its
+/// limit is below this fraction of the widest channel's (this project's heuristic: it changes
+/// only the work, not the result).
+const OWN_ELLIPSE_RATIO: f64 = 0.8;
 
 /// Bilinear sample of the interleaved (H, W, 2) `flow` at real position (y, x), clamped.
 #[inline]
@@ -814,9 +818,23 @@ impl<'a> MergeAccumulator<'a> {
     /// (Σ g·S0, Σ g·S1, Σ g²·S2) per channel (the sums of supplement Eq. 1–3 over the bins, g the
     /// kernel weight) of every output pixel, row-major, in parallel by output rows.
     fn regression(&self) -> Vec<[f32; SUMS]> {
+        let (hs, ws) = (
+            self.cfa.height() * self.config.scale,
+            self.cfa.width() * self.config.scale,
+        );
+        self.with_gather(|gather| {
+            let mut sums = vec![[0.0f32; SUMS]; hs * ws];
+            sums.par_chunks_mut(ws)
+                .enumerate()
+                .for_each(|(oy, row)| gather_row(gather, oy, row));
+            sums
+        })
+    }
+
+    /// Runs `f` with what the regression reads ([`Gather`]).
+    fn with_gather<R>(&self, f: impl FnOnce(&Gather) -> R) -> R {
         let scale = self.config.scale;
         let (h, w) = (self.cfa.height(), self.cfa.width());
-        let (hs, ws) = (h * scale, w * scale);
         let inv_scale = self.inv_scale;
         let cutoff = self.config.cutoff;
         let u = self.bins_per_px as f32;
@@ -863,11 +881,7 @@ impl<'a> MergeAccumulator<'a> {
                     .then(|| cutoff as f64 / inv_scale[ch] as f64)
             }),
         };
-        let mut sums = vec![[0.0f32; SUMS]; hs * ws];
-        sums.par_chunks_mut(ws)
-            .enumerate()
-            .for_each(|(oy, row)| gather_row(&gather, oy, row));
-        sums
+        f(&gather)
     }
 
     /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel mean samples and
@@ -1034,8 +1048,222 @@ unsafe fn gather_row_avx2(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
 /// (empty bins hold zeros); each lane keeps its own partial sums, added in a fixed tree at
 /// the end of the pixel. Deterministic and independent of the thread count; the order of the
 /// additions differs from one sum over the bins in row order only by rounding.
+///
+/// Per bin row, the weights of every group of eight bins are made first (once per distinct
+/// channel factor), then each channel runs over the groups with its three partial sums held in
+/// registers: each partial sum receives the same products in the same order (rows, then groups)
+/// as when the channels took turns per group, so the same bits
+/// (`gather_row_matches_the_group_by_group_reference`).
 #[inline(always)]
 fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+    let (bins, stride) = (g.bins, g.stride);
+    let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
+    let py = oy as f32 * g.inv_s + g.offset;
+    let iy = (py.round().max(0.0) as usize).min(g.h - 1);
+    let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
+    let by1 = (((py + radius + margin) * u).floor() as isize).min(g.bins_h - 1);
+    // Row offsets of the bin rows from the pixel row, and each pixel's dx interval of every
+    // ellipse in each bin row (the main one, then each channel's own), made for all rows at
+    // once ([`ellipse_spans`]).
+    let dys: Vec<f32> = (by0..=by1)
+        .map(|by| by as f32 * inv_u - margin - py)
+        .collect();
+    let rows = dys.len();
+    let mut main_span = vec![[0.0f64; 2]; rows];
+    // The channels that take their own, narrower ellipse: only where it is markedly narrower
+    // than the main one (a nearly equal one, e.g. R and G against B of a CFA with one site
+    // fewer of B, would skip about no group for the cost of its spans), made once per distinct
+    // limit: own[ch] is the channel whose spans channel ch uses. Groups outside a channel's
+    // ellipse add exact zeros to its sums, so which ellipses are used changes no bit.
+    let mut own: [Option<usize>; 4] = [None; 4];
+    for ch in 0..4 {
+        if let (Some(limit), Some(main)) = (g.channel_limit[ch], g.ellipse_limit) {
+            if limit < OWN_ELLIPSE_RATIO * main {
+                let same =
+                    (0..ch).find(|&l| own[l] == Some(l) && g.channel_limit[l] == Some(limit));
+                own[ch] = Some(same.unwrap_or(ch));
+            }
+        }
+    }
+    let mut channel_span: [Vec<[f64; 2]>; 4] = std::array::from_fn(|ch| {
+        if own[ch] == Some(ch) {
+            vec![[0.0f64; 2]; rows]
+        } else {
+            Vec::new()
+        }
+    });
+    // The channel whose weights each channel uses (itself, or the one it reuses).
+    let mut source = [0, 1, 2, 3];
+    for ch in 0..4 {
+        if g.reuse[ch] {
+            // The last present channel before it (absent channels in between are skipped).
+            let mut l = ch - 1;
+            while !g.present[l] {
+                l -= 1;
+            }
+            source[ch] = source[l];
+        }
+    }
+    // Groups of eight bins of a bin row: at most the bins within the radius, plus one.
+    let max_groups = ((2.0 * radius * u) as usize + 2).div_ceil(LANES) + 1;
+    // weights[ch][group·8 + lane] of the channels that make their own weights.
+    let mut quads = vec![0.0f32; max_groups * LANES];
+    let mut weights: [Vec<f32>; 4] = std::array::from_fn(|ch| {
+        vec![
+            0.0f32;
+            if g.present[ch] && !g.reuse[ch] {
+                max_groups * LANES
+            } else {
+                0
+            }
+        ]
+    });
+    for (ox, out) in row.iter_mut().enumerate() {
+        let px = ox as f32 * g.inv_s + g.offset;
+        let ix = (px.round().max(0.0) as usize).min(g.w - 1);
+        let k = 3 * (iy * g.w + ix);
+        let (a, b2, c) = (g.inv_cov[k], 2.0 * g.inv_cov[k + 1], g.inv_cov[k + 2]);
+        let bx0 = (((px - radius + margin) * u).ceil() as isize).max(0);
+        let bx1 = (((px + radius + margin) * u).floor() as isize).min(g.bins_w - 1);
+        if let Some(limit) = g.ellipse_limit {
+            ellipse_spans(a, b2, c, &dys, limit, &mut main_span);
+        }
+        for (ch, spans) in channel_span.iter_mut().enumerate() {
+            if let (Some(limit), Some(true)) = (g.channel_limit[ch], own[ch].map(|o| o == ch)) {
+                ellipse_spans(a, b2, c, &dys, limit, spans);
+            }
+        }
+        // acc[channel][sum][lane]
+        let mut acc = [[[0.0f32; LANES]; 3]; 4];
+        for (row, by) in (by0..=by1).enumerate() {
+            let dy = dys[row];
+            let ady2 = a * dy * dy;
+            let bdy = b2 * dy;
+            // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
+            let cols = BinSpan {
+                bx0,
+                bx1,
+                inv_u: inv_u as f64,
+                centre: (margin + px) as f64,
+                u: u as f64,
+            };
+            let (lo, hi) = match g.ellipse_limit {
+                Some(_) => cols.of(main_span[row]),
+                None => (bx0, bx1),
+            };
+            if lo > hi {
+                continue;
+            }
+            let groups = ((hi - lo) as usize) / LANES + 1;
+            debug_assert!(groups <= max_groups);
+            // Each channel's own bins (a narrower ellipse: fewer); a group of lanes outside them
+            // would add exact zeros to the channel's sums, so it is skipped. Channels that
+            // share weights share the factor, hence the span. (Plain functions, not closures,
+            // so that they are compiled with the caller's instruction set: no libm calls for
+            // `floor` and `ceil`.)
+            let mut span = [(lo, hi); 4];
+            for ch in 0..4 {
+                match own[ch] {
+                    Some(o) if o == ch => {
+                        let (l, h) = cols.of(channel_span[ch][row]);
+                        span[ch] = (l.max(lo), h.min(hi));
+                    }
+                    Some(o) => span[ch] = span[o],
+                    None => {}
+                }
+            }
+            // The groups of a channel: those overlapping its span.
+            let group_range = |ch: usize| -> (usize, usize) {
+                let (l, h) = span[ch];
+                // First group whose last lane reaches l, last group starting at or before h.
+                let first = if l <= lo {
+                    0
+                } else {
+                    ((l - lo) as usize)
+                        .saturating_sub(LANES - 1)
+                        .div_ceil(LANES)
+                };
+                let end = if h < lo {
+                    0
+                } else {
+                    (((h - lo) as usize) / LANES + 1).min(groups)
+                };
+                (first, end)
+            };
+            // The quadratic form of every bin of the groups (32-bit bin indices, exact in f32
+            // as the 64-bit ones are: converted eight at a time), then the weights of every
+            // group, per channel that makes its own.
+            let lo32 = lo as i32;
+            for (group, quads) in quads[..groups * LANES].chunks_exact_mut(LANES).enumerate() {
+                let first = lo32 + (group * LANES) as i32;
+                let mut lanes = [0.0f32; LANES];
+                for (i, quad) in lanes.iter_mut().enumerate() {
+                    let dx = (first + i as i32) as f32 * inv_u - margin - px;
+                    *quad = ady2 + dx * (bdy + c * dx);
+                }
+                quads.copy_from_slice(&lanes);
+            }
+            // Lanes past the row segment: a form no factor brings below the cutoff (weight 0).
+            quads[(hi - lo) as usize + 1..groups * LANES].fill(f32::INFINITY);
+            for (ch, weights) in weights.iter_mut().enumerate() {
+                if !g.present[ch] || g.reuse[ch] {
+                    continue;
+                }
+                let (first, end) = group_range(ch);
+                let factor = g.inv_scale[ch];
+                for group in first..end {
+                    let at = group * LANES;
+                    // Local lanes, so that the compiler sees eight independent values.
+                    let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
+                    let mut lanes = [0.0f32; LANES];
+                    for i in 0..LANES {
+                        let q = quad[i] * factor;
+                        let e = fastmath::exp(-0.5 * q);
+                        lanes[i] = if q < g.cutoff { e } else { 0.0 };
+                    }
+                    weights[at..at + LANES].copy_from_slice(&lanes);
+                }
+            }
+            let row_start = by as usize * SUMS * stride;
+            for (ch, acc) in acc.iter_mut().enumerate() {
+                if !g.present[ch] {
+                    continue;
+                }
+                let (first, end) = group_range(ch);
+                let weights = &weights[source[ch]];
+                let [mut s0acc, mut s1acc, mut s2acc] = *acc;
+                for group in first..end {
+                    let weight: &[f32; LANES] = weights[group * LANES..(group + 1) * LANES]
+                        .try_into()
+                        .expect("lanes");
+                    let at = row_start + (lo as usize + group * LANES) + ch * 3 * stride;
+                    let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+                    let at = at + stride;
+                    let s1: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+                    let at = at + stride;
+                    let s2: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+                    for i in 0..LANES {
+                        s0acc[i] += weight[i] * s0[i];
+                        s1acc[i] += weight[i] * s1[i];
+                        s2acc[i] += weight[i] * weight[i] * s2[i];
+                    }
+                }
+                *acc = [s0acc, s1acc, s2acc];
+            }
+        }
+        for (ch, acc) in acc.iter().enumerate() {
+            for (sum, lanes) in acc.iter().enumerate() {
+                out[ch * 3 + sum] = lane_sum(lanes);
+            }
+        }
+    }
+}
+
+/// The regression of [`gather_row_generic`] as it was before its weights were made a bin row
+/// at a time (the channels taking turns per group of eight bins, the partial sums in memory):
+/// the reference of `gather_row_matches_the_group_by_group_reference`.
+#[cfg(test)]
+fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     let (bins, stride) = (g.bins, g.stride);
     let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
     let py = oy as f32 * g.inv_s + g.offset;
@@ -1424,6 +1652,79 @@ mod tests {
             });
             assert_eq!(fast, plain, "camera and local {matrix:?} {offset:?}");
         }
+    }
+
+    #[test]
+    fn gather_row_matches_the_group_by_group_reference() {
+        // The regression with its weights made a bin row at a time against the form where the
+        // channels took turns per group of eight bins: bit for bit, with random bins and
+        // kernels, for CFAs whose channels share weights (R, G, B), make their own (W) or have
+        // a narrower ellipse of their own, at output scales 1 and 2 and a wide radius.
+        use crate::cfa::{generate, Pattern};
+        use crate::merge::kernels::{kernel_field, KernelConfig};
+        use rand::{Rng, SeedableRng};
+        let (h, w) = (13usize, 29usize);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let reference =
+            Array2::from_shape_fn((h, w), |_| rng.gen_range(0.05f32..0.95)).mapv(|v| v * v);
+        let mut compared = 0;
+        for pattern in [
+            Pattern::Bayer,
+            Pattern::Rgbw50,
+            Pattern::Rgbw75Regular,
+            Pattern::Colorspad,
+        ] {
+            let cfa = match generate(&pattern, h, w, 5) {
+                Ok(cfa) => cfa,
+                Err(_) => continue, // a pattern of fixed size
+            };
+            for (scale, bins, max_radius, exponent) in [
+                (1, 2, 5, 1.0),
+                (2, 2, 5, 1.0),
+                (1, 3, 8, 0.5),
+                (2, 1, 3, 1.0),
+            ] {
+                let config = AccumulateConfig {
+                    scale,
+                    bins_per_output_px: bins,
+                    max_radius,
+                    spacing_exponent: exponent,
+                    ..AccumulateConfig::default()
+                };
+                let kernels =
+                    kernel_field(&reference, &KernelConfig::default().for_output_scale(scale))
+                        .unwrap();
+                let mut acc =
+                    MergeAccumulator::new(&cfa, &kernels, &config, PixelModel::binary(0.0))
+                        .unwrap();
+                let stride = acc.stride;
+                for (i, v) in acc.bins.iter_mut().enumerate() {
+                    // Padding columns stay 0; some empty bins.
+                    if i % stride < acc.bins_w && rng.gen_bool(0.8) {
+                        *v = rng.gen_range(0.0f32..50.0);
+                    }
+                }
+                let ws = w * scale;
+                acc.with_gather(|g| {
+                    for oy in 0..h * scale {
+                        let mut fast = vec![[0.0f32; SUMS]; ws];
+                        let mut generic = vec![[1.0f32; SUMS]; ws];
+                        let mut reference = vec![[2.0f32; SUMS]; ws];
+                        gather_row(g, oy, &mut fast);
+                        gather_row_generic(g, oy, &mut generic);
+                        gather_row_reference(g, oy, &mut reference);
+                        let bits = |v: &Vec<[f32; SUMS]>| {
+                            v.iter().map(|s| s.map(f32::to_bits)).collect::<Vec<_>>()
+                        };
+                        assert_eq!(bits(&fast), bits(&reference), "{pattern:?} {config:?} {oy}");
+                        assert_eq!(bits(&generic), bits(&reference), "{pattern:?} {config:?}");
+                        assert!(reference.iter().flatten().any(|&v| v > 0.0));
+                    }
+                });
+                compared += 1;
+            }
+        }
+        assert!(compared >= 12, "{compared}");
     }
 
     #[test]
