@@ -457,27 +457,33 @@ impl ReferenceAligner {
                 .map_init(LkScratch::default, |scratch, k| {
                     let (i, j) = (k / grid.tiles_x, k % grid.tiles_x);
                     let origin = (i * grid.tile_stride, j * grid.tile_stride);
-                    let seeds = match parent {
-                        None => vec![(0.0, 0.0)],
-                        Some((c, pgrid, f)) => parent_candidates(
-                            c,
-                            pgrid,
-                            f,
-                            grid.tile_centers_y[i],
-                            grid.tile_centers_x[j],
-                        ),
+                    let parent_seeds;
+                    let seeds: &[(f32, f32)] = match parent {
+                        None => &[(0.0, 0.0)],
+                        Some((c, pgrid, f)) => {
+                            parent_seeds = parent_candidates(
+                                c,
+                                pgrid,
+                                f,
+                                grid.tile_centers_y[i],
+                                grid.tile_centers_x[j],
+                            );
+                            &parent_seeds
+                        }
                     };
                     let cost = |d: (isize, isize)| tile_cost(r_img, a_img, origin, ts, d, norm);
                     // Each distinct seed's cost once (the parent tiles often agree, and equal
                     // offsets cost the same); the first of equal minima wins (as `min_by`).
-                    let mut rounded: Vec<(isize, isize)> = Vec::with_capacity(seeds.len());
-                    for &(dy, dx) in &seeds {
+                    let mut rounded = [(0isize, 0isize); 4];
+                    let mut distinct = 0;
+                    for &(dy, dx) in seeds {
                         let d = (dy.round() as isize, dx.round() as isize);
-                        if !rounded.contains(&d) {
-                            rounded.push(d);
+                        if !rounded[..distinct].contains(&d) {
+                            rounded[distinct] = d;
+                            distinct += 1;
                         }
                     }
-                    let seed = rounded
+                    let seed = rounded[..distinct]
                         .iter()
                         .map(|&d| (cost(d), d))
                         .min_by(|a, b| a.0.total_cmp(&b.0))
@@ -485,7 +491,9 @@ impl ReferenceAligner {
                         .1;
                     let mut best = (f32::INFINITY, seed);
                     let side = (2 * radius + 1) as usize;
-                    let mut costs = vec![0.0f32; side];
+                    scratch.window.clear();
+                    scratch.window.resize(side, 0.0);
+                    let costs = &mut scratch.window;
                     for dy in -radius..=radius {
                         // One row of the window: the same numbers as `cost` for each offset.
                         window_row_costs(
@@ -495,9 +503,9 @@ impl ReferenceAligner {
                             ts,
                             (seed.0 + dy, seed.1 - radius),
                             norm,
-                            &mut costs,
+                            costs,
                         );
-                        for (dx, &c) in (-radius..=radius).zip(&costs) {
+                        for (dx, &c) in (-radius..=radius).zip(costs.iter()) {
                             let d = (seed.0 + dy, seed.1 + dx);
                             // Ties go to the smaller displacement.
                             let closer =
@@ -591,6 +599,9 @@ struct LkScratch {
     cols: Vec<(usize, usize, f32)>,
     fxs: Vec<f32>,
     errors: Vec<f32>,
+    /// The costs of one row of a tile's search window (used by the integer search of
+    /// [`ReferenceAligner::align_with_pyramid`], which shares the per-thread scratch).
+    window: Vec<f32>,
 }
 
 /// Σ g·e over a tile for Lucas–Kanade: `e` the bilinear sample of `alt` at the taps
@@ -713,6 +724,7 @@ fn lk_gradient_dot_error_generic(
         cols,
         fxs,
         errors,
+        ..
     } = scratch;
     let width = xs.len();
     let first = cols.first().map_or(0, |c| c.0);
@@ -835,7 +847,7 @@ fn parent_candidates(
     f: f32,
     cy: f32,
     cx: f32,
-) -> Vec<(f32, f32)> {
+) -> [(f32, f32); 4] {
     // Position in parent tile-index units.
     let index = |c: f32, centers: &[f32], stride: usize| {
         let pc = (c + 0.5) / f - 0.5;
@@ -847,14 +859,10 @@ fn parent_candidates(
     };
     let (iy, oy) = index(cy, &pgrid.tile_centers_y, pgrid.tile_stride);
     let (ix, ox) = index(cx, &pgrid.tile_centers_x, pgrid.tile_stride);
-    let mut seeds: Vec<(f32, f32)> = [(iy, ix), (oy, ix), (iy, ox)]
-        .iter()
-        .map(|&(a, b)| (coarse[[a, b, 0]] * f, coarse[[a, b, 1]] * f))
-        .collect();
+    let seed = |(a, b): (usize, usize)| (coarse[[a, b, 0]] * f, coarse[[a, b, 1]] * f);
     // Zero motion as a fourth seed: a coarse level that is ambiguous (aperture problem on a
     // heavily averaged, nearly one-directional texture) cannot then drag a tile far away.
-    seeds.push((0.0, 0.0));
-    seeds
+    [seed((iy, ix)), seed((oy, ix)), seed((iy, ox)), (0.0, 0.0)]
 }
 
 impl ReferenceAligner {
