@@ -136,6 +136,8 @@ impl HotPixelCorrector {
         // Hot pixels a few dozen at a time (neighbours in row-major order), frame by frame: the
         // group's reads of one frame stay within a few rows (one pixel at a time through all
         // frames would touch a new page and cache line at every read).
+        let packed = frames.layout() == FrameLayout::Packed;
+        let row_bytes = frames.width().div_ceil(8);
         let replaced: Vec<Vec<u32>> = self
             .hot
             .par_chunks(HOT_GROUP)
@@ -146,22 +148,40 @@ impl HotPixelCorrector {
                     .map(|&idx| self.stream(idx, range.start))
                     .collect();
                 let mut counts = vec![0u32; hot.len()];
-                for t in range.clone() {
-                    // Packed frames: the bit read straight from the frame's bytes.
-                    let packed = (frames.layout() == FrameLayout::Packed)
-                        .then(|| (frames.raw_frame(t), frames.width().div_ceil(8)));
-                    for ((rng, cands), count) in
-                        rngs.iter_mut().zip(candidates).zip(counts.iter_mut())
-                    {
-                        let n = cands.len() as u64;
-                        let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
-                        let (y, x) = (cands[pick].0 as usize, cands[pick].1 as usize);
-                        *count += match packed {
-                            Some((frame, row_bytes)) => {
-                                ((frame[y * row_bytes + x / 8] >> (7 - x % 8)) & 1) as u32
-                            }
-                            None => frames.sample(t, y, x),
-                        };
+                if packed {
+                    // Packed frames: the bit read straight from the frame's bytes, each
+                    // candidate as its byte in a frame and the bit's shift, the group's
+                    // candidates in one flat list (`spans`: each hot pixel's start and count).
+                    let mut sites: Vec<(u32, u32)> = Vec::new();
+                    let mut spans: Vec<(usize, u64)> = Vec::with_capacity(hot.len());
+                    for cands in candidates {
+                        spans.push((sites.len(), cands.len() as u64));
+                        sites.extend(
+                            cands
+                                .iter()
+                                .map(|&(y, x)| (y * row_bytes as u32 + x / 8, 7 - x % 8)),
+                        );
+                    }
+                    for t in range.clone() {
+                        let frame = frames.raw_frame(t);
+                        for ((rng, &(start, n)), count) in
+                            rngs.iter_mut().zip(&spans).zip(counts.iter_mut())
+                        {
+                            let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
+                            let (byte, shift) = sites[start + pick];
+                            *count += ((frame[byte as usize] >> shift) & 1) as u32;
+                        }
+                    }
+                } else {
+                    for t in range.clone() {
+                        for ((rng, cands), count) in
+                            rngs.iter_mut().zip(candidates).zip(counts.iter_mut())
+                        {
+                            let n = cands.len() as u64;
+                            let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
+                            let (y, x) = (cands[pick].0 as usize, cands[pick].1 as usize);
+                            *count += frames.sample(t, y, x);
+                        }
                     }
                 }
                 counts

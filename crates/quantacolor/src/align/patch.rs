@@ -146,11 +146,18 @@ impl Pyramid {
         } else {
             grey.clone()
         };
-        let mut levels = Vec::with_capacity(config.downsample_factors.len());
-        let mut current = base;
+        let mut levels: Vec<Array2<f32>> = Vec::with_capacity(config.downsample_factors.len());
+        let mut base = Some(base);
         for &f in &config.downsample_factors {
-            current = crate::filters::box_downsample(&current, f);
-            levels.push(current.clone());
+            // Each level from the one before (the base for the first); a factor of 1 is a copy,
+            // so the first level takes the base itself when it is not downsampled.
+            let next = match (levels.last(), base.take()) {
+                (None, Some(b)) if f == 1 => b,
+                (None, Some(b)) => crate::filters::box_downsample(&b, f),
+                (Some(prev), _) => crate::filters::box_downsample(prev, f),
+                (None, None) => unreachable!("the base is taken by the first level"),
+            };
+            levels.push(next);
         }
         Pyramid { levels }
     }
@@ -328,7 +335,10 @@ unsafe fn tile_costs_avx2<const V: usize>(
 /// matrix (inverse-compositional style: computed once, reused for every block).
 #[derive(Debug, Clone)]
 struct LkTile {
-    grad: Vec<(f32, f32)>,
+    /// ∂/∂y of the reference over the tile, row-major.
+    grad_y: Vec<f32>,
+    /// ∂/∂x, likewise.
+    grad_x: Vec<f32>,
     inv: Option<[f32; 3]>, // (a, b, c) of the symmetric inverse [[a, b], [b, c]]
 }
 
@@ -444,33 +454,46 @@ impl ReferenceAligner {
             });
             let offsets: Vec<(f32, f32, bool)> = (0..grid.tiles_y * grid.tiles_x)
                 .into_par_iter()
-                .map(|k| {
+                .map_init(LkScratch::default, |scratch, k| {
                     let (i, j) = (k / grid.tiles_x, k % grid.tiles_x);
                     let origin = (i * grid.tile_stride, j * grid.tile_stride);
-                    let seeds = match parent {
-                        None => vec![(0.0, 0.0)],
-                        Some((c, pgrid, f)) => parent_candidates(
-                            c,
-                            pgrid,
-                            f,
-                            grid.tile_centers_y[i],
-                            grid.tile_centers_x[j],
-                        ),
+                    let parent_seeds;
+                    let seeds: &[(f32, f32)] = match parent {
+                        None => &[(0.0, 0.0)],
+                        Some((c, pgrid, f)) => {
+                            parent_seeds = parent_candidates(
+                                c,
+                                pgrid,
+                                f,
+                                grid.tile_centers_y[i],
+                                grid.tile_centers_x[j],
+                            );
+                            &parent_seeds
+                        }
                     };
                     let cost = |d: (isize, isize)| tile_cost(r_img, a_img, origin, ts, d, norm);
-                    // Each seed's cost once; the first of equal minima wins (as `min_by`).
-                    let seed = seeds
+                    // Each distinct seed's cost once (the parent tiles often agree, and equal
+                    // offsets cost the same); the first of equal minima wins (as `min_by`).
+                    let mut rounded = [(0isize, 0isize); 4];
+                    let mut distinct = 0;
+                    for &(dy, dx) in seeds {
+                        let d = (dy.round() as isize, dx.round() as isize);
+                        if !rounded[..distinct].contains(&d) {
+                            rounded[distinct] = d;
+                            distinct += 1;
+                        }
+                    }
+                    let seed = rounded[..distinct]
                         .iter()
-                        .map(|&(dy, dx)| {
-                            let d = (dy.round() as isize, dx.round() as isize);
-                            (cost(d), d)
-                        })
+                        .map(|&d| (cost(d), d))
                         .min_by(|a, b| a.0.total_cmp(&b.0))
                         .expect("at least one seed")
                         .1;
                     let mut best = (f32::INFINITY, seed);
                     let side = (2 * radius + 1) as usize;
-                    let mut costs = vec![0.0f32; side];
+                    scratch.window.clear();
+                    scratch.window.resize(side, 0.0);
+                    let costs = &mut scratch.window;
                     for dy in -radius..=radius {
                         // One row of the window: the same numbers as `cost` for each offset.
                         window_row_costs(
@@ -480,9 +503,9 @@ impl ReferenceAligner {
                             ts,
                             (seed.0 + dy, seed.1 - radius),
                             norm,
-                            &mut costs,
+                            costs,
                         );
-                        for (dx, &c) in (-radius..=radius).zip(&costs) {
+                        for (dx, &c) in (-radius..=radius).zip(costs.iter()) {
                             let d = (seed.0 + dy, seed.1 + dx);
                             // Ties go to the smaller displacement.
                             let closer =
@@ -494,7 +517,7 @@ impl ReferenceAligner {
                     }
                     let flow = (best.1 .0 as f32, best.1 .1 as f32);
                     if level == 0 {
-                        match self.refine(k, a_img, origin, flow) {
+                        match self.refine(k, a_img, origin, flow, scratch) {
                             Some(f) => (f.0, f.1, true),
                             None => (flow.0, flow.1, false),
                         }
@@ -525,6 +548,7 @@ impl ReferenceAligner {
         alt: &Array2<f32>,
         (oy, ox): (usize, usize),
         start: (f32, f32),
+        scratch: &mut LkScratch,
     ) -> Option<(f32, f32)> {
         let tile = &self.lk[k];
         let [a, b, c] = tile.inv?;
@@ -533,26 +557,24 @@ impl ReferenceAligner {
         let ts = self.grids[0].tile_size;
         let mut u = start;
         let (ys, xs) = (oy..(oy + ts).min(h), ox..(ox + ts).min(w));
-        let (mut rows, mut cols) = (Vec::with_capacity(ys.len()), Vec::with_capacity(xs.len()));
         for _ in 0..self.config.lk_iterations {
             // The taps of `bilinear` at (y + u.0, x + u.1) depend on the row or the column
             // alone: computed once per row and column (the same values).
-            rows.clear();
-            rows.extend(
+            scratch.rows.clear();
+            scratch.rows.extend(
                 ys.clone()
                     .map(|y| crate::filters::bilinear_taps(y as f32 + u.0, alt.nrows())),
             );
-            cols.clear();
-            cols.extend(
+            scratch.cols.clear();
+            scratch.cols.extend(
                 xs.clone()
                     .map(|x| crate::filters::bilinear_taps(x as f32 + u.1, alt.ncols())),
             );
             let (by, bx) = lk_gradient_dot_error(
                 alt,
                 reference,
-                &tile.grad,
-                &rows,
-                &cols,
+                (&tile.grad_y, &tile.grad_x),
+                scratch,
                 (ys.clone(), xs.clone()),
             );
             let step = (-(a * by + b * bx), -(b * by + c * bx));
@@ -568,34 +590,159 @@ impl ReferenceAligner {
     }
 }
 
-/// Σ g·e over a tile for Lucas–Kanade: `e` the bilinear sample of `alt` at the taps `rows` x
-/// `cols` minus the reference over rows `rows` and columns `xs`, `g` = (∂/∂y, ∂/∂x) of the
-/// reference (`grad`, row-major over the tile).
+/// Per-thread buffers of [`ReferenceAligner::refine`]: the bilinear taps of the tile's rows and
+/// columns, their column weights and the errors of one row (reused from tile to tile instead
+/// of allocated per Lucas–Kanade iteration).
+#[derive(Debug, Default)]
+struct LkScratch {
+    rows: Vec<(usize, usize, f32)>,
+    cols: Vec<(usize, usize, f32)>,
+    fxs: Vec<f32>,
+    errors: Vec<f32>,
+    /// The costs of one row of a tile's search window (used by the integer search of
+    /// [`ReferenceAligner::align_with_pyramid`], which shares the per-thread scratch).
+    window: Vec<f32>,
+}
+
+/// Σ g·e over a tile for Lucas–Kanade: `e` the bilinear sample of `alt` at the taps
+/// `scratch.rows` x `scratch.cols` minus the reference over rows `ys` and columns `xs`, `g` =
+/// (∂/∂y, ∂/∂x) of the reference (`grad`, row-major over the tile).
 ///
 /// Column i of the tile adds into lane i mod 8 and the lanes are summed at the end in a fixed
 /// order: eight independent sums instead of one chain of dependent additions, which vectorises,
-/// and the same numbers for any tile whatever path computes them. Where the column taps are
-/// contiguous (the tile does not touch the image's right or left edge) the samples are read as
-/// slices.
+/// and the same numbers for any tile whatever path computes them (with AVX2 the same loop
+/// compiled eight lanes wide: the same operations per lane, no fused multiply-add). Where the
+/// column taps are contiguous (the tile does not touch the image's right or left edge) the
+/// samples are read as slices.
 fn lk_gradient_dot_error(
     alt: &Array2<f32>,
     reference: &Array2<f32>,
-    grad: &[(f32, f32)],
-    rows: &[(usize, usize, f32)],
-    cols: &[(usize, usize, f32)],
+    grad: (&[f32], &[f32]),
+    scratch: &mut LkScratch,
+    tile: (Range<usize>, Range<usize>),
+) -> (f32, f32) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            return unsafe { lk_gradient_dot_error_avx2(alt, reference, grad, scratch, tile) };
+        }
+    }
+    lk_gradient_dot_error_generic(alt, reference, grad, scratch, tile)
+}
+
+/// [`lk_gradient_dot_error_generic`] with AVX2: where the column taps are contiguous and the
+/// tile's width a multiple of eight (every interior tile), eight columns at a time with each
+/// lane doing the generic path's operations in its order (multiplies and adds, no fused
+/// multiply-add), so the same numbers bit for bit; otherwise the generic path compiled for
+/// AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn lk_gradient_dot_error_avx2(
+    alt: &Array2<f32>,
+    reference: &Array2<f32>,
+    (grad_y, grad_x): (&[f32], &[f32]),
+    scratch: &mut LkScratch,
+    (ys, xs): (Range<usize>, Range<usize>),
+) -> (f32, f32) {
+    use std::arch::x86_64::*;
+    let width = xs.len();
+    let cols = &scratch.cols;
+    let first = cols.first().map_or(0, |c| c.0);
+    let contiguous = cols.len() == width
+        && cols
+            .iter()
+            .enumerate()
+            .all(|(i, &(x0, x1, _))| x0 == first + i && x1 == x0 + 1);
+    if !contiguous || width == 0 || width % 8 != 0 || width > 32 {
+        return lk_gradient_dot_error_generic(alt, reference, (grad_y, grad_x), scratch, (ys, xs));
+    }
+    let vectors = width / 8;
+    let one = _mm256_set1_ps(1.0);
+    // Column weights fx and 1 − fx, eight columns a vector.
+    let mut fx = [_mm256_setzero_ps(); 4];
+    let mut one_fx = [_mm256_setzero_ps(); 4];
+    for v in 0..vectors {
+        let mut lanes = [0.0f32; 8];
+        for (l, c) in lanes.iter_mut().zip(&cols[8 * v..8 * v + 8]) {
+            *l = c.2;
+        }
+        fx[v] = _mm256_loadu_ps(lanes.as_ptr());
+        one_fx[v] = _mm256_sub_ps(one, fx[v]);
+    }
+    let (mut sum_y, mut sum_x) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+    let alt_s = alt.as_slice().expect("standard layout");
+    let ref_s = reference.as_slice().expect("standard layout");
+    let (w_alt, w_ref) = (alt.ncols(), reference.ncols());
+    for (j, (y, &(y0, y1, fy))) in ys.zip(&scratch.rows).enumerate() {
+        // Bounds: the taps' rows hold columns first..first + width + 1.
+        let top = &alt_s[y0 * w_alt + first..][..width + 1];
+        let bottom = &alt_s[y1 * w_alt + first..][..width + 1];
+        let r = &ref_s[y * w_ref + xs.start..][..width];
+        let gy = &grad_y[j * width..][..width];
+        let gx = &grad_x[j * width..][..width];
+        let (fy_v, one_fy) = (_mm256_set1_ps(fy), _mm256_set1_ps(1.0 - fy));
+        for v in 0..vectors {
+            let i = 8 * v;
+            let t = _mm256_add_ps(
+                _mm256_mul_ps(_mm256_loadu_ps(top.as_ptr().add(i)), one_fx[v]),
+                _mm256_mul_ps(_mm256_loadu_ps(top.as_ptr().add(i + 1)), fx[v]),
+            );
+            let b = _mm256_add_ps(
+                _mm256_mul_ps(_mm256_loadu_ps(bottom.as_ptr().add(i)), one_fx[v]),
+                _mm256_mul_ps(_mm256_loadu_ps(bottom.as_ptr().add(i + 1)), fx[v]),
+            );
+            let e = _mm256_sub_ps(
+                _mm256_add_ps(_mm256_mul_ps(t, one_fy), _mm256_mul_ps(b, fy_v)),
+                _mm256_loadu_ps(r.as_ptr().add(i)),
+            );
+            sum_y = _mm256_add_ps(sum_y, _mm256_mul_ps(_mm256_loadu_ps(gy.as_ptr().add(i)), e));
+            sum_x = _mm256_add_ps(sum_x, _mm256_mul_ps(_mm256_loadu_ps(gx.as_ptr().add(i)), e));
+        }
+    }
+    let (mut ly, mut lx) = ([0.0f32; 8], [0.0f32; 8]);
+    _mm256_storeu_ps(ly.as_mut_ptr(), sum_y);
+    _mm256_storeu_ps(lx.as_mut_ptr(), sum_x);
+    (ly.iter().sum::<f32>(), lx.iter().sum::<f32>())
+}
+
+#[inline(always)]
+fn lk_gradient_dot_error_generic(
+    alt: &Array2<f32>,
+    reference: &Array2<f32>,
+    (grad_y, grad_x): (&[f32], &[f32]),
+    scratch: &mut LkScratch,
     (ys, xs): (Range<usize>, Range<usize>),
 ) -> (f32, f32) {
     const LANES: usize = 8;
     let (mut sum_y, mut sum_x) = ([0.0f32; LANES], [0.0f32; LANES]);
+    let LkScratch {
+        rows,
+        cols,
+        fxs,
+        errors,
+        ..
+    } = scratch;
     let width = xs.len();
     let first = cols.first().map_or(0, |c| c.0);
     let contiguous = cols
         .iter()
         .enumerate()
         .all(|(i, &(x0, x1, _))| x0 == first + i && x1 == x0 + 1);
-    let fxs: Vec<f32> = cols.iter().map(|c| c.2).collect();
-    let mut errors = vec![0.0f32; width];
-    for ((y, &(y0, y1, fy)), grad) in ys.zip(rows).zip(grad.chunks_exact(width)) {
+    fxs.clear();
+    fxs.extend(cols.iter().map(|c| c.2));
+    errors.clear();
+    errors.resize(width, 0.0);
+    let (fxs, errors) = (&fxs[..width], &mut errors[..width]);
+    let full = width - width % LANES;
+    for (((y, &(y0, y1, fy)), gy), gx) in ys
+        .zip(rows.iter())
+        .zip(grad_y.chunks_exact(width))
+        .zip(grad_x.chunks_exact(width))
+    {
         let (top_row, bottom_row) = (alt.row(y0), alt.row(y1));
         let (top_row, bottom_row) = (
             top_row.as_slice().expect("standard layout"),
@@ -626,20 +773,24 @@ fn lk_gradient_dot_error(
                 );
             }
         }
-        let (full_errors, rest_errors) = errors.split_at(width - width % LANES);
-        let (full_grad, rest_grad) = grad.split_at(width - width % LANES);
-        for (e, g) in full_errors
+        for ((e, gy), gx) in errors[..full]
             .chunks_exact(LANES)
-            .zip(full_grad.chunks_exact(LANES))
+            .zip(gy[..full].chunks_exact(LANES))
+            .zip(gx[..full].chunks_exact(LANES))
         {
             for l in 0..LANES {
-                sum_y[l] += g[l].0 * e[l];
-                sum_x[l] += g[l].1 * e[l];
+                sum_y[l] += gy[l] * e[l];
+                sum_x[l] += gx[l] * e[l];
             }
         }
-        for (l, (e, g)) in rest_errors.iter().zip(rest_grad).enumerate() {
-            sum_y[l] += g.0 * e;
-            sum_x[l] += g.1 * e;
+        for (l, ((e, gy), gx)) in errors[full..]
+            .iter()
+            .zip(&gy[full..])
+            .zip(&gx[full..])
+            .enumerate()
+        {
+            sum_y[l] += gy * e;
+            sum_x[l] += gx * e;
         }
     }
     let total = |lanes: [f32; LANES]| lanes.iter().sum::<f32>();
@@ -651,7 +802,7 @@ fn lk_gradient_dot_error(
 /// larger (an edge or flat tile, where sub-pixel motion is not determined in 2-D).
 fn lk_tile(img: &Array2<f32>, oy: usize, ox: usize, ts: usize) -> LkTile {
     let (h, w) = img.dim();
-    let mut grad = Vec::with_capacity(ts * ts);
+    let (mut grad_y, mut grad_x) = (Vec::with_capacity(ts * ts), Vec::with_capacity(ts * ts));
     let (mut syy, mut syx, mut sxx) = (0.0f64, 0.0f64, 0.0f64);
     for y in oy..(oy + ts).min(h) {
         for x in ox..(ox + ts).min(w) {
@@ -667,7 +818,8 @@ fn lk_tile(img: &Array2<f32>, oy: usize, ox: usize, ts: usize) -> LkTile {
             } else {
                 0.0
             };
-            grad.push((gy, gx));
+            grad_y.push(gy);
+            grad_x.push(gx);
             syy += (gy * gy) as f64;
             syx += (gy * gx) as f64;
             sxx += (gx * gx) as f64;
@@ -679,7 +831,11 @@ fn lk_tile(img: &Array2<f32>, oy: usize, ox: usize, ts: usize) -> LkTile {
     let (l_max, l_min) = ((tr + disc) / 2.0, (tr - disc) / 2.0);
     let inv = (l_max > 0.0 && l_min > 1e-3 * l_max && det > 0.0)
         .then(|| [(sxx / det) as f32, (-syx / det) as f32, (syy / det) as f32]);
-    LkTile { grad, inv }
+    LkTile {
+        grad_y,
+        grad_x,
+        inv,
+    }
 }
 
 /// The seeds from the coarser level for a tile centred at `(cy, cx)` (this level's px): the
@@ -691,7 +847,7 @@ fn parent_candidates(
     f: f32,
     cy: f32,
     cx: f32,
-) -> Vec<(f32, f32)> {
+) -> [(f32, f32); 4] {
     // Position in parent tile-index units.
     let index = |c: f32, centers: &[f32], stride: usize| {
         let pc = (c + 0.5) / f - 0.5;
@@ -703,14 +859,10 @@ fn parent_candidates(
     };
     let (iy, oy) = index(cy, &pgrid.tile_centers_y, pgrid.tile_stride);
     let (ix, ox) = index(cx, &pgrid.tile_centers_x, pgrid.tile_stride);
-    let mut seeds: Vec<(f32, f32)> = [(iy, ix), (oy, ix), (iy, ox)]
-        .iter()
-        .map(|&(a, b)| (coarse[[a, b, 0]] * f, coarse[[a, b, 1]] * f))
-        .collect();
+    let seed = |(a, b): (usize, usize)| (coarse[[a, b, 0]] * f, coarse[[a, b, 1]] * f);
     // Zero motion as a fourth seed: a coarse level that is ambiguous (aperture problem on a
     // heavily averaged, nearly one-directional texture) cannot then drag a tile far away.
-    seeds.push((0.0, 0.0));
-    seeds
+    [seed((iy, ix)), seed((oy, ix)), seed((iy, ox)), (0.0, 0.0)]
 }
 
 impl ReferenceAligner {
@@ -941,9 +1093,12 @@ impl ReferenceAligner {
                 f as isize,
             );
             let start = (best.0 as f32, best.1 as f32);
+            let mut scratch = LkScratch::default();
             let refined: Vec<(f32, f32)> = component
                 .iter()
-                .filter_map(|&(i, j)| self.refine(i * tx + j, alt0, origin(i, j), start))
+                .filter_map(|&(i, j)| {
+                    self.refine(i * tx + j, alt0, origin(i, j), start, &mut scratch)
+                })
                 .collect();
             let translation = if refined.is_empty() {
                 start
@@ -1092,26 +1247,60 @@ mod tests {
             (5..21, 0..16, (-0.4, -1.6)),
             (20..36, 34..50, (0.9, 1.2)),
             (3..8, 44..50, (0.2, 0.45)),
+            (0..8, 20..28, (-0.6, 0.1)),
+            (30..40, 4..28, (0.5, -0.3)),
         ];
         for (ys, xs, u) in cases {
             let grad: Vec<(f32, f32)> = (0..ys.len() * xs.len())
                 .map(|_| (rng.gen_range(-1.0f32..1.0), rng.gen_range(-1.0f32..1.0)))
                 .collect();
-            let rows: Vec<_> = ys
+            let grad_y: Vec<f32> = grad.iter().map(|g| g.0).collect();
+            let grad_x: Vec<f32> = grad.iter().map(|g| g.1).collect();
+            // A scratch left over from a wider tile: its contents must not leak in.
+            let mut scratch = LkScratch {
+                fxs: vec![9.0; 40],
+                errors: vec![9.0; 40],
+                ..LkScratch::default()
+            };
+            scratch.rows = ys
                 .clone()
                 .map(|y| crate::filters::bilinear_taps(y as f32 + u.0, h))
                 .collect();
-            let cols: Vec<_> = xs
+            scratch.cols = xs
                 .clone()
                 .map(|x| crate::filters::bilinear_taps(x as f32 + u.1, w))
                 .collect();
             let (sy, sx) = lk_gradient_dot_error(
                 &alt,
                 &reference,
-                &grad,
-                &rows,
-                &cols,
+                (&grad_y, &grad_x),
+                &mut scratch,
                 (ys.clone(), xs.clone()),
+            );
+            // The portable path: the same numbers bit for bit.
+            let generic = lk_gradient_dot_error_generic(
+                &alt,
+                &reference,
+                (&grad_y, &grad_x),
+                &mut scratch,
+                (ys.clone(), xs.clone()),
+            );
+            assert_eq!(
+                (sy.to_bits(), sx.to_bits()),
+                (generic.0.to_bits(), generic.1.to_bits())
+            );
+            // And the sum as it was made before the scratch buffers and split gradients.
+            let before = lk_gradient_dot_error_before(
+                &alt,
+                &reference,
+                &grad,
+                &scratch.rows,
+                &scratch.cols,
+                (ys.clone(), xs.clone()),
+            );
+            assert_eq!(
+                (sy.to_bits(), sx.to_bits()),
+                (before.0.to_bits(), before.1.to_bits())
             );
             let (mut ey, mut ex) = (0.0f64, 0.0f64);
             for (j, y) in ys.clone().enumerate() {
@@ -1133,6 +1322,37 @@ mod tests {
                 "{ys:?} {xs:?}: {sx} vs {ex}"
             );
         }
+    }
+
+    /// [`lk_gradient_dot_error`] as it was before [`LkScratch`] (interleaved gradients, buffers
+    /// allocated per call, no AVX2 path): the reference of the bit-for-bit test above.
+    fn lk_gradient_dot_error_before(
+        alt: &Array2<f32>,
+        reference: &Array2<f32>,
+        grad: &[(f32, f32)],
+        rows: &[(usize, usize, f32)],
+        cols: &[(usize, usize, f32)],
+        (ys, xs): (Range<usize>, Range<usize>),
+    ) -> (f32, f32) {
+        const LANES: usize = 8;
+        let (mut sum_y, mut sum_x) = ([0.0f32; LANES], [0.0f32; LANES]);
+        let width = xs.len();
+        let fxs: Vec<f32> = cols.iter().map(|c| c.2).collect();
+        let mut errors = vec![0.0f32; width];
+        for ((y, &(y0, y1, fy)), grad) in ys.zip(rows).zip(grad.chunks_exact(width)) {
+            for (i, &(x0, x1, _)) in cols.iter().enumerate() {
+                let fx = fxs[i];
+                let top = alt[[y0, x0]] * (1.0 - fx) + alt[[y0, x1]] * fx;
+                let bottom = alt[[y1, x0]] * (1.0 - fx) + alt[[y1, x1]] * fx;
+                errors[i] = (top * (1.0 - fy) + bottom * fy) - reference[[y, xs.start + i]];
+            }
+            for (i, (e, g)) in errors.iter().zip(grad).enumerate() {
+                sum_y[i % LANES] += g.0 * e;
+                sum_x[i % LANES] += g.1 * e;
+            }
+        }
+        let total = |lanes: [f32; LANES]| lanes.iter().sum::<f32>();
+        (total(sum_y), total(sum_x))
     }
 
     /// Every cost of a window row equals [`tile_cost`] bit for bit: interior tiles, tiles at
