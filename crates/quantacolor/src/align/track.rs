@@ -17,7 +17,8 @@
 
 use super::grey::GreyMethod;
 use super::refine::{
-    bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FrameMotion, RefineLevel,
+    bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FitSettings, FrameMotion,
+    RefineLevel,
 };
 use crate::capture::Capture;
 use crate::cfa::Channel;
@@ -210,7 +211,11 @@ pub fn track_fast_camera_motion(
                         &templates.iter().collect::<Vec<_>>(),
                         start,
                         centre,
-                        config.iterations,
+                        FitSettings {
+                            iterations: config.iterations,
+                            fine_iterations: config.iterations,
+                            fine_information: 1.0,
+                        },
                     )
                 })
                 .and_then(|inverse| inverse.inverse())
