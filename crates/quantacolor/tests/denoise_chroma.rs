@@ -234,11 +234,12 @@ fn relative_rms(img: &Array3<f32>, gt: &Array3<f32>, x0: usize, x1: usize) -> f6
 }
 
 /// The static HDR capture of [`hdr_halves`], whose noisy block motion sets off fast-motion
-/// tracking: the tracked camera must stay still and the merge must not smear the bright half
-/// into the dim one. Before the tracker bounded its fits (`TrackConfig::max_correction_px`)
-/// the dim sub-blocks' Gauss–Newton fits escaped (|b| up to ~2000 px, affine terms up to ~90,
-/// each extrapolated into the next prediction) and the dim half's relative RMS error was 2.74
-/// (undamped fits) or 4.07 (damped ones), 0.30 in the bright half; now 0.38 and 0.09.
+/// tracking: the camera must stay still and the merge must not smear the bright half into the
+/// dim one. Before a tracking with a non-physical camera was abandoned
+/// (`TrackConfig::max_linear`), the dim sub-blocks' Gauss–Newton fits escaped (|b| up to
+/// ~2000 px, affine terms up to ~90, each extrapolated into the next prediction) and the dim
+/// half's relative RMS error was 2.74 (undamped fits) or 4.07 (damped ones), 0.30 in the
+/// bright half.
 #[test]
 fn a_static_hdr_capture_that_sets_off_tracking_merges_without_motion() {
     use quantacolor::pipeline::{burst_config_for, ReconstructConfig};
@@ -269,9 +270,10 @@ fn a_static_hdr_capture_that_sets_off_tracking_merges_without_motion() {
     println!(
         "worst camera motion {worst:.3} px; relative RMS error dim {dim:.4}, bright {bright:.4}"
     );
-    // The tracked cameras stay at zero; the photon trajectory fitted after tracking still moves
-    // the corners by up to ~5.6 px on this noise (its own bound, not this test's subject).
-    assert!(worst < 8.0, "a static camera tracked to {worst} px");
+    // The merge then runs at the refined block motion, whose noise on this dim capture reads up
+    // to ~9 px at the corners (block alignment's, not this test's subject); the escaped tracking
+    // read thousands.
+    assert!(worst < 16.0, "a static camera tracked to {worst} px");
     assert!(dim < 0.6, "dim half: relative RMS error {dim}");
     assert!(bright < 0.15, "bright half: relative RMS error {bright}");
 }
