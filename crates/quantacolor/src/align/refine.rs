@@ -1796,6 +1796,25 @@ mod tests {
         0.12 * (1.0 + 0.5 * t)
     }
 
+    /// Every level's bin layout (W-interpolated grey) and template of `reference`.
+    fn fit_levels(
+        cfa: &Cfa,
+        reference: &Array2<f32>,
+        config: &RefineConfig,
+    ) -> (Vec<BinLayout>, Vec<TemplateLevel>) {
+        let layouts = config
+            .levels
+            .iter()
+            .map(|l| bin_layout(cfa, GreyMethod::InterpolateW, None, l.bin))
+            .collect();
+        let templates = config
+            .levels
+            .iter()
+            .map(|l| template_level(reference, l.sigma_px))
+            .collect();
+        (layouts, templates)
+    }
+
     /// The default fit settings of `config`.
     fn settings(config: &RefineConfig) -> FitSettings {
         FitSettings {
@@ -2013,16 +2032,7 @@ mod tests {
         let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
         let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
         let config = RefineConfig::default();
-        let layouts: Vec<BinLayout> = config
-            .levels
-            .iter()
-            .map(|l| bin_layout(&cfa, GreyMethod::InterpolateW, None, l.bin))
-            .collect();
-        let templates: Vec<TemplateLevel> = config
-            .levels
-            .iter()
-            .map(|l| template_level(&reference, l.sigma_px))
-            .collect();
+        let (layouts, templates) = fit_levels(&cfa, &reference, &config);
         let theta = 0.004f64;
         for (i, truth) in [
             AffineMotion::default(),
@@ -2138,16 +2148,7 @@ mod tests {
             .sum();
         assert!(kept >= share * total * 0.999, "{kept} of {total}");
         // A fit on the reduced fine level recovers a known motion.
-        let layouts: Vec<BinLayout> = config
-            .levels
-            .iter()
-            .map(|l| bin_layout(&cfa, GreyMethod::InterpolateW, None, l.bin))
-            .collect();
-        let templates: Vec<TemplateLevel> = config
-            .levels
-            .iter()
-            .map(|l| template_level(&reference, l.sigma_px))
-            .collect();
+        let (layouts, templates) = fit_levels(&cfa, &reference, &config);
         let truth = AffineMotion {
             b: [0.6, -0.9],
             m: [[0.002, 0.003], [-0.003, 0.001]],
