@@ -233,6 +233,13 @@ fn relative_rms(img: &Array3<f32>, gt: &Array3<f32>, x0: usize, x1: usize) -> f6
     (e / t).sqrt()
 }
 
+/// The burst reconstruction of `capture` with `reconstruct`'s default configuration.
+fn default_burst(capture: &Capture) -> quantacolor::burst::BurstReconstruction {
+    use quantacolor::pipeline::{burst_config_for, ReconstructConfig};
+    let config = burst_config_for(&ReconstructConfig::default());
+    reconstruct_burst(capture, capture.reference_frame(), &config, &Silent).unwrap()
+}
+
 /// The static HDR capture of [`hdr_halves`], whose noisy block motion sets off fast-motion
 /// tracking: the camera must stay still and the merge must not smear the bright half into the
 /// dim one. Before a tracking with a non-physical camera was abandoned
@@ -242,17 +249,9 @@ fn relative_rms(img: &Array3<f32>, gt: &Array3<f32>, x0: usize, x1: usize) -> f6
 /// bright half.
 #[test]
 fn a_static_hdr_capture_that_sets_off_tracking_merges_without_motion() {
-    use quantacolor::pipeline::{burst_config_for, ReconstructConfig};
     let (sim, capture) = hdr_halves();
     let w = capture.frames.width();
-    let rc = ReconstructConfig::default();
-    let burst = reconstruct_burst(
-        &capture,
-        capture.reference_frame(),
-        &burst_config_for(&rc),
-        &Silent,
-    )
-    .unwrap();
+    let burst = default_burst(&capture);
     let half = [capture.frames.height() as f64 / 2.0, w as f64 / 2.0];
     let worst = burst
         .motion
@@ -283,17 +282,11 @@ fn a_static_hdr_capture_that_sets_off_tracking_merges_without_motion() {
 /// bright half alike (relative RMS error of each half, so the bright half does not dominate).
 #[test]
 fn denoising_reduces_the_error_in_dim_and_bright_regions_of_an_hdr_capture() {
-    use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
+    use quantacolor::pipeline::{denoise_input, ReconstructConfig};
     let (sim, capture) = hdr_halves();
     let w = capture.frames.width();
     let rc = ReconstructConfig::default();
-    let burst = reconstruct_burst(
-        &capture,
-        capture.reference_frame(),
-        &burst_config_for(&rc),
-        &Silent,
-    )
-    .unwrap();
+    let burst = default_burst(&capture);
     let input = denoise_input(&capture, Some(&burst), capture.frames.frame_count());
     let (denoised, _) = denoise_linear(burst.merged.linear.view(), &input, &rc.denoise).unwrap();
     let gt = &sim.ground_truth;
