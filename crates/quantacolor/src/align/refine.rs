@@ -1160,25 +1160,11 @@ fn fit_sub_block_generic(
         } else {
             layout
         };
-        // Mean bit rate and number of trials (sites x frames) of bin b.
-        let observation = |b: usize| -> (f64, f64) {
-            let trials = layout.sites(b).len() as f64 * frames as f64;
-            let sum: u64 = layout
-                .sites(b)
-                .iter()
-                .map(|&i| counts[i as usize] as u64)
-                .sum();
-            (sum as f64 / trials.max(1.0), trials)
-        };
+        let (observed, trials) = bin_observations(layout, counts, frames);
         // The AVX2 sums read the observations laid out as the run groups' slots, the scalar
         // ones bin by bin.
         let by_quads = avx2 && quad_lanes_fit(template);
-        let (observed, trials): (Vec<f64>, Vec<f64>) = if by_quads {
-            (Vec::new(), Vec::new())
-        } else {
-            (0..layout.len()).map(observation).unzip()
-        };
-        let interleaved = by_quads.then(|| layout.quads.observations(observation));
+        let interleaved = by_quads.then(|| layout.quads.observations(|b| (observed[b], trials[b])));
         let mut quad_sums = vec![[0.0f64; 13]; layout.runs.len()];
         let mut previous: Option<[f64; 6]> = None;
         let iterations = if level == last {
@@ -1273,6 +1259,26 @@ fn fit_sub_block_generic(
         }
     }
     Some(AffineMotion::from_params(params))
+}
+
+/// Mean bit rate and number of trials (sites x frames) of every bin of `layout` over `frames`
+/// frames with per-site `counts`: the photon counts summed bin by bin first, then every mean
+/// divided in one loop (the divisions independent, so they run in vector registers; the same
+/// numbers as bin by bin).
+fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f64>, Vec<f64>) {
+    let (sums, trials): (Vec<f64>, Vec<f64>) = (0..layout.len())
+        .map(|b| {
+            let sites = layout.sites(b);
+            let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+            (sum as f64, sites.len() as f64 * frames as f64)
+        })
+        .unzip();
+    let observed = sums
+        .iter()
+        .zip(&trials)
+        .map(|(&sum, &trials)| sum / trials.max(1.0))
+        .collect();
+    (observed, trials)
 }
 
 /// The bins of one run of a [`BinLayout`] (one centroid row), as [`fit_sub_block`] reads them.
