@@ -701,52 +701,55 @@ pub(super) struct BinLayout {
     /// the fit sums the normal equations' x-dependence along a run and multiplies by the row
     /// coordinate once per run.
     runs: Vec<Range<usize>>,
-    /// The centroids' x coordinate and its square, one array each (the fit's inner loop reads
-    /// them for several bins at a time).
-    x: Vec<f64>,
-    x2: Vec<f64>,
-    /// The runs four at a time, for [`run_sums_quad_avx2`].
-    quads: RunQuads,
+    /// The centroids' x coordinate and its square in single precision, one array each (the
+    /// fit's inner loop reads them for several bins at a time).
+    x: Vec<f32>,
+    x2: Vec<f32>,
+    /// The runs [`GROUP_LANES`] at a time, for [`run_sums_group_avx2`].
+    groups: RunGroups,
 }
 
-/// The runs of a [`BinLayout`] grouped four at a time (runs of similar length together), each
-/// group's bins interleaved step by step: slot `s` of a group holds bin `s` of each of its four
-/// runs in the four lanes (a shorter run's lanes past its end are padding). The fit then sums
-/// four runs lane-parallel, each lane in its run's own bin order, so that every run's sums are
-/// the ones [`run_sums`] makes, without moving lanes between registers.
+/// Runs summed side by side by [`run_sums_group_avx2`]: the f32 lanes of an AVX2 register.
+const GROUP_LANES: usize = 8;
+
+/// The runs of a [`BinLayout`] grouped [`GROUP_LANES`] at a time (runs of similar length
+/// together), each group's bins interleaved step by step: slot `s` of a group holds bin `s` of
+/// each of its runs in the lanes (a shorter run's lanes past its end are padding). The fit then
+/// sums the runs lane-parallel, each lane in its run's own bin order, so that every run's sums
+/// are the ones [`run_sums`] makes, without moving lanes between registers.
 #[derive(Default)]
-struct RunQuads {
+struct RunGroups {
     /// Runs of every group (`usize::MAX`: no run in that lane).
-    runs: Vec<[usize; 4]>,
+    runs: Vec<[usize; GROUP_LANES]>,
     /// Slots of group g: `slot_start[g]..slot_start[g + 1]`.
     slot_start: Vec<usize>,
     /// Bin of every slot and lane (`u32::MAX`: padding).
-    bin: Vec<[u32; 4]>,
+    bin: Vec<[u32; GROUP_LANES]>,
     /// Centroid column of every slot's bins, and its square (0 for padding).
-    x: Vec<[f64; 4]>,
-    x2: Vec<[f64; 4]>,
+    x: Vec<[f32; GROUP_LANES]>,
+    x2: Vec<[f32; GROUP_LANES]>,
     /// Centroid row of every group's runs (0 for an empty lane).
-    row: Vec<[f64; 4]>,
+    row: Vec<[f32; GROUP_LANES]>,
 }
 
-impl RunQuads {
+impl RunGroups {
     /// Groups `runs` (bins with centroid columns `x`, squares `x2`; run r's centroid row
     /// `rows[r]`).
-    fn new(runs: &[Range<usize>], rows: &[f64], x: &[f64], x2: &[f64]) -> RunQuads {
+    fn new(runs: &[Range<usize>], rows: &[f32], x: &[f32], x2: &[f32]) -> RunGroups {
         // Longest first, so that the runs of one group have similar lengths (little padding).
         let mut order: Vec<usize> = (0..runs.len()).collect();
         order.sort_by_key(|&r| std::cmp::Reverse(runs[r].len()));
-        let mut quads = RunQuads {
+        let mut groups = RunGroups {
             slot_start: vec![0],
-            ..RunQuads::default()
+            ..RunGroups::default()
         };
-        for group in order.chunks(4) {
-            let members: [usize; 4] =
+        for group in order.chunks(GROUP_LANES) {
+            let members: [usize; GROUP_LANES] =
                 std::array::from_fn(|l| group.get(l).copied().unwrap_or(usize::MAX));
             let len = group.iter().map(|&r| runs[r].len()).max().unwrap_or(0);
             for s in 0..len {
-                let mut bins = [u32::MAX; 4];
-                let (mut xs, mut x2s) = ([0.0; 4], [0.0; 4]);
+                let mut bins = [u32::MAX; GROUP_LANES];
+                let (mut xs, mut x2s) = ([0.0; GROUP_LANES], [0.0; GROUP_LANES]);
                 for (l, &r) in group.iter().enumerate() {
                     if s < runs[r].len() {
                         let b = runs[r].start + s;
@@ -755,29 +758,30 @@ impl RunQuads {
                         x2s[l] = x2[b];
                     }
                 }
-                quads.bin.push(bins);
-                quads.x.push(xs);
-                quads.x2.push(x2s);
+                groups.bin.push(bins);
+                groups.x.push(xs);
+                groups.x2.push(x2s);
             }
-            quads.runs.push(members);
-            quads
+            groups.runs.push(members);
+            groups
                 .row
                 .push(members.map(|r| if r == usize::MAX { 0.0 } else { rows[r] }));
-            quads.slot_start.push(quads.bin.len());
+            groups.slot_start.push(groups.bin.len());
         }
-        quads
+        groups
     }
 
     /// The (mean bit rate, trials) `observation` of every bin laid out as the slots are (0 for
     /// padding: no trials, so weight zero in the fit).
+    #[allow(clippy::type_complexity)]
     fn observations(
         &self,
-        observation: impl Fn(usize) -> (f64, f64),
-    ) -> (Vec<[f64; 4]>, Vec<[f64; 4]>) {
+        observation: impl Fn(usize) -> (f32, f32),
+    ) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
         let mut observed = Vec::with_capacity(self.bin.len());
         let mut trials = Vec::with_capacity(self.bin.len());
         for bins in &self.bin {
-            let (mut o, mut t) = ([0.0; 4], [0.0; 4]);
+            let (mut o, mut t) = ([0.0; GROUP_LANES], [0.0; GROUP_LANES]);
             for (lane, &b) in bins.iter().enumerate() {
                 if b != u32::MAX {
                     (o[lane], t[lane]) = observation(b as usize);
@@ -802,8 +806,8 @@ impl BinLayout {
     }
 }
 
-/// Whether a template's pixels can be indexed in the i32 lanes of [`run_sums_quad_avx2`].
-fn quad_lanes_fit(template: &TemplateLevel) -> bool {
+/// Whether a template's pixels can be indexed in the i32 lanes of [`run_sums_group_avx2`].
+fn group_lanes_fit(template: &TemplateLevel) -> bool {
     let (h, w) = (template.height, template.width);
     h >= 2 && w >= 2 && h.saturating_mul(w) < (1 << 28)
 }
@@ -848,15 +852,20 @@ fn bilinear4(a: [f32; 4], b: [f32; 4], c: [f32; 4], d: [f32; 4], fx: f32, fy: f3
 pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLevel {
     let value = gaussian_blur(reference, sigma);
     let (h, w) = value.dim();
+    let value = value.as_standard_layout();
+    let value = value.as_slice().expect("standard layout");
     let mut samples = vec![[0.0f32; 4]; h * w];
-    for y in 0..h {
+    for (y, out) in samples.chunks_exact_mut(w.max(1)).enumerate() {
         let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
-        for x in 0..w {
+        let dy = (yb - ya).max(1) as f32;
+        let row = &value[y * w..(y + 1) * w];
+        let (above, below) = (&value[ya * w..(ya + 1) * w], &value[yb * w..(yb + 1) * w]);
+        for (x, out) in out.iter_mut().enumerate() {
             let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            samples[y * w + x] = [
-                value[[y, x]],
-                (value[[yb, x]] - value[[ya, x]]) / (yb - ya).max(1) as f32,
-                (value[[y, xb]] - value[[y, xa]]) / (xb - xa).max(1) as f32,
+            *out = [
+                row[x],
+                (below[x] - above[x]) / dy,
+                (row[xb] - row[xa]) / (xb - xa).max(1) as f32,
                 0.0,
             ];
         }
@@ -929,10 +938,10 @@ impl BinLayout {
                 _ => runs.push(b..b + 1),
             }
         }
-        let x: Vec<f64> = centroid.iter().map(|c| c[1]).collect();
-        let x2: Vec<f64> = x.iter().map(|&v| v * v).collect();
-        let rows: Vec<f64> = runs.iter().map(|r| centroid[r.start][0]).collect();
-        let quads = RunQuads::new(&runs, &rows, &x, &x2);
+        let x: Vec<f32> = centroid.iter().map(|c| c[1] as f32).collect();
+        let x2: Vec<f32> = centroid.iter().map(|c| (c[1] * c[1]) as f32).collect();
+        let rows: Vec<f32> = runs.iter().map(|r| centroid[r.start][0] as f32).collect();
+        let groups = RunGroups::new(&runs, &rows, &x, &x2);
         BinLayout {
             site_index,
             site_start,
@@ -940,7 +949,7 @@ impl BinLayout {
             runs,
             x,
             x2,
-            quads,
+            groups,
         }
     }
 
@@ -1110,7 +1119,7 @@ pub(super) fn fit_sub_block(
     )
 }
 
-/// [`fit_sub_block_generic`] compiled for AVX2, with the per-run sums of [`run_sums_quad_avx2`]: the
+/// [`fit_sub_block_generic`] compiled for AVX2, with the per-run sums of [`run_sums_group_avx2`]: the
 /// same operations in the same order (no fused multiply-add), so the same result.
 ///
 /// # Safety
@@ -1163,9 +1172,10 @@ fn fit_sub_block_generic(
         let (observed, trials) = bin_observations(layout, counts, frames);
         // The AVX2 sums read the observations laid out as the run groups' slots, the scalar
         // ones bin by bin.
-        let by_quads = avx2 && quad_lanes_fit(template);
-        let interleaved = by_quads.then(|| layout.quads.observations(|b| (observed[b], trials[b])));
-        let mut quad_sums = vec![[0.0f64; 13]; layout.runs.len()];
+        let by_groups = avx2 && group_lanes_fit(template);
+        let interleaved =
+            by_groups.then(|| layout.groups.observations(|b| (observed[b], trials[b])));
+        let mut group_sums = vec![[0.0f64; 13]; layout.runs.len()];
         let mut previous: Option<[f64; 6]> = None;
         let iterations = if level == last {
             settings.fine_iterations
@@ -1183,14 +1193,14 @@ fn fit_sub_block_generic(
                 // SAFETY: `avx2` is only set by `fit_sub_block_avx2`, whose caller checked that
                 // the CPU supports AVX2.
                 unsafe {
-                    run_sums_quad_avx2(
+                    run_sums_group_avx2(
                         template,
                         &motion,
                         centre,
-                        &layout.quads,
+                        &layout.groups,
                         observed,
                         trials,
-                        &mut quad_sums,
+                        &mut group_sums,
                     )
                 };
             }
@@ -1198,11 +1208,11 @@ fn fit_sub_block_generic(
                 // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
                 // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
                 // [9 + g + 2·p].
-                let sums = if by_quads {
-                    quad_sums[r]
+                let sums = if by_groups {
+                    group_sums[r]
                 } else {
                     let bins = RunBins {
-                        row: layout.centroid[run.start][0],
+                        row: layout.centroid[run.start][0] as f32,
                         x: &layout.x[run.clone()],
                         x2: &layout.x2[run.clone()],
                         observed: &observed[run.clone()],
@@ -1265,7 +1275,7 @@ fn fit_sub_block_generic(
 /// frames with per-site `counts`: the photon counts summed bin by bin first, then every mean
 /// divided in one loop (the divisions independent, so they run in vector registers; the same
 /// numbers as bin by bin).
-fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f64>, Vec<f64>) {
+fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f32>, Vec<f32>) {
     let (sums, trials): (Vec<f64>, Vec<f64>) = (0..layout.len())
         .map(|b| {
             let sites = layout.sites(b);
@@ -1273,29 +1283,58 @@ fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f
             (sum as f64, sites.len() as f64 * frames as f64)
         })
         .unzip();
-    let observed = sums
-        .iter()
+    // Divided in double precision, then rounded once for the single-precision fit.
+    sums.iter()
         .zip(&trials)
-        .map(|(&sum, &trials)| sum / trials.max(1.0))
-        .collect();
-    (observed, trials)
+        .map(|(&sum, &trials)| ((sum / trials.max(1.0)) as f32, trials as f32))
+        .unzip()
 }
 
 /// The bins of one run of a [`BinLayout`] (one centroid row), as [`fit_sub_block`] reads them.
 struct RunBins<'a> {
     /// Centroid row (relative to the image centre), shared by the run.
-    row: f64,
+    row: f32,
     /// Centroid column of every bin, and its square.
-    x: &'a [f64],
-    x2: &'a [f64],
+    x: &'a [f32],
+    x2: &'a [f32],
     /// Mean bit rate and number of trials of every bin.
-    observed: &'a [f64],
-    trials: &'a [f64],
+    observed: &'a [f32],
+    trials: &'a [f32],
+}
+
+/// The parts of a run's sample positions that do not change along it, in single precision:
+/// (row + c_y, b_y + m_yy·row, b_x + m_xy·row) (the last two made in double precision), and
+/// m_yx, m_xx and c_x. A bin at column x then samples the template at y = (row + c_y) + ((b_y +
+/// m_yy·row) + m_yx·x), x' = (x + c_x) + ((b_x + m_xy·row) + m_xx·x), `AffineMotion::at` added
+/// as `sample_template` adds it.
+#[inline(always)]
+fn run_frame(motion: &AffineMotion, centre: [f64; 2], row: f32) -> ([f32; 3], [f32; 3]) {
+    let r = row as f64;
+    (
+        [
+            row + centre[0] as f32,
+            (motion.b[0] + motion.m[0][0] * r) as f32,
+            (motion.b[1] + motion.m[1][0] * r) as f32,
+        ],
+        [
+            motion.m[0][1] as f32,
+            motion.m[1][1] as f32,
+            centre[1] as f32,
+        ],
+    )
 }
 
 /// The 13 sums of one run of [`fit_sub_block`]: per gradient pair (yy, yx, xx) and power of x
 /// (0, 1, 2) Σ w·g·g'·xᵖ at [pair + 3·p]; per gradient (y, x) and power of x (0, 1) Σ w·g·r·xᵖ
 /// at [9 + g + 2·p]; bins in order, those whose position leaves the template skipped.
+///
+/// In single precision (positions as [`run_frame`], the template's bilinear value and gradient,
+/// the weights and the sums along the run), returned in double: a run is one row of bins (at
+/// most a few hundred), so the sums keep about six digits (measured against double precision
+/// on the 10k chart's fine level: every sum within 1e-5 of its largest value over the runs),
+/// far below the photon noise they are fitted to, and [`run_sums_group_avx2`] sums eight runs
+/// per register instead of four (this project's choice; the fit's result moved by rounding
+/// only: `bench quality` within 0.01 dB).
 #[inline(always)]
 fn run_sums(
     template: &TemplateLevel,
@@ -1303,16 +1342,26 @@ fn run_sums(
     centre: [f64; 2],
     bins: &RunBins,
 ) -> [f64; 13] {
-    let mut sums = [0.0f64; 13];
+    let ([row_y, base_y, base_x], [m_yx, m_xx, centre_x]) = run_frame(motion, centre, bins.row);
+    let (h, w) = (template.height, template.width);
+    let (y_max, x_max) = ((h - 1) as f32, (w - 1) as f32);
+    let mut sums = [0.0f32; 13];
     for b in 0..bins.x.len() {
         let (x, x2) = (bins.x[b], bins.x2[b]);
         let (observed, trials) = (bins.observed[b], bins.trials[b]);
-        let d = motion.at([bins.row, x]);
-        let Some([t, gy, gx]) =
-            sample_template(template, bins.row + centre[0] + d[0], x + centre[1] + d[1])
-        else {
+        let py = row_y + (base_y + m_yx * x);
+        let px = (x + centre_x) + (base_x + m_xx * x);
+        if !(py >= 0.0 && px >= 0.0 && py <= y_max && px <= x_max) {
             continue;
-        };
+        }
+        let (y0, x0) = ((py as i32).min(h as i32 - 2), (px as i32).min(w as i32 - 2));
+        let (fy, fx) = (py - y0 as f32, px - x0 as f32);
+        let i = y0 as usize * w + x0 as usize;
+        let (top, bottom) = (
+            &template.samples[i..i + 2],
+            &template.samples[i + w..i + w + 2],
+        );
+        let [t, gy, gx, _] = bilinear4(top[0], top[1], bottom[0], bottom[1], fx, fy);
         let residual = observed - t;
         // Inverse binomial variance of the bin mean, and a Huber weight at 3 std (moving
         // objects, occlusions): z = |r|·√(1/var), weight (1 or 3/z)/var, with the square root
@@ -1337,185 +1386,184 @@ fn run_sums(
         sums[11] += ry * x;
         sums[12] += rx * x;
     }
-    sums
+    sums.map(f64::from)
 }
 
-/// [`run_sums`] of every run of `quads`, four runs at a time in the lanes of AVX2 registers
-/// (`observed` and `trials` laid out as the groups' slots, [`RunQuads::interleave`]); run r's
-/// sums go to `out[r]`. Every lane does the scalar operations of its own run's bins in order (no
-/// fused multiply-add, the same rounding), and a bin outside the template (or a padding slot)
-/// adds weight zero, so ±0 terms: a sum that starts at +0 is never −0, so adding ±0 leaves it
-/// unchanged, as skipping the bin does. The sums are bit-identical to [`run_sums`] (checked by
-/// a test). The template must pass [`quad_lanes_fit`].
+/// [`run_sums`] of every run of `groups`, [`GROUP_LANES`] runs at a time in the f32 lanes of
+/// AVX2 registers (`observed` and `trials` laid out as the groups' slots,
+/// [`RunGroups::observations`]); run r's sums go to `out[r]`. Every lane does the scalar
+/// operations of its own run's bins in order (no fused multiply-add, the same rounding), and a
+/// bin outside the template (or a padding slot) adds weight zero, so ±0 terms: a sum that
+/// starts at +0 is never −0, so adding ±0 leaves it unchanged, as skipping the bin does. The
+/// sums are bit-identical to [`run_sums`] (checked by a test). The template must pass
+/// [`group_lanes_fit`].
 ///
 /// # Safety
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn run_sums_quad_avx2(
+unsafe fn run_sums_group_avx2(
     template: &TemplateLevel,
     motion: &AffineMotion,
     centre: [f64; 2],
-    quads: &RunQuads,
-    observed: &[[f64; 4]],
-    trials: &[[f64; 4]],
+    groups: &RunGroups,
+    observed: &[[f32; GROUP_LANES]],
+    trials: &[[f32; GROUP_LANES]],
     out: &mut [[f64; 13]],
 ) {
     use std::arch::x86_64::*;
     let (h, w) = (template.height, template.width);
     // The lane arithmetic indexes pixels in i32.
-    assert!(quad_lanes_fit(template), "template of {h}x{w} pixels");
-    assert!(observed.len() == quads.bin.len() && trials.len() == quads.bin.len());
+    assert!(group_lanes_fit(template), "template of {h}x{w} pixels");
+    assert!(observed.len() == groups.bin.len() && trials.len() == groups.bin.len());
     let samples = template.samples.as_ptr() as *const f32;
-    let (m_yx, m_xx) = (
-        _mm256_set1_pd(motion.m[0][1]),
-        _mm256_set1_pd(motion.m[1][1]),
+    let (_, [m_yx, m_xx, centre_x]) = run_frame(motion, centre, 0.0);
+    let (m_yx, m_xx, centre_x) = (
+        _mm256_set1_ps(m_yx),
+        _mm256_set1_ps(m_xx),
+        _mm256_set1_ps(centre_x),
     );
-    let centre_x = _mm256_set1_pd(centre[1]);
-    let zero = _mm256_setzero_pd();
+    let zero = _mm256_setzero_ps();
     let (y_max, x_max) = (
-        _mm256_set1_pd((h - 1) as f64),
-        _mm256_set1_pd((w - 1) as f64),
+        _mm256_set1_ps((h - 1) as f32),
+        _mm256_set1_ps((w - 1) as f32),
     );
     let (y_last, x_last) = (
-        _mm_set1_epi32((h - 2) as i32),
-        _mm_set1_epi32((w - 2) as i32),
+        _mm256_set1_epi32((h - 2) as i32),
+        _mm256_set1_epi32((w - 2) as i32),
     );
-    let width = _mm_set1_epi32(w as i32);
-    let (one, one_ps) = (_mm256_set1_pd(1.0), _mm_set1_ps(1.0));
+    let width = _mm256_set1_epi32(w as i32);
+    let one = _mm256_set1_ps(1.0);
     let (floor, nine, three) = (
-        _mm256_set1_pd(0.01),
-        _mm256_set1_pd(9.0),
-        _mm256_set1_pd(3.0),
+        _mm256_set1_ps(0.01),
+        _mm256_set1_ps(9.0),
+        _mm256_set1_ps(3.0),
     );
-    let sign = _mm256_set1_pd(-0.0);
-    for (g, members) in quads.runs.iter().enumerate() {
-        // Per-run parts of the positions, added as `AffineMotion::at` and `sample_template`
-        // add them: y = (row + c_y) + ((b_y + m_yy·row) + m_yx·x), x = (x + c_x) + ((b_x +
-        // m_xy·row) + m_xx·x).
-        let rows = quads.row[g];
-        let row_y = _mm256_loadu_pd(rows.map(|r| r + centre[0]).as_ptr());
-        let base_y = _mm256_loadu_pd(rows.map(|r| motion.b[0] + motion.m[0][0] * r).as_ptr());
-        let base_x = _mm256_loadu_pd(rows.map(|r| motion.b[1] + motion.m[1][0] * r).as_ptr());
+    let sign = _mm256_set1_ps(-0.0);
+    // Lanes k and k + 4 of a vector, each repeated over one half of a register.
+    let pair_lanes = [
+        _mm256_setr_epi32(0, 0, 0, 0, 4, 4, 4, 4),
+        _mm256_setr_epi32(1, 1, 1, 1, 5, 5, 5, 5),
+        _mm256_setr_epi32(2, 2, 2, 2, 6, 6, 6, 6),
+        _mm256_setr_epi32(3, 3, 3, 3, 7, 7, 7, 7),
+    ];
+    let row_stride = 4 * w;
+    for (g, members) in groups.runs.iter().enumerate() {
+        let frames = groups.row[g].map(|r| run_frame(motion, centre, r).0);
+        let row_y = _mm256_loadu_ps(frames.map(|f| f[0]).as_ptr());
+        let base_y = _mm256_loadu_ps(frames.map(|f| f[1]).as_ptr());
+        let base_x = _mm256_loadu_ps(frames.map(|f| f[2]).as_ptr());
         let mut acc = [zero; 13];
-        for s in quads.slot_start[g]..quads.slot_start[g + 1] {
-            let x = _mm256_loadu_pd(quads.x.get_unchecked(s).as_ptr());
-            let x2 = _mm256_loadu_pd(quads.x2.get_unchecked(s).as_ptr());
-            let observed = _mm256_loadu_pd(observed.get_unchecked(s).as_ptr());
-            let trials = _mm256_loadu_pd(trials.get_unchecked(s).as_ptr());
-            let py = _mm256_add_pd(row_y, _mm256_add_pd(base_y, _mm256_mul_pd(m_yx, x)));
-            let px = _mm256_add_pd(
-                _mm256_add_pd(x, centre_x),
-                _mm256_add_pd(base_x, _mm256_mul_pd(m_xx, x)),
+        for s in groups.slot_start[g]..groups.slot_start[g + 1] {
+            let x = _mm256_loadu_ps(groups.x.get_unchecked(s).as_ptr());
+            let x2 = _mm256_loadu_ps(groups.x2.get_unchecked(s).as_ptr());
+            let observed = _mm256_loadu_ps(observed.get_unchecked(s).as_ptr());
+            let trials = _mm256_loadu_ps(trials.get_unchecked(s).as_ptr());
+            let py = _mm256_add_ps(row_y, _mm256_add_ps(base_y, _mm256_mul_ps(m_yx, x)));
+            let px = _mm256_add_ps(
+                _mm256_add_ps(x, centre_x),
+                _mm256_add_ps(base_x, _mm256_mul_ps(m_xx, x)),
             );
-            // Inside the template's interior (as `sample_template`; NaN is outside).
-            let inside = _mm256_and_pd(
-                _mm256_and_pd(
-                    _mm256_cmp_pd::<_CMP_GE_OQ>(py, zero),
-                    _mm256_cmp_pd::<_CMP_GE_OQ>(px, zero),
+            // Inside the template's interior (as `run_sums`; NaN is outside).
+            let inside = _mm256_and_ps(
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
+                    _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
                 ),
-                _mm256_and_pd(
-                    _mm256_cmp_pd::<_CMP_LE_OQ>(py, y_max),
-                    _mm256_cmp_pd::<_CMP_LE_OQ>(px, x_max),
+                _mm256_and_ps(
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(py, y_max),
+                    _mm256_cmp_ps::<_CMP_LE_OQ>(px, x_max),
                 ),
             );
-            let all_inside = _mm256_movemask_pd(inside) == 0xF;
+            let all_inside = _mm256_movemask_ps(inside) == 0xFF;
             // Lanes outside sample pixel (0, 0) and get weight zero below.
             let (py, px) = if all_inside {
                 (py, px)
             } else {
-                (_mm256_and_pd(py, inside), _mm256_and_pd(px, inside))
+                (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside))
             };
-            let y0 = _mm_min_epi32(_mm256_cvttpd_epi32(py), y_last);
-            let x0 = _mm_min_epi32(_mm256_cvttpd_epi32(px), x_last);
-            let mut fy = [0.0f32; 4];
-            let mut fx = [0.0f32; 4];
-            _mm_storeu_ps(
-                fy.as_mut_ptr(),
-                _mm256_cvtpd_ps(_mm256_sub_pd(py, _mm256_cvtepi32_pd(y0))),
+            let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(py), y_last);
+            let x0 = _mm256_min_epi32(_mm256_cvttps_epi32(px), x_last);
+            let fy = _mm256_sub_ps(py, _mm256_cvtepi32_ps(y0));
+            let fx = _mm256_sub_ps(px, _mm256_cvtepi32_ps(x0));
+            let mut index = [0i32; GROUP_LANES];
+            _mm256_storeu_si256(
+                index.as_mut_ptr() as *mut __m256i,
+                _mm256_add_epi32(_mm256_mullo_epi32(y0, width), x0),
             );
-            _mm_storeu_ps(
-                fx.as_mut_ptr(),
-                _mm256_cvtpd_ps(_mm256_sub_pd(px, _mm256_cvtepi32_pd(x0))),
-            );
-            let mut index = [0i32; 4];
-            _mm_storeu_si128(
-                index.as_mut_ptr() as *mut __m128i,
-                _mm_add_epi32(_mm_mullo_epi32(y0, width), x0),
-            );
-            // (value, ∂y, ∂x, 0) of every lane: pixels i, i + 1 in one load, i + w, i + w + 1
-            // in another.
-            let mut sampled = [_mm_setzero_ps(); 4];
-            for (lane, out) in sampled.iter_mut().enumerate() {
-                let top_row = samples.add(4 * index[lane] as usize);
-                let ab = _mm256_loadu_ps(top_row);
-                let cd = _mm256_loadu_ps(top_row.add(4 * w));
-                let fxl = _mm_set1_ps(fx[lane]);
-                let fyl = _mm_set1_ps(fy[lane]);
-                let (gxl, gyl) = (_mm_sub_ps(one_ps, fxl), _mm_sub_ps(one_ps, fyl));
-                let top = _mm_add_ps(
-                    _mm_mul_ps(_mm256_castps256_ps128(ab), gxl),
-                    _mm_mul_ps(_mm256_extractf128_ps::<1>(ab), fxl),
+            // (value, ∂y, ∂x, 0) of lanes k (low half) and k + 4 (high half): pixels i, i + 1
+            // in one load, i + w, i + w + 1 in another, per lane.
+            let pair = |k: usize| {
+                let pa = samples.add(4 * *index.get_unchecked(k) as usize);
+                let pb = samples.add(4 * *index.get_unchecked(k + 4) as usize);
+                let (ab_a, ab_b) = (_mm256_loadu_ps(pa), _mm256_loadu_ps(pb));
+                let (cd_a, cd_b) = (
+                    _mm256_loadu_ps(pa.add(row_stride)),
+                    _mm256_loadu_ps(pb.add(row_stride)),
                 );
-                let bottom = _mm_add_ps(
-                    _mm_mul_ps(_mm256_castps256_ps128(cd), gxl),
-                    _mm_mul_ps(_mm256_extractf128_ps::<1>(cd), fxl),
-                );
-                *out = _mm_add_ps(_mm_mul_ps(top, gyl), _mm_mul_ps(bottom, fyl));
-            }
-            // Transposed to value, ∂y and ∂x across the lanes.
-            let low01 = _mm_unpacklo_ps(sampled[0], sampled[1]);
-            let low23 = _mm_unpacklo_ps(sampled[2], sampled[3]);
-            let high01 = _mm_unpackhi_ps(sampled[0], sampled[1]);
-            let high23 = _mm_unpackhi_ps(sampled[2], sampled[3]);
-            let t = _mm256_cvtps_pd(_mm_movelh_ps(low01, low23));
-            let gy = _mm256_cvtps_pd(_mm_movehl_ps(low23, low01));
-            let gx = _mm256_cvtps_pd(_mm_movelh_ps(high01, high23));
-            let residual = _mm256_sub_pd(observed, t);
-            let inv_variance = _mm256_div_pd(
+                let a = _mm256_permute2f128_ps::<0x20>(ab_a, ab_b);
+                let b = _mm256_permute2f128_ps::<0x31>(ab_a, ab_b);
+                let c = _mm256_permute2f128_ps::<0x20>(cd_a, cd_b);
+                let d = _mm256_permute2f128_ps::<0x31>(cd_a, cd_b);
+                let fxl = _mm256_permutevar8x32_ps(fx, pair_lanes[k]);
+                let fyl = _mm256_permutevar8x32_ps(fy, pair_lanes[k]);
+                let (gxl, gyl) = (_mm256_sub_ps(one, fxl), _mm256_sub_ps(one, fyl));
+                let top = _mm256_add_ps(_mm256_mul_ps(a, gxl), _mm256_mul_ps(b, fxl));
+                let bottom = _mm256_add_ps(_mm256_mul_ps(c, gxl), _mm256_mul_ps(d, fxl));
+                _mm256_add_ps(_mm256_mul_ps(top, gyl), _mm256_mul_ps(bottom, fyl))
+            };
+            let (s0, s1, s2, s3) = (pair(0), pair(1), pair(2), pair(3));
+            // Transposed to value, ∂y and ∂x across the lanes, in lane order.
+            let (low01, low23) = (_mm256_unpacklo_ps(s0, s1), _mm256_unpacklo_ps(s2, s3));
+            let (high01, high23) = (_mm256_unpackhi_ps(s0, s1), _mm256_unpackhi_ps(s2, s3));
+            let t = _mm256_shuffle_ps::<0x44>(low01, low23);
+            let gy = _mm256_shuffle_ps::<0xEE>(low01, low23);
+            let gx = _mm256_shuffle_ps::<0x44>(high01, high23);
+            let residual = _mm256_sub_ps(observed, t);
+            let inv_variance = _mm256_div_ps(
                 trials,
-                _mm256_max_pd(_mm256_mul_pd(t, _mm256_sub_pd(one, t)), floor),
+                _mm256_max_ps(_mm256_mul_ps(t, _mm256_sub_ps(one, t)), floor),
             );
-            let z2 = _mm256_mul_pd(_mm256_mul_pd(residual, residual), inv_variance);
-            let far = _mm256_cmp_pd::<_CMP_GT_OQ>(z2, nine);
-            let weight = if _mm256_movemask_pd(far) == 0 {
+            let z2 = _mm256_mul_ps(_mm256_mul_ps(residual, residual), inv_variance);
+            let far = _mm256_cmp_ps::<_CMP_GT_OQ>(z2, nine);
+            let weight = if _mm256_movemask_ps(far) == 0 {
                 inv_variance
             } else {
-                let huber = _mm256_div_pd(
-                    _mm256_mul_pd(three, _mm256_sqrt_pd(inv_variance)),
-                    _mm256_andnot_pd(sign, residual),
+                let huber = _mm256_div_ps(
+                    _mm256_mul_ps(three, _mm256_sqrt_ps(inv_variance)),
+                    _mm256_andnot_ps(sign, residual),
                 );
-                _mm256_blendv_pd(inv_variance, huber, far)
+                _mm256_blendv_ps(inv_variance, huber, far)
             };
             let weight = if all_inside {
                 weight
             } else {
-                _mm256_and_pd(weight, inside)
+                _mm256_and_ps(weight, inside)
             };
-            let (wgy, wgx) = (_mm256_mul_pd(weight, gy), _mm256_mul_pd(weight, gx));
+            let (wgy, wgx) = (_mm256_mul_ps(weight, gy), _mm256_mul_ps(weight, gx));
             let pairs = [
-                _mm256_mul_pd(wgy, gy),
-                _mm256_mul_pd(wgy, gx),
-                _mm256_mul_pd(wgx, gx),
+                _mm256_mul_ps(wgy, gy),
+                _mm256_mul_ps(wgy, gx),
+                _mm256_mul_ps(wgx, gx),
             ];
             for (k, &v) in pairs.iter().enumerate() {
-                acc[k] = _mm256_add_pd(acc[k], v);
-                acc[3 + k] = _mm256_add_pd(acc[3 + k], _mm256_mul_pd(v, x));
-                acc[6 + k] = _mm256_add_pd(acc[6 + k], _mm256_mul_pd(v, x2));
+                acc[k] = _mm256_add_ps(acc[k], v);
+                acc[3 + k] = _mm256_add_ps(acc[3 + k], _mm256_mul_ps(v, x));
+                acc[6 + k] = _mm256_add_ps(acc[6 + k], _mm256_mul_ps(v, x2));
             }
-            let (ry, rx) = (_mm256_mul_pd(wgy, residual), _mm256_mul_pd(wgx, residual));
-            acc[9] = _mm256_add_pd(acc[9], ry);
-            acc[10] = _mm256_add_pd(acc[10], rx);
-            acc[11] = _mm256_add_pd(acc[11], _mm256_mul_pd(ry, x));
-            acc[12] = _mm256_add_pd(acc[12], _mm256_mul_pd(rx, x));
+            let (ry, rx) = (_mm256_mul_ps(wgy, residual), _mm256_mul_ps(wgx, residual));
+            acc[9] = _mm256_add_ps(acc[9], ry);
+            acc[10] = _mm256_add_ps(acc[10], rx);
+            acc[11] = _mm256_add_ps(acc[11], _mm256_mul_ps(ry, x));
+            acc[12] = _mm256_add_ps(acc[12], _mm256_mul_ps(rx, x));
         }
-        let mut lanes = [[0.0f64; 4]; 13];
+        let mut lanes = [[0.0f32; GROUP_LANES]; 13];
         for (k, a) in acc.iter().enumerate() {
-            _mm256_storeu_pd(lanes[k].as_mut_ptr(), *a);
+            _mm256_storeu_ps(lanes[k].as_mut_ptr(), *a);
         }
         for (lane, &r) in members.iter().enumerate() {
             if r != usize::MAX {
-                out[r] = std::array::from_fn(|k| lanes[k][lane]);
+                out[r] = std::array::from_fn(|k| lanes[k][lane] as f64);
             }
         }
     }
@@ -1951,9 +1999,9 @@ mod tests {
         }
     }
 
-    /// The AVX2 run sums (four runs in the lanes) equal the scalar ones bit for bit: bins inside
-    /// and outside the template, Huber-weighted outliers, runs of every length modulo four and
-    /// groups with empty lanes.
+    /// The AVX2 run sums (eight runs in the lanes) equal the scalar ones bit for bit: bins
+    /// inside and outside the template, Huber-weighted outliers, runs of every length modulo
+    /// eight and groups with empty lanes.
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_run_sums_are_bit_identical_to_scalar() {
@@ -1966,7 +2014,7 @@ mod tests {
         let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         let mut checked = 0;
-        for n_runs in [1usize, 3, 4, 6, 13] {
+        for n_runs in [1usize, 3, 4, 6, 8, 13, 19] {
             for shift in [0.0, 1.7, -3.2, 30.0] {
                 let motion = AffineMotion {
                     b: [0.3 + shift, -0.7 - shift],
@@ -1978,13 +2026,13 @@ mod tests {
                 for _ in 0..n_runs {
                     let len = rng.gen_range(1..12usize);
                     runs.push(start..start + len);
-                    rows.push(rng.gen_range(-20.0..20.0));
+                    rows.push(rng.gen_range(-20.0f32..20.0));
                     start += len;
                 }
-                let x: Vec<f64> = (0..start).map(|_| rng.gen_range(-30.0..30.0)).collect();
-                let x2: Vec<f64> = x.iter().map(|v| v * v).collect();
+                let x: Vec<f32> = (0..start).map(|_| rng.gen_range(-30.0..30.0)).collect();
+                let x2: Vec<f32> = x.iter().map(|v| v * v).collect();
                 // Every fourth bin far from the template: a Huber-weighted outlier.
-                let observed: Vec<f64> = (0..start)
+                let observed: Vec<f32> = (0..start)
                     .map(|i| {
                         if i % 4 == 1 {
                             0.9
@@ -1993,18 +2041,18 @@ mod tests {
                         }
                     })
                     .collect();
-                let trials: Vec<f64> = (0..start).map(|_| rng.gen_range(8.0..200.0)).collect();
-                let quads = RunQuads::new(&runs, &rows, &x, &x2);
+                let trials: Vec<f32> = (0..start).map(|_| rng.gen_range(8.0..200.0)).collect();
+                let groups = RunGroups::new(&runs, &rows, &x, &x2);
                 let mut simd = vec![[f64::NAN; 13]; runs.len()];
                 let (lanes_observed, lanes_trials) =
-                    quads.observations(|b| (observed[b], trials[b]));
+                    groups.observations(|b| (observed[b], trials[b]));
                 // SAFETY: AVX2 checked above.
                 unsafe {
-                    run_sums_quad_avx2(
+                    run_sums_group_avx2(
                         &template,
                         &motion,
                         centre,
-                        &quads,
+                        &groups,
                         &lanes_observed,
                         &lanes_trials,
                         &mut simd,
@@ -2029,6 +2077,75 @@ mod tests {
             }
         }
         assert!(checked > 40, "{checked}");
+    }
+
+    /// The single-precision run sums of a full-width row of 1 px bins (496 bins, the fine
+    /// level's longest run) agree with the same sums in double precision (positions, weights and
+    /// sums; a test-only reference) to 1e-5 of each sum's scale (Σ of its terms' magnitudes).
+    #[test]
+    fn single_precision_run_sums_match_double_precision() {
+        let (h, w) = (254usize, 496usize);
+        let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        let template = template_level(&reference, 0.4);
+        let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+        let motion = AffineMotion {
+            b: [0.37, -1.21],
+            m: [[0.001, -0.002], [0.0015, 0.0005]],
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let row = 40.5 - centre[0];
+        let x: Vec<f64> = (0..w).map(|c| c as f64 - centre[1]).collect();
+        let observed: Vec<f64> = (0..w).map(|_| rng.gen_range(0.0..0.3)).collect();
+        let trials = 80.0;
+        let (mut double, mut scale) = ([0.0f64; 13], [0.0f64; 13]);
+        for (&x, &o) in x.iter().zip(&observed) {
+            let d = motion.at([row, x]);
+            let [t, gy, gx] =
+                sample_template(&template, row + centre[0] + d[0], x + centre[1] + d[1]).unwrap();
+            let r = o - t;
+            let iv = trials / (t * (1.0 - t)).max(0.01);
+            let wt = if r * r * iv > 9.0 {
+                3.0 * iv.sqrt() / r.abs()
+            } else {
+                iv
+            };
+            let pairs = [wt * gy * gy, wt * gy * gx, wt * gx * gx];
+            let terms: Vec<f64> = (0..3)
+                .flat_map(|p| [pairs[p], pairs[p] * x, pairs[p] * x * x])
+                .chain([wt * gy * r, wt * gx * r, wt * gy * r * x, wt * gx * r * x])
+                .collect();
+            // `terms` in the order p + 3·k; the sums' order is pair + 3·power.
+            for k in 0..13 {
+                let v = if k < 9 {
+                    terms[3 * (k % 3) + k / 3]
+                } else {
+                    terms[k]
+                };
+                double[k] += v;
+                scale[k] += v.abs();
+            }
+        }
+        let (x32, x2_32): (Vec<f32>, Vec<f32>) =
+            x.iter().map(|&v| (v as f32, (v * v) as f32)).unzip();
+        let observed32: Vec<f32> = observed.iter().map(|&v| v as f32).collect();
+        let bins = RunBins {
+            row: row as f32,
+            x: &x32,
+            x2: &x2_32,
+            observed: &observed32,
+            trials: &[trials as f32; 496],
+        };
+        let single = run_sums(&template, &motion, centre, &bins);
+        for k in 0..13 {
+            assert!(scale[k] > 0.0);
+            assert!(
+                (single[k] - double[k]).abs() <= 1e-5 * scale[k],
+                "sum {k}: {} vs {} (scale {})",
+                single[k],
+                double[k],
+                scale[k]
+            );
+        }
     }
 
     #[test]
