@@ -1,8 +1,8 @@
 //! Bilinear warping of block images onto the reference grid (supplement §1.2).
 
 use crate::error::{Error, Result};
-use crate::filters::bilinear;
-use ndarray::{Array2, Array3, Axis};
+use crate::filters::bilinear_taps;
+use ndarray::{Array2, Array3};
 use rayon::prelude::*;
 
 /// True for a positive number (false for NaN): parameter validation.
@@ -40,14 +40,26 @@ pub fn warp_to_reference(block: &Array2<f32>, flow: &Array3<f32>) -> Result<Arra
         return Err(Error::invalid("cannot warp an empty block image"));
     }
     check_flow(flow, h, w, "warp")?;
+    // Plain slices (the same taps and arithmetic as [`crate::filters::bilinear`], without the 2-D index checks).
+    let (block, flow) = (block.as_standard_layout(), flow.as_standard_layout());
+    let (pixels, flow) = (
+        block.as_slice().expect("standard layout"),
+        flow.as_slice().expect("standard layout"),
+    );
     let mut out = Array2::<f32>::zeros((h, w));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
+    out.as_slice_mut()
+        .expect("fresh array is contiguous")
+        .par_chunks_exact_mut(w)
+        .zip(flow.par_chunks_exact(2 * w))
         .enumerate()
-        .for_each(|(y, mut row)| {
-            for x in 0..w {
-                let (dy, dx) = (flow[[y, x, 0]], flow[[y, x, 1]]);
-                row[x] = bilinear(block.view(), y as f32 + dy, x as f32 + dx);
+        .for_each(|(y, (row, flow))| {
+            for (x, (out, d)) in row.iter_mut().zip(flow.chunks_exact(2)).enumerate() {
+                let (y0, y1, fy) = bilinear_taps(y as f32 + d[0], h);
+                let (x0, x1, fx) = bilinear_taps(x as f32 + d[1], w);
+                let (top, bottom) = (&pixels[y0 * w..(y0 + 1) * w], &pixels[y1 * w..(y1 + 1) * w]);
+                let top = top[x0] * (1.0 - fx) + top[x1] * fx;
+                let bottom = bottom[x0] * (1.0 - fx) + bottom[x1] * fx;
+                *out = top * (1.0 - fy) + bottom * fy;
             }
         });
     Ok(out)
