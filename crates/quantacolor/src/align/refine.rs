@@ -1500,20 +1500,19 @@ unsafe fn run_sums_group_avx2(
                 index.as_mut_ptr() as *mut __m256i,
                 _mm256_add_epi32(_mm256_mullo_epi32(y0, width), x0),
             );
-            // (value, ∂y, ∂x, 0) of lanes k (low half) and k + 4 (high half): pixels i, i + 1
-            // in one load, i + w, i + w + 1 in another, per lane.
+            // (value, ∂y, ∂x, 0) of lanes k (low half) and k + 4 (high half): each corner pixel
+            // of the two lanes in one register.
             let pair = |k: usize| {
                 let pa = samples.add(4 * *index.get_unchecked(k) as usize);
                 let pb = samples.add(4 * *index.get_unchecked(k + 4) as usize);
-                let (ab_a, ab_b) = (_mm256_loadu_ps(pa), _mm256_loadu_ps(pb));
-                let (cd_a, cd_b) = (
-                    _mm256_loadu_ps(pa.add(row_stride)),
-                    _mm256_loadu_ps(pb.add(row_stride)),
-                );
-                let a = _mm256_permute2f128_ps::<0x20>(ab_a, ab_b);
-                let b = _mm256_permute2f128_ps::<0x31>(ab_a, ab_b);
-                let c = _mm256_permute2f128_ps::<0x20>(cd_a, cd_b);
-                let d = _mm256_permute2f128_ps::<0x31>(cd_a, cd_b);
+                let both = |offset: usize| {
+                    _mm256_insertf128_ps::<1>(
+                        _mm256_castps128_ps256(_mm_loadu_ps(pa.add(offset))),
+                        _mm_loadu_ps(pb.add(offset)),
+                    )
+                };
+                let (a, b) = (both(0), both(4));
+                let (c, d) = (both(row_stride), both(row_stride + 4));
                 let fxl = _mm256_permutevar8x32_ps(fx, pair_lanes[k]);
                 let fyl = _mm256_permutevar8x32_ps(fy, pair_lanes[k]);
                 let (gxl, gyl) = (_mm256_sub_ps(one, fxl), _mm256_sub_ps(one, fyl));
