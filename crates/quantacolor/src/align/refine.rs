@@ -1278,25 +1278,30 @@ fn fit_sub_block_generic(
 fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f32>, Vec<f32>) {
     let (sums, trials): (Vec<f64>, Vec<f64>) = if layout.site_index.len() == layout.len() {
         // One site per bin (1 px bins): the bins' sites in order.
-        let trials = vec![frames as f64; layout.len()];
         let sums = (layout.site_index.iter())
             .map(|&i| counts[i as usize] as f64)
             .collect();
-        (sums, trials)
+        (sums, vec![frames as f64; layout.len()])
     } else {
-        (0..layout.len())
+        let sums = (0..layout.len())
             .map(|b| {
-                let sites = layout.sites(b);
-                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
-                (sum as f64, sites.len() as f64 * frames as f64)
+                let sum: u64 = (layout.sites(b).iter())
+                    .map(|&i| counts[i as usize] as u64)
+                    .sum();
+                sum as f64
             })
-            .unzip()
+            .collect();
+        let trials = (0..layout.len())
+            .map(|b| layout.sites(b).len() as f64 * frames as f64)
+            .collect();
+        (sums, trials)
     };
-    // Divided in double precision, then rounded once for the single-precision fit.
-    sums.iter()
-        .zip(&trials)
-        .map(|(&sum, &trials)| ((sum / trials.max(1.0)) as f32, trials as f32))
-        .unzip()
+    // Divided in double precision, then rounded once for the single-precision fit; one plain
+    // loop per output, so that each runs in vector registers.
+    let observed = (sums.iter().zip(&trials))
+        .map(|(&sum, &trials)| (sum / trials.max(1.0)) as f32)
+        .collect();
+    (observed, trials.iter().map(|&t| t as f32).collect())
 }
 
 /// The bins of one run of a [`BinLayout`] (one centroid row), as [`fit_sub_block`] reads them.
