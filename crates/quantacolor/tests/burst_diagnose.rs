@@ -353,7 +353,14 @@ fn decompose(
     );
     // Parameter errors per sub-block against the true mean over its frames, in px at the
     // corners for the linear part.
-    let scale = [1.0, 1.0, h as f64 / 2.0, w as f64 / 2.0, h as f64 / 2.0, w as f64 / 2.0];
+    let scale = [
+        1.0,
+        1.0,
+        h as f64 / 2.0,
+        w as f64 / 2.0,
+        h as f64 / 2.0,
+        w as f64 / 2.0,
+    ];
     let names = ["b_y", "b_x", "m_yy", "m_yx", "m_xy", "m_xx"];
     let errs: Vec<[f64; 6]> = (0..n)
         .map(|k| {
@@ -364,7 +371,10 @@ fn decompose(
     for i in 0..6 {
         let mean = errs.iter().map(|e| e[i]).sum::<f64>() / n as f64;
         let rms = (errs.iter().map(|e| e[i] * e[i]).sum::<f64>() / n as f64).sqrt();
-        let d = (errs.windows(2).map(|e| (e[1][i] - e[0][i]).powi(2)).sum::<f64>()
+        let d = (errs
+            .windows(2)
+            .map(|e| (e[1][i] - e[0][i]).powi(2))
+            .sum::<f64>()
             / (n - 1).max(1) as f64)
             .sqrt();
         println!(
@@ -399,7 +409,10 @@ fn decompose(
         }
     }
     e.sort_by(f64::total_cmp);
-    println!("  sub-block cameras vs true means     : median {:.3}", e[e.len() / 2]);
+    println!(
+        "  sub-block cameras vs true means     : median {:.3}",
+        e[e.len() / 2]
+    );
     // Smoothing of the fitted cameras in time (moving average over +-r sub-blocks).
     for r in [2usize, 5, 10, 20] {
         let sm: Vec<AffineMotion> = (0..n)
