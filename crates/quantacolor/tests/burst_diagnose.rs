@@ -309,6 +309,8 @@ fn interp(times: &[f64], cams: &[AffineMotion], t: f64) -> AffineMotion {
 
 /// Decomposition of the end-point error: camera parameters per sub-block, temporal
 /// interpolation, local motion, bias (QC_DEBUG=decompose).
+// Sub-block indices run over several parallel arrays (cameras, true means, errors).
+#[allow(clippy::needless_range_loop)]
 fn decompose(
     m: &quantacolor::simulate::Motion,
     b: &quantacolor::burst::BurstReconstruction,

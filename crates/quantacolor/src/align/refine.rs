@@ -1722,6 +1722,12 @@ fn anchor_at_reference(motion: &mut FrameMotion) {
 /// by the current block motion, whose own unobserved shear it would otherwise fight. The
 /// information is about the inverse map the fit solves for; for motions of a few pixels and
 /// under a degree its covariance is the forward camera's to first order.
+///
+/// With σ = 0.1 px, `bench quality` against the suite without the prior: Bonita handheld EPE
+/// 0.278 → 0.148 px (+0.03 dB), no capture's EPE worse (dark kodim02 0.068 → 0.056, kodim04
+/// pan 0.133 → 0.107), every mean within 0.01 dB and every capture within 0.03 dB. σ = 0.3 and
+/// 1 left Bonita at 0.205 and 0.270 px (the information overstates what its photons measure
+/// about the shear), 0.03 gave the same as 0.1.
 pub(super) fn similarity_posterior(
     camera: &AffineMotion,
     information: &Information,
@@ -2306,6 +2312,75 @@ mod tests {
         println!("fit {fit:?}, corner error {err:.4} px");
         assert!(err < 0.3, "{err}");
     }
+    /// Information (Σ w·JᵀJ, weight `w` per bin) of bins whose template varies along y only
+    /// outside `band` and in both directions inside it: the horizontal motion outside is not
+    /// observed (sky over a textured strip).
+    fn sky_information(band: std::ops::Range<i32>, w: f64) -> Information {
+        let mut info = [[0.0f64; 6]; 6];
+        for y in (-120..120).step_by(4) {
+            for x in (-240..240).step_by(4) {
+                let (y, x) = (y as f64, x as f64);
+                let textured = band.contains(&(y as i32));
+                let rows = [
+                    [0.3, 0.0, 0.3 * y, 0.3 * x, 0.0, 0.0],
+                    if textured {
+                        [0.0, 0.3, 0.0, 0.0, 0.3 * y, 0.3 * x]
+                    } else {
+                        [0.0; 6]
+                    },
+                ];
+                for j in rows {
+                    for p in 0..6 {
+                        for q in 0..6 {
+                            info[p][q] += w * j[p] * j[q];
+                        }
+                    }
+                }
+            }
+        }
+        info
+    }
+
+    /// The similarity prior restores the horizontal shear that the photons leave open (a
+    /// rotation of 0.5 degrees fitted with a wrong shear that keeps the textured strip's
+    /// horizontal motion), and leaves a well-measured non-similar camera as it is.
+    #[test]
+    fn similarity_prior_fills_in_the_unobserved_shear_only() {
+        let theta = 0.5f64.to_radians();
+        let truth = AffineMotion {
+            b: [0.4, -1.2],
+            m: [
+                [theta.cos() - 1.0, theta.sin()],
+                [-theta.sin(), theta.cos() - 1.0],
+            ],
+        };
+        let half = [127.0, 248.0];
+        let radius = 247.5;
+        let info = sky_information(40..60, 1.0);
+        // A shear error e along y that leaves the strip (y = 50) where it was.
+        for e in [0.004, -0.006] {
+            let mut fitted = truth;
+            fitted.m[1][0] += e;
+            fitted.b[1] -= e * 50.0;
+            let before = fitted.distance(&truth, half);
+            let after = similarity_posterior(&fitted, &info, 0.1, radius).distance(&truth, half);
+            assert!(before > 0.5, "{before}");
+            assert!(after < 0.05 * before, "{e}: {before} -> {after}");
+            // No prior: nothing moves.
+            let same = similarity_posterior(&fitted, &info, 1e9, radius).distance(&fitted, half);
+            assert!(same < 1e-6, "{same}");
+        }
+        // Every direction observed (texture everywhere; the shear measured to 0.007 px at the
+        // farther edge), a true shear of 1 px at the top and bottom edges: kept.
+        let info = sky_information(-120..120, 400.0);
+        let mut sheared = truth;
+        sheared.m[1][0] += 1.0 / 127.0;
+        let moved = similarity_posterior(&sheared, &info, 0.1, radius).distance(&sheared, half);
+        assert!(moved < 0.01, "{moved}");
+        // A singular information leaves the camera as it is.
+        let none = similarity_posterior(&sheared, &[[0.0; 6]; 6], 0.1, radius);
+        assert_eq!(none, sheared);
+    }
 }
 
 #[cfg(test)]
@@ -2407,75 +2482,5 @@ mod diagnose {
                 .collect();
             println!("{levels:?}: {}", fits.join(" "));
         }
-    }
-
-    /// Information (Σ w·JᵀJ, weight `w` per bin) of bins whose template varies along y only
-    /// outside `band` and in both directions inside it: the horizontal motion outside is not
-    /// observed (sky over a textured strip).
-    fn sky_information(band: std::ops::Range<i32>, w: f64) -> Information {
-        let mut info = [[0.0f64; 6]; 6];
-        for y in (-120..120).step_by(4) {
-            for x in (-240..240).step_by(4) {
-                let (y, x) = (y as f64, x as f64);
-                let textured = band.contains(&(y as i32));
-                let rows = [
-                    [0.3, 0.0, 0.3 * y, 0.3 * x, 0.0, 0.0],
-                    if textured {
-                        [0.0, 0.3, 0.0, 0.0, 0.3 * y, 0.3 * x]
-                    } else {
-                        [0.0; 6]
-                    },
-                ];
-                for j in rows {
-                    for p in 0..6 {
-                        for q in 0..6 {
-                            info[p][q] += w * j[p] * j[q];
-                        }
-                    }
-                }
-            }
-        }
-        info
-    }
-
-    /// The similarity prior restores the horizontal shear that the photons leave open (a
-    /// rotation of 0.5 degrees fitted with a wrong shear that keeps the textured strip's
-    /// horizontal motion), and leaves a well-measured non-similar camera as it is.
-    #[test]
-    fn similarity_prior_fills_in_the_unobserved_shear_only() {
-        let theta = 0.5f64.to_radians();
-        let truth = AffineMotion {
-            b: [0.4, -1.2],
-            m: [
-                [theta.cos() - 1.0, theta.sin()],
-                [-theta.sin(), theta.cos() - 1.0],
-            ],
-        };
-        let half = [127.0, 248.0];
-        let radius = 247.5;
-        let info = sky_information(40..60, 1.0);
-        // A shear error e along y that leaves the strip (y = 50) where it was.
-        for e in [0.004, -0.006] {
-            let mut fitted = truth;
-            fitted.m[1][0] += e;
-            fitted.b[1] -= e * 50.0;
-            let before = fitted.distance(&truth, half);
-            let after = similarity_posterior(&fitted, &info, 0.1, radius).distance(&truth, half);
-            assert!(before > 0.5, "{before}");
-            assert!(after < 0.05 * before, "{e}: {before} -> {after}");
-            // No prior: nothing moves.
-            let same = similarity_posterior(&fitted, &info, 1e9, radius).distance(&fitted, half);
-            assert!(same < 1e-6, "{same}");
-        }
-        // Every direction observed (texture everywhere; the shear measured to 0.007 px at the
-        // farther edge), a true shear of 1 px at the top and bottom edges: kept.
-        let info = sky_information(-120..120, 400.0);
-        let mut sheared = truth;
-        sheared.m[1][0] += 1.0 / 127.0;
-        let moved = similarity_posterior(&sheared, &info, 0.1, radius).distance(&sheared, half);
-        assert!(moved < 0.01, "{moved}");
-        // A singular information leaves the camera as it is.
-        let none = similarity_posterior(&sheared, &[[0.0; 6]; 6], 0.1, radius);
-        assert_eq!(none, sheared);
     }
 }
