@@ -308,9 +308,9 @@ type CostKernel = unsafe fn(
 ) -> bool;
 
 /// [`tile_cost`] of the offsets `(dy, dx0 + i)` for every `i < out.len()`, into `out`: with AVX2,
-/// eight offsets at a time where all of them overlap the image alike (each lane sums its rows
-/// in the scalar order, so every cost is bit-identical to [`tile_cost`]'s); elsewhere one
-/// [`tile_cost`] each.
+/// up to 24 offsets at a time that overlap the image alike (each lane sums its rows in the
+/// scalar order, so every cost is bit-identical to [`tile_cost`]'s; at the image's left and
+/// right edges the runs of equally clipped offsets); elsewhere one [`tile_cost`] each.
 fn window_row_costs(
     reference: &Array2<f32>,
     alternate: &Array2<f32>,
@@ -324,9 +324,21 @@ fn window_row_costs(
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") {
+            let (ox, w) = (origin.1 as isize, reference.ncols() as isize);
+            let ts_i = ts as isize;
+            let clip_x = |dx: isize| (ox.max(-dx).max(0), (ox + ts_i).min(w).min(w - dx));
             while done + 1 < out.len() {
                 let dx = dx0 + done as isize;
-                let lanes = (out.len() - done).min(24);
+                // The offsets that clip the tile as the first does (a prefix: the bounds are
+                // monotone in dx); one offset alone takes `tile_cost`.
+                let lanes = (1..(out.len() - done).min(24))
+                    .find(|&l| clip_x(dx + l as isize) != clip_x(dx))
+                    .unwrap_or((out.len() - done).min(24));
+                if lanes == 1 {
+                    out[done] = tile_cost(reference, alternate, origin, ts, (dy, dx), norm);
+                    done += 1;
+                    continue;
+                }
                 let part = &mut out[done..done + lanes];
                 // Vectors of 8 offsets: as many as the lanes need (up to 3).
                 let kernel: CostKernel = match lanes.div_ceil(8) {
@@ -376,7 +388,7 @@ unsafe fn tile_costs_avx2<const V: usize, const R: usize>(
 ) -> bool {
     use std::arch::x86_64::*;
     let lanes = out.len() / R;
-    debug_assert!(lanes >= 1 && lanes <= 8 * V && lanes * R == out.len());
+    debug_assert!(lanes > 8 * (V - 1) && lanes <= 8 * V && lanes * R == out.len());
     let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
     let (oy, ox) = (oy as isize, ox as isize);
     let ts = ts as isize;
@@ -394,14 +406,27 @@ unsafe fn tile_costs_avx2<const V: usize, const R: usize>(
     }
     let rs = reference.as_slice().expect("standard layout");
     let as_ = alternate.as_slice().expect("standard layout");
-    // Loads of 8·V alternate values from column x + dx of rows y + dy + k: the last must stay
-    // inside.
-    let last = (y1 - 1 + dy + R as isize - 1) * w + (x1 - 1) + dx + 8 * V as isize - 1;
+    // Loads of `lanes` alternate values from column x + dx of rows y + dy + k (the last vector
+    // masked to the lanes in use): the last must stay inside.
+    let last = (y1 - 1 + dy + R as isize - 1) * w + (x1 - 1) + dx + lanes as isize - 1;
     if (y0 + dy) * w + x0 + dx < 0 || last >= as_.len() as isize {
         return false;
     }
     let n = (x1 - x0) as usize;
     let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let tail = lanes - 8 * (V - 1);
+    let tail_mask = _mm256_cmpgt_epi32(
+        _mm256_set1_epi32(tail as i32),
+        _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
+    );
+    let load = |p: *const f32, v: usize| {
+        if v + 1 < V || tail == 8 {
+            _mm256_loadu_ps(p)
+        } else {
+            // Lanes past `lanes` are not read (they may lie past the image's last pixel).
+            _mm256_maskload_ps(p, tail_mask)
+        }
+    };
     let mut cost = [[_mm256_setzero_ps(); V]; R];
     for y in y0..y1 {
         let r = &rs[(y * w + x0) as usize..][..n];
@@ -413,7 +438,7 @@ unsafe fn tile_costs_avx2<const V: usize, const R: usize>(
             for (k, row) in sum.iter_mut().enumerate() {
                 let a = a.offset(k as isize * w + i as isize);
                 for (v, s) in row.iter_mut().enumerate() {
-                    let diff = _mm256_sub_ps(rv, _mm256_loadu_ps(a.add(8 * v)));
+                    let diff = _mm256_sub_ps(rv, load(a.add(8 * v), v));
                     let term = match norm {
                         Norm::L1 => _mm256_and_ps(diff, abs_mask),
                         Norm::L2 => _mm256_mul_ps(diff, diff),
