@@ -241,6 +241,7 @@ fn rows_cost<'a>(
 /// of offsets side by side where they all overlap the image alike (independent sums, so that
 /// they overlap in time; each cost bit-identical to [`tile_cost`]'s); otherwise a row at a
 /// time by [`window_row_costs`].
+#[allow(clippy::too_many_arguments)]
 fn window_costs(
     reference: &Array2<f32>,
     alternate: &Array2<f32>,
