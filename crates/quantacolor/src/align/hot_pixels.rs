@@ -15,7 +15,7 @@ use crate::model::{
     detection_probability, mle_flux, mle_variance_from_probability, SATURATION_MARGIN,
 };
 use ndarray::Array2;
-use rand::{RngCore, SeedableRng};
+use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -45,6 +45,31 @@ impl Default for HotPixelConfig {
 /// Hot pixels whose replacements [`HotPixelCorrector::corrected_block_sum`] draws frame by
 /// frame together.
 const HOT_GROUP: usize = 64;
+
+/// Frames whose draws [`HotPixelCorrector::corrected_block_sum`] makes at a time (per hot pixel
+/// of a group).
+const DRAW_CHUNK: usize = 64;
+
+/// Frames ahead of the one being read whose candidate bytes
+/// [`HotPixelCorrector::corrected_block_sum`] asks the cache for (frames lie a frame's size
+/// apart, a stride the hardware prefetchers do not follow).
+const PREFETCH_FRAMES: usize = 8;
+
+/// Asks the CPU to bring the cache lines of `bytes` into cache (a hint: no effect on values).
+#[inline]
+fn prefetch(bytes: &[u8]) {
+    #[cfg(target_arch = "x86_64")]
+    for line in bytes.chunks(64) {
+        // SAFETY: SSE is part of x86_64; a prefetch of a valid address reads nothing.
+        unsafe {
+            std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                line.as_ptr() as *const i8
+            )
+        };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = bytes;
+}
 
 /// Precomputed replacement candidates of every hot pixel.
 #[derive(Debug, Clone)]
@@ -132,10 +157,11 @@ impl HotPixelCorrector {
             (self.height, self.width),
             "frames and hot-pixel corrector disagree in size"
         );
-        let mut sums = frames.shared_sum(range.clone());
         // Hot pixels a few dozen at a time (neighbours in row-major order), frame by frame: the
         // group's reads of one frame stay within a few rows (one pixel at a time through all
-        // frames would touch a new page and cache line at every read).
+        // frames would touch a new page and cache line at every read). The draws come before
+        // the block sum, which then finds the frames' pages mapped and partly cached (summed
+        // first, they would be released and faulted in again for these few reads).
         let packed = frames.layout() == FrameLayout::Packed;
         let row_bytes = frames.width().div_ceil(8);
         let replaced: Vec<Vec<u32>> = self
@@ -150,27 +176,51 @@ impl HotPixelCorrector {
                 let mut counts = vec![0u32; hot.len()];
                 if packed {
                     // Packed frames: the bit read straight from the frame's bytes, each
-                    // candidate as its byte in a frame and the bit's shift, the group's
-                    // candidates in one flat list (`spans`: each hot pixel's start and count).
-                    let mut sites: Vec<(u32, u32)> = Vec::new();
+                    // candidate as its bit's position in a frame (byte · 8 + shift), the
+                    // group's candidates in one flat list (`spans`: each hot pixel's start and
+                    // count). The draws of DRAW_CHUNK frames are made a pixel at a time (each
+                    // stream's next words, as `next_u32` would give them one by one) and
+                    // turned into bit positions frame-major, so the reads of a frame are
+                    // independent loads with no generator work between them.
+                    let mut sites: Vec<u32> = Vec::new();
                     let mut spans: Vec<(usize, u64)> = Vec::with_capacity(hot.len());
                     for cands in candidates {
                         spans.push((sites.len(), cands.len() as u64));
                         sites.extend(
                             cands
                                 .iter()
-                                .map(|&(y, x)| (y * row_bytes as u32 + x / 8, 7 - x % 8)),
+                                .map(|&(y, x)| (y * row_bytes as u32 + x / 8) * 8 + 7 - x % 8),
                         );
                     }
-                    for t in range.clone() {
-                        let frame = frames.raw_frame(t);
-                        for ((rng, &(start, n)), count) in
-                            rngs.iter_mut().zip(&spans).zip(counts.iter_mut())
-                        {
-                            let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
-                            let (byte, shift) = sites[start + pick];
-                            *count += ((frame[byte as usize] >> shift) & 1) as u32;
+                    let g = hot.len();
+                    // The bytes of a frame that the group's candidates lie in (a few rows).
+                    let span = match (sites.iter().min(), sites.iter().max()) {
+                        (Some(&lo), Some(&hi)) => (lo >> 3) as usize..(hi >> 3) as usize + 1,
+                        _ => 0..0,
+                    };
+                    let mut words = vec![0u32; DRAW_CHUNK];
+                    let mut bits = vec![0u32; DRAW_CHUNK * g];
+                    let mut t0 = range.start;
+                    while t0 < range.end {
+                        let c = (range.end - t0).min(DRAW_CHUNK);
+                        for (i, (rng, &(start, n))) in rngs.iter_mut().zip(&spans).enumerate() {
+                            rng.fill(&mut words[..c]);
+                            let sites = &sites[start..];
+                            for (f, &r) in words[..c].iter().enumerate() {
+                                bits[f * g + i] = sites[((r as u64 * n) >> 32) as usize];
+                            }
                         }
+                        for (f, frame_bits) in bits.chunks_exact(g).take(c).enumerate() {
+                            let t = t0 + f;
+                            if t + PREFETCH_FRAMES < range.end {
+                                prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
+                            }
+                            let frame = frames.raw_frame(t);
+                            for (count, &b) in counts.iter_mut().zip(frame_bits) {
+                                *count += ((frame[(b >> 3) as usize] >> (b & 7)) & 1) as u32;
+                            }
+                        }
+                        t0 += c;
                     }
                 } else {
                     for t in range.clone() {
@@ -187,6 +237,7 @@ impl HotPixelCorrector {
                 counts
             })
             .collect();
+        let mut sums = frames.shared_sum(range.clone());
         frames.release(range);
         for (&idx, &c) in self.hot.iter().zip(replaced.iter().flatten()) {
             sums[[idx / self.width, idx % self.width]] = c;

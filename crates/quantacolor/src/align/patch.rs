@@ -186,24 +186,132 @@ fn tile_cost(
     }
     let rs = reference.as_slice().expect("standard layout");
     let as_ = alternate.as_slice().expect("standard layout");
-    let mut cost = 0.0f32;
-    for y in y0..y1 {
+    let rows = (y0..y1).map(|y| {
         let r0 = (y * w + x0) as usize;
         let a0 = ((y + dy) * w + x0 + dx) as usize;
         let n = (x1 - x0) as usize;
-        let pairs = rs[r0..r0 + n].iter().zip(&as_[a0..a0 + n]);
-        cost += match norm {
-            Norm::L1 => pairs.map(|(r, a)| (r - a).abs()).sum::<f32>(),
-            Norm::L2 => pairs.map(|(r, a)| (r - a) * (r - a)).sum::<f32>(),
-        };
-    }
+        (&rs[r0..r0 + n], &as_[a0..a0 + n])
+    });
+    let cost = match norm {
+        Norm::L1 => rows_cost(rows, |d| d.abs()),
+        Norm::L2 => rows_cost(rows, |d| d * d),
+    };
     cost / ((y1 - y0) * (x1 - x0)) as f32
 }
 
+/// Σ over rows of (Σ over the row's columns, in order from zero, of `term(r − a)`), the rows
+/// added in order: what one row at a time computes, with four rows summed side by side (four
+/// independent chains of additions instead of one, the same numbers).
+#[inline(always)]
+fn rows_cost<'a>(
+    rows: impl Iterator<Item = (&'a [f32], &'a [f32])>,
+    term: impl Fn(f32) -> f32,
+) -> f32 {
+    let mut cost = 0.0f32;
+    let mut batch: [(&[f32], &[f32]); 4] = [(&[], &[]); 4];
+    let mut filled = 0;
+    let flush = |batch: &[(&[f32], &[f32])], cost: &mut f32| {
+        let n = batch[0].0.len();
+        let mut sums = [0.0f32; 4];
+        for i in 0..n {
+            for (s, (r, a)) in sums.iter_mut().zip(batch) {
+                *s += term(r[i] - a[i]);
+            }
+        }
+        for s in &sums[..batch.len()] {
+            *cost += s;
+        }
+    };
+    for row in rows {
+        batch[filled] = row;
+        filled += 1;
+        if filled == 4 {
+            flush(&batch, &mut cost);
+            filled = 0;
+        }
+    }
+    if filled > 0 {
+        flush(&batch[..filled], &mut cost);
+    }
+    cost
+}
+
+/// [`tile_cost`] of the offsets `(dy0 + k, dx0 + i)` for every `i < side` and `k <
+/// out.len() / side` (a window of offsets, row-major), into `out`: with AVX2, up to three rows
+/// of offsets side by side where they all overlap the image alike (independent sums, so that
+/// they overlap in time; each cost bit-identical to [`tile_cost`]'s); otherwise a row at a
+/// time by [`window_row_costs`].
+#[allow(clippy::too_many_arguments)]
+fn window_costs(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    origin: (usize, usize),
+    ts: usize,
+    (dy0, dx0): (isize, isize),
+    norm: Norm,
+    side: usize,
+    out: &mut [f32],
+) {
+    let rows = out.len() / side;
+    debug_assert_eq!(rows * side, out.len());
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if (2..=24).contains(&side) && std::arch::is_x86_feature_detected!("avx2") {
+            while done < rows {
+                let batch = (rows - done).min(3);
+                let part = &mut out[done * side..(done + batch) * side];
+                let kernel: CostKernel = match (side.div_ceil(8), batch) {
+                    (1, 1) => tile_costs_avx2::<1, 1>,
+                    (1, 2) => tile_costs_avx2::<1, 2>,
+                    (1, _) => tile_costs_avx2::<1, 3>,
+                    (2, 1) => tile_costs_avx2::<2, 1>,
+                    (2, 2) => tile_costs_avx2::<2, 2>,
+                    (2, _) => tile_costs_avx2::<2, 3>,
+                    (_, 1) => tile_costs_avx2::<3, 1>,
+                    (_, 2) => tile_costs_avx2::<3, 2>,
+                    (_, _) => tile_costs_avx2::<3, 3>,
+                };
+                let dy = dy0 + done as isize;
+                // SAFETY: AVX2 checked just above.
+                let ok = unsafe { kernel(reference, alternate, origin, ts, (dy, dx0), norm, part) };
+                if !ok {
+                    break;
+                }
+                done += batch;
+            }
+        }
+    }
+    for (k, row) in out.chunks_mut(side).enumerate().skip(done) {
+        window_row_costs(
+            reference,
+            alternate,
+            origin,
+            ts,
+            (dy0 + k as isize, dx0),
+            norm,
+            row,
+        );
+    }
+}
+
+/// An AVX2 kernel of [`tile_costs_avx2`] (some number of vectors and rows).
+#[cfg(target_arch = "x86_64")]
+type CostKernel = unsafe fn(
+    &Array2<f32>,
+    &Array2<f32>,
+    (usize, usize),
+    usize,
+    (isize, isize),
+    Norm,
+    &mut [f32],
+) -> bool;
+
 /// [`tile_cost`] of the offsets `(dy, dx0 + i)` for every `i < out.len()`, into `out`: with AVX2,
-/// eight offsets at a time where all of them overlap the image alike (each lane sums its rows
-/// in the scalar order, so every cost is bit-identical to [`tile_cost`]'s); elsewhere one
-/// [`tile_cost`] each.
+/// up to 24 offsets at a time that overlap the image alike (each lane sums its rows in the
+/// scalar order, so every cost is bit-identical to [`tile_cost`]'s; at the image's left and
+/// right edges the runs of equally clipped offsets); elsewhere one [`tile_cost`] each.
 fn window_row_costs(
     reference: &Array2<f32>,
     alternate: &Array2<f32>,
@@ -217,24 +325,27 @@ fn window_row_costs(
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") {
+            let (ox, w) = (origin.1 as isize, reference.ncols() as isize);
+            let ts_i = ts as isize;
+            let clip_x = |dx: isize| (ox.max(-dx).max(0), (ox + ts_i).min(w).min(w - dx));
             while done + 1 < out.len() {
                 let dx = dx0 + done as isize;
-                let lanes = (out.len() - done).min(24);
+                // The offsets that clip the tile as the first does (a prefix: the bounds are
+                // monotone in dx); one offset alone takes `tile_cost`.
+                let lanes = (1..(out.len() - done).min(24))
+                    .find(|&l| clip_x(dx + l as isize) != clip_x(dx))
+                    .unwrap_or((out.len() - done).min(24));
+                if lanes == 1 {
+                    out[done] = tile_cost(reference, alternate, origin, ts, (dy, dx), norm);
+                    done += 1;
+                    continue;
+                }
                 let part = &mut out[done..done + lanes];
                 // Vectors of 8 offsets: as many as the lanes need (up to 3).
-                type Kernel = unsafe fn(
-                    &Array2<f32>,
-                    &Array2<f32>,
-                    (usize, usize),
-                    usize,
-                    (isize, isize),
-                    Norm,
-                    &mut [f32],
-                ) -> bool;
-                let kernel: Kernel = match lanes.div_ceil(8) {
-                    1 => tile_costs_avx2::<1>,
-                    2 => tile_costs_avx2::<2>,
-                    _ => tile_costs_avx2::<3>,
+                let kernel: CostKernel = match lanes.div_ceil(8) {
+                    1 => tile_costs_avx2::<1, 1>,
+                    2 => tile_costs_avx2::<2, 1>,
+                    _ => tile_costs_avx2::<3, 1>,
                 };
                 // SAFETY: AVX2 checked just above.
                 let ok = unsafe { kernel(reference, alternate, origin, ts, (dy, dx), norm, part) };
@@ -257,16 +368,17 @@ fn window_row_costs(
     }
 }
 
-/// [`tile_cost`] of the offsets `(dy, dx + i)`, `i < out.len()` (at most `8·V`), into `out`,
-/// lane-parallel in `V` vectors of eight (independent sums, so the vectors overlap in time);
-/// `false` (nothing written) when the offsets do not all clip the tile alike or the wide loads
-/// would leave the image (the caller then takes [`tile_cost`] one by one).
+/// [`tile_cost`] of the offsets `(dy + k, dx + i)`, `k < R`, `i < out.len() / R` (at most
+/// `8·V`), into `out` (row-major), lane-parallel in `R·V` vectors of eight (independent sums,
+/// so the vectors overlap in time); `false` (nothing written) when the offsets do not all clip
+/// the tile alike or the wide loads would leave the image (the caller then takes them another
+/// way).
 ///
 /// # Safety
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn tile_costs_avx2<const V: usize>(
+unsafe fn tile_costs_avx2<const V: usize, const R: usize>(
     reference: &Array2<f32>,
     alternate: &Array2<f32>,
     (oy, ox): (usize, usize),
@@ -276,58 +388,80 @@ unsafe fn tile_costs_avx2<const V: usize>(
     out: &mut [f32],
 ) -> bool {
     use std::arch::x86_64::*;
-    let lanes = out.len();
-    debug_assert!(lanes >= 1 && lanes <= 8 * V);
+    let lanes = out.len() / R;
+    debug_assert!(lanes > 8 * (V - 1) && lanes <= 8 * V && lanes * R == out.len());
     let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
     let (oy, ox) = (oy as isize, ox as isize);
     let ts = ts as isize;
-    let clip = |dx: isize| (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
-    let (x0, x1) = clip(dx);
-    // Both ends clip alike, so every offset between does (the bounds are monotone in dx).
-    if clip(dx + lanes as isize - 1) != (x0, x1) {
+    let clip_x = |dx: isize| (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
+    let clip_y = |dy: isize| (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
+    let (x0, x1) = clip_x(dx);
+    let (y0, y1) = clip_y(dy);
+    // Both ends clip alike, so every offset between does (the bounds are monotone in dx, dy).
+    if clip_x(dx + lanes as isize - 1) != (x0, x1) || clip_y(dy + R as isize - 1) != (y0, y1) {
         return false;
     }
-    let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
     if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
         out.fill(f32::INFINITY);
         return true;
     }
     let rs = reference.as_slice().expect("standard layout");
     let as_ = alternate.as_slice().expect("standard layout");
-    // Loads of 8·V alternate values from column x + dx: the last must stay inside.
-    let last = (y1 - 1 + dy) * w + (x1 - 1) + dx + 8 * V as isize - 1;
+    // Loads of `lanes` alternate values from column x + dx of rows y + dy + k (the last vector
+    // masked to the lanes in use): the last must stay inside.
+    let last = (y1 - 1 + dy + R as isize - 1) * w + (x1 - 1) + dx + lanes as isize - 1;
     if (y0 + dy) * w + x0 + dx < 0 || last >= as_.len() as isize {
         return false;
     }
     let n = (x1 - x0) as usize;
     let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
-    let mut cost = [_mm256_setzero_ps(); V];
+    let tail = lanes - 8 * (V - 1);
+    let tail_mask = _mm256_cmpgt_epi32(
+        _mm256_set1_epi32(tail as i32),
+        _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7),
+    );
+    let load = |p: *const f32, v: usize| {
+        if v + 1 < V || tail == 8 {
+            _mm256_loadu_ps(p)
+        } else {
+            // Lanes past `lanes` are not read (they may lie past the image's last pixel).
+            _mm256_maskload_ps(p, tail_mask)
+        }
+    };
+    let mut cost = [[_mm256_setzero_ps(); V]; R];
     for y in y0..y1 {
         let r = &rs[(y * w + x0) as usize..][..n];
         let a = as_.as_ptr().offset((y + dy) * w + x0 + dx);
         // Each lane sums its row in column order from zero, as `tile_cost`.
-        let mut sum = [_mm256_setzero_ps(); V];
+        let mut sum = [[_mm256_setzero_ps(); V]; R];
         for (i, &rv) in r.iter().enumerate() {
             let rv = _mm256_set1_ps(rv);
-            for (v, s) in sum.iter_mut().enumerate() {
-                let diff = _mm256_sub_ps(rv, _mm256_loadu_ps(a.add(i + 8 * v)));
-                let term = match norm {
-                    Norm::L1 => _mm256_and_ps(diff, abs_mask),
-                    Norm::L2 => _mm256_mul_ps(diff, diff),
-                };
-                *s = _mm256_add_ps(*s, term);
+            for (k, row) in sum.iter_mut().enumerate() {
+                let a = a.offset(k as isize * w + i as isize);
+                for (v, s) in row.iter_mut().enumerate() {
+                    let diff = _mm256_sub_ps(rv, load(a.add(8 * v), v));
+                    let term = match norm {
+                        Norm::L1 => _mm256_and_ps(diff, abs_mask),
+                        Norm::L2 => _mm256_mul_ps(diff, diff),
+                    };
+                    *s = _mm256_add_ps(*s, term);
+                }
             }
         }
         for (c, s) in cost.iter_mut().zip(sum) {
-            *c = _mm256_add_ps(*c, s);
+            for (c, s) in c.iter_mut().zip(s) {
+                *c = _mm256_add_ps(*c, s);
+            }
         }
     }
     let area = _mm256_set1_ps(((y1 - y0) * (x1 - x0)) as f32);
-    let mut all = [[0.0f32; 8]; V];
-    for (o, c) in all.iter_mut().zip(cost) {
-        _mm256_storeu_ps(o.as_mut_ptr(), _mm256_div_ps(c, area));
+    for (o, c) in out.chunks_exact_mut(lanes).zip(cost) {
+        let mut all = [[0.0f32; 8]; V];
+        for (l, c) in all.iter_mut().zip(c) {
+            _mm256_storeu_ps(l.as_mut_ptr(), _mm256_div_ps(c, area));
+        }
+        o.copy_from_slice(&all.as_flattened()[..lanes]);
     }
-    out.copy_from_slice(&all.as_flattened()[..lanes]);
     true
 }
 
@@ -492,20 +626,21 @@ impl ReferenceAligner {
                     let mut best = (f32::INFINITY, seed);
                     let side = (2 * radius + 1) as usize;
                     scratch.window.clear();
-                    scratch.window.resize(side, 0.0);
+                    scratch.window.resize(side * side, 0.0);
                     let costs = &mut scratch.window;
-                    for dy in -radius..=radius {
-                        // One row of the window: the same numbers as `cost` for each offset.
-                        window_row_costs(
-                            r_img,
-                            a_img,
-                            origin,
-                            ts,
-                            (seed.0 + dy, seed.1 - radius),
-                            norm,
-                            costs,
-                        );
-                        for (dx, &c) in (-radius..=radius).zip(costs.iter()) {
+                    // The whole window: the same numbers as `cost` for each offset.
+                    window_costs(
+                        r_img,
+                        a_img,
+                        origin,
+                        ts,
+                        (seed.0 - radius, seed.1 - radius),
+                        norm,
+                        side,
+                        costs,
+                    );
+                    for (dy, row) in (-radius..=radius).zip(costs.chunks_exact(side)) {
+                        for (dx, &c) in (-radius..=radius).zip(row) {
                             let d = (seed.0 + dy, seed.1 + dx);
                             // Ties go to the smaller displacement.
                             let closer =
@@ -599,7 +734,7 @@ struct LkScratch {
     cols: Vec<(usize, usize, f32)>,
     fxs: Vec<f32>,
     errors: Vec<f32>,
-    /// The costs of one row of a tile's search window (used by the integer search of
+    /// The costs of a tile's search window, row-major (used by the integer search of
     /// [`ReferenceAligner::align_with_pyramid`], which shares the per-thread scratch).
     window: Vec<f32>,
 }
@@ -990,29 +1125,30 @@ impl ReferenceAligner {
             }
             mask
         };
-        let row0 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
-            window_row_costs(ref0, alt0, origin(i, j), ts, d, Norm::L1, out)
+        let window0 = |i: usize, j: usize, d: (isize, isize), side: usize, out: &mut [f32]| {
+            window_costs(ref0, alt0, origin(i, j), ts, d, Norm::L1, side, out)
         };
-        let row1 = |i: usize, j: usize, d: (isize, isize), out: &mut [f32]| {
+        let window1 = |i: usize, j: usize, d: (isize, isize), side: usize, out: &mut [f32]| {
             let (oy, ox) = origin(i, j);
-            window_row_costs(
+            window_costs(
                 ref1,
                 alt1,
                 (oy / f, ox / f),
                 (ts / f).max(2),
                 d,
                 Norm::L1,
+                side,
                 out,
             )
         };
         // Total cost when every tile takes the better of the camera flow and the offset `d`:
         // tiles of the camera's motion score the same for every `d`, so the minimum is the
-        // motion of the others. Each tile's costs over the window come a row of offsets at a
-        // time ([`window_row_costs`]: the numbers of `cost`).
+        // motion of the others. Each tile's costs over the window come at once
+        // ([`window_costs`]: the numbers of `cost`).
         #[allow(clippy::type_complexity)]
         let search = |tiles: &[(usize, usize)],
                       cost: &(dyn Fn(usize, usize, (isize, isize)) -> f32 + Sync),
-                      row_costs: &(dyn Fn(usize, usize, (isize, isize), &mut [f32]) + Sync),
+                      window: &(dyn Fn(usize, usize, (isize, isize), usize, &mut [f32]) + Sync),
                       scale: f32,
                       centre: (isize, isize),
                       r: isize| {
@@ -1032,9 +1168,7 @@ impl ReferenceAligner {
                 .par_iter()
                 .map(|&(i, j)| {
                     let mut costs = vec![0.0f32; side * side];
-                    for (iy, row) in costs.chunks_mut(side).enumerate() {
-                        row_costs(i, j, (centre.0 - r + iy as isize, centre.1 - r), row);
-                    }
+                    window(i, j, (centre.0 - r, centre.1 - r), side, &mut costs);
                     costs
                 })
                 .collect();
@@ -1076,7 +1210,7 @@ impl ReferenceAligner {
             let coarse = search(
                 &support,
                 &cost1,
-                &row1,
+                &window1,
                 fi,
                 (
                     (median(0) / fi).round() as isize,
@@ -1087,7 +1221,7 @@ impl ReferenceAligner {
             let best = search(
                 &support,
                 &cost0,
-                &row0,
+                &window0,
                 1.0,
                 (coarse.0 * f as isize, coarse.1 * f as isize),
                 f as isize,
@@ -1394,5 +1528,85 @@ mod tests {
             }
         }
         assert!(finite > 1000, "{finite}");
+    }
+
+    /// [`tile_cost`] as a plain loop: each row summed in column order from zero, the rows
+    /// added in order (the four-row batches of `rows_cost` must give these numbers).
+    fn tile_cost_plain(
+        reference: &Array2<f32>,
+        alternate: &Array2<f32>,
+        (oy, ox): (usize, usize),
+        ts: usize,
+        (dy, dx): (isize, isize),
+        norm: Norm,
+    ) -> f32 {
+        let (h, w) = (reference.nrows() as isize, reference.ncols() as isize);
+        let (oy, ox, ts) = (oy as isize, ox as isize, ts as isize);
+        let (y0, y1) = (oy.max(-dy).max(0), (oy + ts).min(h).min(h - dy));
+        let (x0, x1) = (ox.max(-dx).max(0), (ox + ts).min(w).min(w - dx));
+        if y1 <= y0 || x1 <= x0 || 4 * (y1 - y0) * (x1 - x0) < ts.min(h) * ts.min(w) {
+            return f32::INFINITY;
+        }
+        let mut cost = 0.0f32;
+        for y in y0..y1 {
+            let mut row = 0.0f32;
+            for x in x0..x1 {
+                let d = reference[[y as usize, x as usize]]
+                    - alternate[[(y + dy) as usize, (x + dx) as usize]];
+                row += match norm {
+                    Norm::L1 => d.abs(),
+                    Norm::L2 => d * d,
+                };
+            }
+            cost += row;
+        }
+        cost / ((y1 - y0) * (x1 - x0)) as f32
+    }
+
+    /// Whole windows of costs ([`window_costs`], rows of offsets side by side) and single
+    /// costs ([`tile_cost`], rows four at a time) equal the plain loop bit for bit: interior
+    /// tiles, tiles at every border, offsets reaching past the image, both norms, window sides
+    /// of one to three vectors and wider.
+    #[test]
+    fn window_costs_equal_the_plain_tile_cost() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let (h, w) = (31usize, 45usize);
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let mut finite = 0;
+        for norm in [Norm::L1, Norm::L2] {
+            for ts in [4usize, 8, 16] {
+                for oy in (0..h).step_by(6) {
+                    for ox in (0..w).step_by(4) {
+                        for side in [3usize, 5, 9, 17, 30] {
+                            let dy0 = rng.gen_range(-20isize..=6);
+                            let dx0 = rng.gen_range(-20isize..=6);
+                            let mut costs = vec![0.0f32; side * side];
+                            window_costs(
+                                &reference,
+                                &alternate,
+                                (oy, ox),
+                                ts,
+                                (dy0, dx0),
+                                norm,
+                                side,
+                                &mut costs,
+                            );
+                            for (k, &c) in costs.iter().enumerate() {
+                                let d = (dy0 + (k / side) as isize, dx0 + (k % side) as isize);
+                                let plain =
+                                    tile_cost_plain(&reference, &alternate, (oy, ox), ts, d, norm);
+                                let single =
+                                    tile_cost(&reference, &alternate, (oy, ox), ts, d, norm);
+                                assert_eq!(c.to_bits(), plain.to_bits(), "{oy} {ox} {d:?}");
+                                assert_eq!(single.to_bits(), plain.to_bits(), "{oy} {ox} {d:?}");
+                                finite += c.is_finite() as usize;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert!(finite > 10000, "{finite}");
     }
 }
