@@ -1662,7 +1662,9 @@ fn find_group<const AVX2: bool>(
     let consider = |pos: usize, bound: &mut f32, candidates: &mut Vec<(f32, u32)>| {
         consider_candidate::<AVX2>(reference, p.matching, pos, bound, candidates, keep, cap);
     };
-    for y in y0..=y1 {
+    // Rows from the reference's out: its best matches usually lie near it, so the bound falls
+    // early and fewer candidates are summed in full (any order gives the same group).
+    for y in centre_out(yr, y0, y1) {
         match p.low {
             Some(low) => {
                 // Eight positions at a time through the first check (the tail's extra lanes
@@ -1713,6 +1715,19 @@ fn find_group<const AVX2: bool>(
     );
     s.previous_group.clear();
     s.previous_group.extend_from_slice(&s.group);
+}
+
+/// `y0..=y1` (which holds `centre`) in the order `centre, centre + 1, centre − 1, centre + 2,
+/// …`, then the rest of the longer side.
+fn centre_out(centre: usize, y0: usize, y1: usize) -> impl Iterator<Item = usize> {
+    let below = (centre + 1..=y1).map(Some).chain(std::iter::repeat(None));
+    let above = (y0..centre).rev().map(Some).chain(std::iter::repeat(None));
+    std::iter::once(centre).chain(
+        below
+            .zip(above)
+            .take_while(|(b, a)| b.is_some() || a.is_some())
+            .flat_map(|(b, a)| b.into_iter().chain(a)),
+    )
 }
 
 /// Asks the CPU to start loading the coefficients of the positions `first + l` for every bit
@@ -2515,6 +2530,17 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn centre_out_visits_every_row_once_nearest_first() {
+        assert_eq!(
+            centre_out(5, 3, 9).collect::<Vec<_>>(),
+            [5, 6, 4, 7, 3, 8, 9]
+        );
+        assert_eq!(centre_out(0, 0, 2).collect::<Vec<_>>(), [0, 1, 2]);
+        assert_eq!(centre_out(4, 0, 4).collect::<Vec<_>>(), [4, 3, 2, 1, 0]);
+        assert_eq!(centre_out(7, 7, 7).collect::<Vec<_>>(), [7]);
     }
 
     #[test]
