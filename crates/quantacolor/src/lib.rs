@@ -17,6 +17,7 @@ pub mod cfa;
 pub mod color;
 pub mod config_toml;
 pub mod convert;
+pub mod cpu;
 pub mod denoise;
 pub mod display;
 pub mod error;

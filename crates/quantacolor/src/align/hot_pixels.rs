@@ -55,22 +55,6 @@ const DRAW_CHUNK: usize = 64;
 /// apart, a stride the hardware prefetchers do not follow).
 const PREFETCH_FRAMES: usize = 8;
 
-/// Asks the CPU to bring the cache lines of `bytes` into cache (a hint: no effect on values).
-#[inline]
-fn prefetch(bytes: &[u8]) {
-    #[cfg(target_arch = "x86_64")]
-    for line in bytes.chunks(64) {
-        // SAFETY: SSE is part of x86_64; a prefetch of a valid address reads nothing.
-        unsafe {
-            std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
-                line.as_ptr() as *const i8
-            )
-        };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = bytes;
-}
-
 /// Precomputed replacement candidates of every hot pixel.
 #[derive(Debug, Clone)]
 pub struct HotPixelCorrector {
@@ -213,7 +197,7 @@ impl HotPixelCorrector {
                         for (f, frame_bits) in bits.chunks_exact(g).take(c).enumerate() {
                             let t = t0 + f;
                             if t + PREFETCH_FRAMES < range.end {
-                                prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
+                                crate::cpu::prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
                             }
                             let frame = frames.raw_frame(t);
                             for (count, &b) in counts.iter_mut().zip(frame_bits) {

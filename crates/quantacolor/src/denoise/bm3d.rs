@@ -1735,23 +1735,12 @@ fn centre_out(centre: usize, y0: usize, y1: usize) -> impl Iterator<Item = usize
 /// hint only: no result depends on it.
 #[inline(always)]
 fn prefetch_blocks(coeffs: &BlockCoeffs, first: usize, lanes: u32) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let mut bits = lanes;
-        while bits != 0 {
-            let pos = first + bits.trailing_zeros() as usize;
-            bits &= bits - 1;
-            let block = coeffs.block(pos);
-            // One prefetch per 64-byte line (16 f32) of the block.
-            for line in block.chunks(16) {
-                // SAFETY: prefetching reads nothing and cannot fault; the pointer is in bounds.
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(line.as_ptr().cast::<i8>()) };
-            }
-        }
+    let mut bits = lanes;
+    while bits != 0 {
+        let pos = first + bits.trailing_zeros() as usize;
+        bits &= bits - 1;
+        crate::cpu::prefetch(coeffs.block(pos));
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (coeffs, first, lanes);
 }
 
 /// One candidate of [`find_group`]'s scan: its distance to `reference` when at most `bound`
