@@ -1051,8 +1051,9 @@ unsafe fn gather_row_avx2(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
 ///
 /// Per bin row, the weights of every group of eight bins are made first (once per distinct
 /// channel factor), then each channel runs over the groups with its three partial sums held in
-/// registers: each partial sum receives the same products in the same order (rows, then groups)
-/// as when the channels took turns per group, so the same bits
+/// registers (three channels that share weights and groups in one pass, [`RowPass::run3`]):
+/// each partial sum receives the same products in the same order (rows, then groups) as when
+/// the channels took turns per group, so the same bits
 /// (`gather_row_matches_the_group_by_group_reference`).
 #[inline(always)]
 fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
@@ -1225,30 +1226,43 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 }
             }
             let row_start = by as usize * SUMS * stride;
-            for (ch, acc) in acc.iter_mut().enumerate() {
-                if !g.present[ch] {
+            // The channels that share weights and groups (R, G and B of most CFAs) run over
+            // the groups together: one pass with all their partial sums in registers (more
+            // independent additions in flight), each partial sum receiving the same products
+            // in the same order as in a pass of its own, so the same bits.
+            let mut done = [false; 4];
+            for ch in 0..4 {
+                if !g.present[ch] || done[ch] {
                     continue;
                 }
-                let (first, end) = group_range(ch);
-                let weights = &weights[source[ch]];
-                let [mut s0acc, mut s1acc, mut s2acc] = *acc;
-                for group in first..end {
-                    let weight: &[f32; LANES] = weights[group * LANES..(group + 1) * LANES]
-                        .try_into()
-                        .expect("lanes");
-                    let at = row_start + (lo as usize + group * LANES) + ch * 3 * stride;
-                    let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
-                    let at = at + stride;
-                    let s1: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
-                    let at = at + stride;
-                    let s2: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
-                    for i in 0..LANES {
-                        s0acc[i] += weight[i] * s0[i];
-                        s1acc[i] += weight[i] * s1[i];
-                        s2acc[i] += weight[i] * weight[i] * s2[i];
+                let range = group_range(ch);
+                let mut members = [ch; 4];
+                let mut n = 0;
+                for other in ch..4 {
+                    if g.present[other]
+                        && !done[other]
+                        && source[other] == source[ch]
+                        && group_range(other) == range
+                    {
+                        members[n] = other;
+                        n += 1;
+                        done[other] = true;
                     }
                 }
-                *acc = [s0acc, s1acc, s2acc];
+                let pass = RowPass {
+                    bins,
+                    weights: &weights[source[ch]],
+                    start: row_start + lo as usize,
+                    stride,
+                    groups: range,
+                };
+                if n == 3 {
+                    pass.run3(&mut acc, [members[0], members[1], members[2]]);
+                } else {
+                    for &ch in &members[..n] {
+                        pass.run1(&mut acc[ch], ch);
+                    }
+                }
             }
         }
         for (ch, acc) in acc.iter().enumerate() {
@@ -1256,6 +1270,84 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 out[ch * 3 + sum] = lane_sum(lanes);
             }
         }
+    }
+}
+
+/// One bin row's pass of the regression ([`gather_row_generic`]) for channels that share
+/// weights: groups `groups` (first, end) of eight bins from bin `start` (the row's first bin in
+/// the channel-0 plane of the bins), with `weights` per group.
+struct RowPass<'p> {
+    bins: &'p [f32],
+    weights: &'p [f32],
+    start: usize,
+    stride: usize,
+    groups: (usize, usize),
+}
+
+impl RowPass<'_> {
+    /// The three planes (S0, S1, S2) of channel `ch` over the pass's groups.
+    #[inline(always)]
+    fn planes(&self, ch: usize) -> [&[f32]; 3] {
+        let len = self.groups.1 * LANES;
+        let at = self.start + ch * 3 * self.stride;
+        std::array::from_fn(|k| &self.bins[at + k * self.stride..at + k * self.stride + len])
+    }
+
+    /// Adds the pass's products to channel `ch`'s partial sums acc[sum][lane]: Σ g·S0, Σ g·S1
+    /// and Σ g²·S2, group by group.
+    #[inline(always)]
+    fn run1(&self, acc: &mut [[f32; LANES]; 3], ch: usize) {
+        let [p0, p1, p2] = self.planes(ch);
+        let [mut s0acc, mut s1acc, mut s2acc] = *acc;
+        for group in self.groups.0..self.groups.1 {
+            let r = group * LANES..(group + 1) * LANES;
+            let weight: &[f32; LANES] = self.weights[r.clone()].try_into().expect("lanes");
+            let s0: &[f32; LANES] = p0[r.clone()].try_into().expect("lanes");
+            let s1: &[f32; LANES] = p1[r.clone()].try_into().expect("lanes");
+            let s2: &[f32; LANES] = p2[r].try_into().expect("lanes");
+            for i in 0..LANES {
+                s0acc[i] += weight[i] * s0[i];
+                s1acc[i] += weight[i] * s1[i];
+                s2acc[i] += weight[i] * weight[i] * s2[i];
+            }
+        }
+        *acc = [s0acc, s1acc, s2acc];
+    }
+
+    /// [`RowPass::run1`] of three channels in one pass over the groups (nine independent
+    /// partial sums in flight instead of three): the same products in the same order per
+    /// partial sum.
+    #[inline(always)]
+    fn run3(&self, acc: &mut [[[f32; LANES]; 3]; 4], [c0, c1, c2]: [usize; 3]) {
+        let [p00, p01, p02] = self.planes(c0);
+        let [p10, p11, p12] = self.planes(c1);
+        let [p20, p21, p22] = self.planes(c2);
+        let [mut a0, mut a1, mut a2] = acc[c0];
+        let [mut b0, mut b1, mut b2] = acc[c1];
+        let [mut d0, mut d1, mut d2] = acc[c2];
+        for group in self.groups.0..self.groups.1 {
+            let r = group * LANES..(group + 1) * LANES;
+            let w: &[f32; LANES] = self.weights[r.clone()].try_into().expect("lanes");
+            let lanes = |p: &[f32]| -> [f32; LANES] { p[r.clone()].try_into().expect("lanes") };
+            let (x00, x01, x02) = (lanes(p00), lanes(p01), lanes(p02));
+            let (x10, x11, x12) = (lanes(p10), lanes(p11), lanes(p12));
+            let (x20, x21, x22) = (lanes(p20), lanes(p21), lanes(p22));
+            for i in 0..LANES {
+                let sq = w[i] * w[i];
+                a0[i] += w[i] * x00[i];
+                a1[i] += w[i] * x01[i];
+                a2[i] += sq * x02[i];
+                b0[i] += w[i] * x10[i];
+                b1[i] += w[i] * x11[i];
+                b2[i] += sq * x12[i];
+                d0[i] += w[i] * x20[i];
+                d1[i] += w[i] * x21[i];
+                d2[i] += sq * x22[i];
+            }
+        }
+        acc[c0] = [a0, a1, a2];
+        acc[c1] = [b0, b1, b2];
+        acc[c2] = [d0, d1, d2];
     }
 }
 
