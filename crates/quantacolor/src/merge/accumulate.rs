@@ -1770,53 +1770,68 @@ mod tests {
                 Ok(cfa) => cfa,
                 Err(_) => continue, // a pattern of fixed size
             };
-            for (scale, bins, max_radius, exponent) in [
-                (1, 2, 5, 1.0),
-                (2, 2, 5, 1.0),
-                (1, 3, 8, 0.5),
-                (2, 1, 3, 1.0),
-            ] {
-                let config = AccumulateConfig {
-                    scale,
-                    bins_per_output_px: bins,
-                    max_radius,
-                    spacing_exponent: exponent,
-                    ..AccumulateConfig::default()
-                };
-                let kernels =
-                    kernel_field(&reference, &KernelConfig::default().for_output_scale(scale))
-                        .unwrap();
-                let mut acc =
-                    MergeAccumulator::new(&cfa, &kernels, &config, PixelModel::binary(0.0))
-                        .unwrap();
-                let stride = acc.stride;
-                for (i, v) in acc.bins.iter_mut().enumerate() {
-                    // Padding columns stay 0; some empty bins.
-                    if i % stride < acc.bins_w && rng.gen_bool(0.8) {
-                        *v = rng.gen_range(0.0f32..50.0);
-                    }
+            // And a W-rich CFA with exactly as many R, G and B sites (one pass of three
+            // channels, `RowPass::run3`).
+            let cfas = [cfa, {
+                let mut codes = Array2::from_elem((h, w), 3u8);
+                for (k, i) in (0..h * w).step_by(4).take(93).enumerate() {
+                    codes[[i / w, i % w]] = (k % 3) as u8;
                 }
-                let ws = w * scale;
-                acc.with_gather(|g| {
-                    for oy in 0..h * scale {
-                        let mut fast = vec![[0.0f32; SUMS]; ws];
-                        let mut generic = vec![[1.0f32; SUMS]; ws];
-                        let mut reference = vec![[2.0f32; SUMS]; ws];
-                        gather_row(g, oy, &mut fast);
-                        gather_row_generic(g, oy, &mut generic);
-                        gather_row_reference(g, oy, &mut reference);
-                        let bits = |v: &Vec<[f32; SUMS]>| {
-                            v.iter().map(|s| s.map(f32::to_bits)).collect::<Vec<_>>()
-                        };
-                        assert_eq!(bits(&fast), bits(&reference), "{pattern:?} {config:?} {oy}");
-                        assert_eq!(bits(&generic), bits(&reference), "{pattern:?} {config:?}");
-                        assert!(reference.iter().flatten().any(|&v| v > 0.0));
+                Cfa::new(codes).unwrap()
+            }];
+            for cfa in &cfas {
+                for (scale, bins, max_radius, exponent) in [
+                    (1, 2, 5, 1.0),
+                    (2, 2, 5, 1.0),
+                    (1, 3, 8, 0.5),
+                    (2, 1, 3, 1.0),
+                ] {
+                    let config = AccumulateConfig {
+                        scale,
+                        bins_per_output_px: bins,
+                        max_radius,
+                        spacing_exponent: exponent,
+                        ..AccumulateConfig::default()
+                    };
+                    let kernels =
+                        kernel_field(&reference, &KernelConfig::default().for_output_scale(scale))
+                            .unwrap();
+                    let mut acc =
+                        MergeAccumulator::new(cfa, &kernels, &config, PixelModel::binary(0.0))
+                            .unwrap();
+                    let stride = acc.stride;
+                    for (i, v) in acc.bins.iter_mut().enumerate() {
+                        // Padding columns stay 0; some empty bins.
+                        if i % stride < acc.bins_w && rng.gen_bool(0.8) {
+                            *v = rng.gen_range(0.0f32..50.0);
+                        }
                     }
-                });
-                compared += 1;
+                    let ws = w * scale;
+                    acc.with_gather(|g| {
+                        for oy in 0..h * scale {
+                            let mut fast = vec![[0.0f32; SUMS]; ws];
+                            let mut generic = vec![[1.0f32; SUMS]; ws];
+                            let mut reference = vec![[2.0f32; SUMS]; ws];
+                            gather_row(g, oy, &mut fast);
+                            gather_row_generic(g, oy, &mut generic);
+                            gather_row_reference(g, oy, &mut reference);
+                            let bits = |v: &Vec<[f32; SUMS]>| {
+                                v.iter().map(|s| s.map(f32::to_bits)).collect::<Vec<_>>()
+                            };
+                            assert_eq!(
+                                bits(&fast),
+                                bits(&reference),
+                                "{pattern:?} {config:?} {oy}"
+                            );
+                            assert_eq!(bits(&generic), bits(&reference), "{pattern:?} {config:?}");
+                            assert!(reference.iter().flatten().any(|&v| v > 0.0));
+                        }
+                    });
+                    compared += 1;
+                }
             }
         }
-        assert!(compared >= 12, "{compared}");
+        assert!(compared >= 24, "{compared}");
     }
 
     #[test]
