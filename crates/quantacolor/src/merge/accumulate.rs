@@ -265,6 +265,27 @@ const SUMS: usize = 12;
 /// only the work, not the result).
 const OWN_ELLIPSE_RATIO: f64 = 0.8;
 
+/// Relative difference of two channels' areas per site within which they count as the same
+/// site density ([`share_near_scales`]).
+const SHARED_SCALE_TOLERANCE: f32 = 1e-3;
+
+/// `scales` (area per site of R, G, B, W: [`KernelField::channel_scale`]) with every channel
+/// whose scale is within [`SHARED_SCALE_TOLERANCE`] of an earlier channel's taking that one's:
+/// a pattern with as many sites of each colour give or take a few (e.g. 10,499 R and G and
+/// 10,498 B sites) has colours of one density, whose kernels are then the same, so that the
+/// regression evaluates their weights once ([`gather_row_generic`]). This project's heuristic:
+/// it changes those kernels' widths by at most 0.05 %.
+fn share_near_scales(mut scales: [f32; 4]) -> [f32; 4] {
+    for ch in 1..4 {
+        if let Some(&same) = scales[..ch].iter().find(|&&s| {
+            s > 0.0 && scales[ch] > 0.0 && (scales[ch] - s).abs() <= SHARED_SCALE_TOLERANCE * s
+        }) {
+            scales[ch] = same;
+        }
+    }
+    scales
+}
+
 /// Bilinear sample of the interleaved (H, W, 2) `flow` at real position (y, x), clamped.
 #[inline]
 fn flow_bilinear(flow: &[f32], h: usize, w: usize, y: f32, x: f32) -> [f32; 2] {
@@ -613,7 +634,7 @@ impl<'a> MergeAccumulator<'a> {
         let (h, w) = (cfa.height(), cfa.width());
         let model: PixelModel = model.into();
         validate(&[], &[], kernels, h, w, config, model.max_sample())?;
-        let channel_scale = KernelField::channel_scale(cfa).map(|s| {
+        let channel_scale = share_near_scales(KernelField::channel_scale(cfa)).map(|s| {
             if s > 0.0 {
                 s.powf(config.spacing_exponent)
             } else {
