@@ -1856,6 +1856,30 @@ mod tests {
     }
 
     #[test]
+    fn near_scales_are_shared_and_others_kept() {
+        // R and G of 10,499 sites, B of 10,498, W of 94,488 (/tmp/cap10k's CFA).
+        let n = 126_000.0f32;
+        let scales = [n / 10_499.0, n / 10_499.0, n / 10_498.0, n / 94_488.0];
+        assert_ne!(scales[0], scales[2]);
+        let shared = share_near_scales(scales);
+        assert_eq!(shared, [scales[0], scales[0], scales[0], scales[3]]);
+        // Bayer (R and B of one density, G of another), absent channels and a 1 % difference
+        // are kept.
+        assert_eq!(
+            share_near_scales([4.0, 2.0, 4.0, 0.0]),
+            [4.0, 2.0, 4.0, 0.0]
+        );
+        assert_eq!(
+            share_near_scales([12.0, 12.12, 0.0, 0.0]),
+            [12.0, 12.12, 0.0, 0.0]
+        );
+        assert_eq!(
+            share_near_scales([0.0, 1e-9, 5.0, 5.004]),
+            [0.0, 1e-9, 5.0, 5.0]
+        );
+    }
+
+    #[test]
     fn index_in_is_the_saturating_cast_inside_its_range() {
         for hi in [0.0f32, 1.0, 253.0, 1015.0, 16_777_216.0, 2_147_483_520.0] {
             let mut values = vec![0.0, -0.0, hi, f32::NAN, 0.999_999_9];
