@@ -147,6 +147,11 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
                 .validate()
                 .map_err(|e| anyhow::anyhow!("{}: [denoise]: {e}", path.display()))?;
             config
+                .burst
+                .refine
+                .validate()
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            config
         }
         None => ReconstructConfig::default(),
     };

@@ -197,7 +197,9 @@ impl HotPixelCorrector {
                         for (f, frame_bits) in bits.chunks_exact(g).take(c).enumerate() {
                             let t = t0 + f;
                             if t + PREFETCH_FRAMES < range.end {
-                                crate::cpu::prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
+                                crate::cpu::prefetch(
+                                    &frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()],
+                                );
                             }
                             let frame = frames.raw_frame(t);
                             for (count, &b) in counts.iter_mut().zip(frame_bits) {

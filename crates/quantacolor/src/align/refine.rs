@@ -119,6 +119,29 @@ pub struct RefineConfig {
     pub similarity_prior_px: f64, // 0.1 px
 }
 
+impl RefineConfig {
+    /// Checks that the levels and the pixel thresholds hold usable values.
+    pub fn validate(&self) -> Result<()> {
+        if self.levels.is_empty() || self.levels.iter().any(|l| l.bin == 0 || l.sigma_px <= 0.0) {
+            return Err(Error::invalid(
+                "motion refinement: levels need a bin of at least 1 px and a positive sigma",
+            ));
+        }
+        for (key, value) in [
+            ("similarity_prior_px", self.similarity_prior_px),
+            ("repeat_above_px", self.repeat_above_px),
+            ("max_correction_px", self.max_correction_px),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(Error::invalid(format!(
+                    "motion refinement: [burst.refine] {key} must be a non-negative number, got {value}"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Default for RefineConfig {
     fn default() -> Self {
         RefineConfig {
@@ -1680,16 +1703,7 @@ pub fn refine_camera_motion(
     if !config.enabled || matches!(grey_method, GreyMethod::Demosaic) {
         return Ok(());
     }
-    if config.levels.is_empty()
-        || config
-            .levels
-            .iter()
-            .any(|l| l.bin == 0 || l.sigma_px <= 0.0)
-    {
-        return Err(Error::invalid(
-            "motion refinement: levels need a bin of at least 1 px and a positive sigma",
-        ));
-    }
+    config.validate()?;
     if grey_blocks.len() != motion.plan.len() {
         return Err(Error::invalid(format!(
             "motion refinement: {} grey blocks for {} planned blocks",
