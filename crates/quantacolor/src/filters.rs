@@ -14,7 +14,7 @@
 //! None of this is from the paper (which demosaics by normalized convolution without giving a
 //! kernel); the widths are this project's choices and live with the callers.
 
-use ndarray::{Array2, ArrayView1, ArrayView2, ArrayViewMut1, Axis, Zip};
+use ndarray::{Array2, ArrayView2, Axis, Zip};
 use rayon::prelude::*;
 
 /// Unnormalised Gaussian taps `exp(−d²/2σ²)` in f32 for `d = −r..=r`, `r = max(1, ⌈3σ⌉)`
@@ -42,29 +42,46 @@ pub fn gaussian_kernel_unit_sum(sigma: f64) -> Vec<f32> {
 }
 
 /// One row of the horizontal pass: `out[x] = Σ_k kernel[k]·inp[x + k − r]`, zero outside.
-fn convolve_row(inp: ArrayView1<f32>, mut out: ArrayViewMut1<f32>, kernel: &[f32]) {
-    let w = inp.len() as isize;
-    let r = (kernel.len() / 2) as isize;
-    for x in 0..w {
+///
+/// Every output starts at 0 and adds its taps in kernel order, skipping those outside the row.
+/// Pixels whose taps all fall inside run tap by tap over the whole interior (a plain slice
+/// loop that vectorises); the same additions in the same order per pixel as the border loop.
+fn convolve_row(inp: &[f32], out: &mut [f32], kernel: &[f32]) {
+    let w = inp.len();
+    let r = kernel.len() / 2;
+    let interior = r..w.saturating_sub(r).max(r);
+    if !interior.is_empty() {
+        let lane = &mut out[interior.clone()];
+        lane.fill(0.0);
+        for (k, &kv) in kernel.iter().enumerate() {
+            let src = &inp[k..k + lane.len()];
+            lane.iter_mut().zip(src).for_each(|(o, &s)| *o += kv * s);
+        }
+    }
+    let border = (0..interior.start.min(w)).chain(interior.end.max(interior.start).min(w)..w);
+    for x in border {
         let mut acc = 0.0;
         for (k, &kv) in kernel.iter().enumerate() {
-            let xx = x + k as isize - r;
-            if xx >= 0 && xx < w {
-                acc += kv * inp[xx as usize];
+            // x + k − r, when inside the row.
+            if let Some(xx) = (x + k).checked_sub(r).filter(|&xx| xx < w) {
+                acc += kv * inp[xx];
             }
         }
-        out[x as usize] = acc;
+        out[x] = acc;
     }
 }
 
-/// One output row `y` of the vertical pass: `row += kernel[k]·rows[y + k − r]`, zero outside.
-fn accumulate_column(y: usize, mut row: ArrayViewMut1<f32>, rows: &Array2<f32>, kernel: &[f32]) {
-    let h = rows.nrows() as isize;
-    let r = (kernel.len() / 2) as isize;
+/// One output row `y` of the vertical pass: `row = Σ_k kernel[k]·rows[y + k − r]` over the rows
+/// inside the image, from 0 in kernel order (`rows` holds `row.len()`-wide rows).
+fn accumulate_column(y: usize, row: &mut [f32], rows: &[f32], kernel: &[f32]) {
+    let w = row.len();
+    let h = if w == 0 { 0 } else { rows.len() / w };
+    let r = kernel.len() / 2;
+    row.fill(0.0);
     for (k, &kv) in kernel.iter().enumerate() {
-        let yy = y as isize + k as isize - r;
-        if yy >= 0 && yy < h {
-            row.zip_mut_with(&rows.row(yy as usize), |d, &s| *d += kv * s);
+        if let Some(yy) = (y + k).checked_sub(r).filter(|&yy| yy < h) {
+            let src = &rows[yy * w..(yy + 1) * w];
+            row.iter_mut().zip(src).for_each(|(d, &s)| *d += kv * s);
         }
     }
 }
@@ -74,30 +91,38 @@ fn accumulate_column(y: usize, mut row: ArrayViewMut1<f32>, rows: &Array2<f32>, 
 /// padding is what normalized convolution needs: the weight image is padded the same way, so
 /// borders stay unbiased.
 pub fn separable(img: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let mut rows = Array2::<f32>::zeros(img.dim());
-    for (out, inp) in rows.axis_iter_mut(Axis(0)).zip(img.axis_iter(Axis(0))) {
-        convolve_row(inp, out, kernel);
+    let (h, w) = img.dim();
+    let img = img.as_standard_layout();
+    let src = img.as_slice().expect("standard layout");
+    let mut rows = vec![0.0f32; h * w];
+    let mut out = vec![0.0f32; h * w];
+    if w > 0 {
+        for (o, i) in rows.chunks_exact_mut(w).zip(src.chunks_exact(w)) {
+            convolve_row(i, o, kernel);
+        }
+        for (y, row) in out.chunks_exact_mut(w).enumerate() {
+            accumulate_column(y, row, &rows, kernel);
+        }
     }
-    let mut out = Array2::<f32>::zeros(img.dim());
-    for (y, row) in out.axis_iter_mut(Axis(0)).enumerate() {
-        accumulate_column(y, row, &rows, kernel);
-    }
-    out
+    Array2::from_shape_vec((h, w), out).expect("h x w")
 }
 
 /// [`separable`] with the rows spread over the rayon pool (same numbers, for full-size images).
 pub fn separable_par(img: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
-    let mut rows = Array2::<f32>::zeros(img.dim());
-    rows.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(img.axis_iter(Axis(0)))
-        .for_each(|(out, inp)| convolve_row(inp, out, kernel));
-    let mut out = Array2::<f32>::zeros(img.dim());
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(y, row)| accumulate_column(y, row, &rows, kernel));
-    out
+    let (h, w) = img.dim();
+    let img = img.as_standard_layout();
+    let src = img.as_slice().expect("standard layout");
+    let mut rows = vec![0.0f32; h * w];
+    let mut out = vec![0.0f32; h * w];
+    if w > 0 {
+        rows.par_chunks_exact_mut(w)
+            .zip(src.par_chunks_exact(w))
+            .for_each(|(o, i)| convolve_row(i, o, kernel));
+        out.par_chunks_exact_mut(w)
+            .enumerate()
+            .for_each(|(y, row)| accumulate_column(y, row, &rows, kernel));
+    }
+    Array2::from_shape_vec((h, w), out).expect("h x w")
 }
 
 /// Gaussian blur with σ px ([`gaussian_taps`], radius 3σ), normalised near borders so edges do
@@ -109,26 +134,22 @@ pub fn gaussian_blur(img: &Array2<f32>, sigma: f32) -> Array2<f32> {
     // pass is the same, so output rows whose vertical taps all fall inside the image are the
     // same too and are made once (the same numbers as convolving the ones image).
     let (h, w) = img.dim();
-    let mut ones = Array2::<f32>::zeros((1, w));
-    convolve_row(
-        Array2::from_elem((1, w), 1.0f32).row(0),
-        ones.row_mut(0),
-        &kernel,
-    );
+    let mut ones = vec![0.0f32; w];
+    convolve_row(&vec![1.0f32; w], &mut ones, &kernel);
     let r = kernel.len() / 2;
-    let mut den = Array2::<f32>::zeros((1, w));
+    let mut den = vec![0.0f32; w];
     let mut taps = None;
     for (y, mut row) in num.axis_iter_mut(Axis(0)).enumerate() {
         let span = (r.saturating_sub(y), (h - 1 - y + r).min(kernel.len() - 1));
         if taps != Some(span) {
             den.fill(0.0);
             for &kv in &kernel[span.0..=span.1] {
-                den.row_mut(0)
-                    .zip_mut_with(&ones.row(0), |d, &s| *d += kv * s);
+                den.iter_mut().zip(&ones).for_each(|(d, &s)| *d += kv * s);
             }
             taps = Some(span);
         }
-        row.zip_mut_with(&den.row(0), |n, &d| *n /= d);
+        let row = row.as_slice_mut().expect("fresh array is contiguous");
+        row.iter_mut().zip(&den).for_each(|(n, &d)| *n /= d);
     }
     num
 }
@@ -243,6 +264,56 @@ mod tests {
             let a = separable(&img, &kernel);
             let b = separable_par(&img, &kernel);
             assert!(a.iter().zip(&b).all(|(p, q)| p.to_bits() == q.to_bits()));
+        }
+    }
+
+    /// Zero-padded separable convolution as a direct sum over every tap that falls inside
+    /// (taps in kernel order from 0, rows first): what [`separable`] must equal bit for bit.
+    fn direct_separable(img: &Array2<f32>, kernel: &[f32]) -> Array2<f32> {
+        let (h, w) = img.dim();
+        let r = (kernel.len() / 2) as isize;
+        let taps = |n: usize, i: usize| {
+            kernel.iter().enumerate().filter_map(move |(k, &kv)| {
+                let j = i as isize + k as isize - r;
+                (j >= 0 && j < n as isize).then_some((j as usize, kv))
+            })
+        };
+        let rows = Array2::from_shape_fn((h, w), |(y, x)| {
+            taps(w, x).fold(0.0f32, |acc, (xx, kv)| acc + kv * img[[y, xx]])
+        });
+        Array2::from_shape_fn((h, w), |(y, x)| {
+            taps(h, y).fold(0.0f32, |acc, (yy, kv)| acc + kv * rows[[yy, x]])
+        })
+    }
+
+    /// Images narrower, as wide as and wider than the kernel; values with negative zeros.
+    #[test]
+    fn separable_equals_the_direct_tap_sum_bit_for_bit() {
+        for (h, w) in [(23, 31), (3, 17), (1, 5), (40, 2), (7, 7), (5, 13), (1, 1)] {
+            let img = Array2::from_shape_fn((h, w), |(y, x)| {
+                let v = ((y * 7 + x * 13) % 17) as f32 * 0.37 - 2.0;
+                if (y + x) % 5 == 0 {
+                    -0.0
+                } else {
+                    v
+                }
+            });
+            for kernel in [
+                gaussian_taps(0.75),
+                gaussian_taps(2.0),
+                gaussian_kernel_unit_sum(1.1),
+            ] {
+                let expected = direct_separable(&img, &kernel);
+                for got in [separable(&img, &kernel), separable_par(&img, &kernel)] {
+                    assert!(
+                        got.iter()
+                            .zip(&expected)
+                            .all(|(p, q)| p.to_bits() == q.to_bits()),
+                        "{h}x{w} kernel of {}",
+                        kernel.len()
+                    );
+                }
+            }
         }
     }
 

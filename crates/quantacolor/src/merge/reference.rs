@@ -57,24 +57,34 @@ impl Fft2 {
         }
     }
 
-    fn run(&self, data: &mut [Complex32], scratch: &mut [Complex32], inverse: bool) {
+    /// The 2-D DFT of `data` (rows, then columns) left transposed in `scratch`: entry
+    /// (kx, ky) at kx·n + ky. The Wiener merge works frequency by frequency, so its spectra
+    /// stay in this layout and one transpose per tile is saved; [`Fft2::inverse`] takes it.
+    /// `data` is overwritten.
+    fn forward_transposed(&self, data: &mut [Complex32], scratch: &mut [Complex32]) {
+        self.forward.process(data); // every row (the buffer is n rows of n)
+        transpose(data, scratch, self.n);
+        self.forward.process(scratch); // every column
+    }
+
+    /// In-place inverse 2-D DFT (unnormalised) of a spectrum `data` in the transposed layout of
+    /// [`Fft2::forward_transposed`]: back to row-major (rows over kx first, then columns, as
+    /// a plain 2-D inverse transform), then rows, then columns; `scratch` is overwritten.
+    fn inverse(&self, data: &mut [Complex32], scratch: &mut [Complex32]) {
         let n = self.n;
-        let fft = if inverse {
-            &self.inverse
-        } else {
-            &self.forward
-        };
-        fft.process(data); // every row (the buffer is n rows of n)
         transpose(data, scratch, n);
-        fft.process(scratch); // every column
+        self.inverse.process(scratch); // every row
         transpose(scratch, data, n);
+        self.inverse.process(data); // every column
+        transpose(data, scratch, n);
+        data.copy_from_slice(scratch);
     }
 }
 
 fn transpose(src: &[Complex32], dst: &mut [Complex32], n: usize) {
-    for y in 0..n {
-        for x in 0..n {
-            dst[x * n + y] = src[y * n + x];
+    for (y, row) in src.chunks_exact(n).enumerate() {
+        for (x, &v) in row.iter().enumerate() {
+            dst[x * n + y] = v;
         }
     }
 }
@@ -242,33 +252,48 @@ impl TileLayout {
             .collect()
     }
 
-    /// Tile (y0, x0) of `img` into `buf` (edges clamped); returns the tile mean.
-    fn load(&self, img: &Array2<f32>, y0: isize, x0: isize, buf: &mut [Complex32]) -> f32 {
+    /// Tile (y0, x0) of the row-major (H, W) image `img` into `buf` (edges clamped); returns
+    /// the tile mean (the pixels summed row by row, left to right).
+    fn load(&self, img: &[f32], y0: isize, x0: isize, buf: &mut [Complex32]) -> f32 {
         let (n, h, w) = (self.n, self.h, self.w);
         let mut sum = 0.0;
-        for i in 0..n {
-            for j in 0..n {
-                let v = img[[
-                    (y0 + i as isize).clamp(0, h as isize - 1) as usize,
-                    (x0 + j as isize).clamp(0, w as isize - 1) as usize,
-                ]];
-                sum += v;
-                buf[i * n + j] = Complex32::new(v, 0.0);
+        // Tiles clear of the left and right edges copy a plain run of each row.
+        let inside = (x0 >= 0 && x0 as usize + n <= w).then_some(x0 as usize);
+        for (i, out) in buf.chunks_exact_mut(n).take(n).enumerate() {
+            let y = (y0 + i as isize).clamp(0, h as isize - 1) as usize;
+            let row = &img[y * w..(y + 1) * w];
+            match inside {
+                Some(x0) => {
+                    for (o, &v) in out.iter_mut().zip(&row[x0..x0 + n]) {
+                        sum += v;
+                        *o = Complex32::new(v, 0.0);
+                    }
+                }
+                None => {
+                    for (j, o) in out.iter_mut().enumerate() {
+                        let v = row[(x0 + j as isize).clamp(0, w as isize - 1) as usize];
+                        sum += v;
+                        *o = Complex32::new(v, 0.0);
+                    }
+                }
             }
         }
         sum * self.norm
     }
 
-    /// Every tile's reference spectrum, its mean, and the running sum started with it.
+    /// Every tile's reference spectrum (in the layout of [`Fft2::forward_transposed`]), its
+    /// mean, and the running sum started with it.
     fn reference_tiles(&self, reference_warped: &Array2<f32>) -> Vec<TileState> {
         let n = self.n;
+        let image = reference_warped.as_standard_layout();
+        let image = image.as_slice().expect("standard layout");
         self.origins()
             .par_iter()
             .map(|&(y0, x0)| {
+                let mut tile = vec![Complex32::default(); n * n];
                 let mut reference = vec![Complex32::default(); n * n];
-                let mut scratch = vec![Complex32::default(); n * n];
-                let mean_ref = self.load(reference_warped, y0, x0, &mut reference);
-                self.fft.run(&mut reference, &mut scratch, false);
+                let mean_ref = self.load(image, y0, x0, &mut tile);
+                self.fft.forward_transposed(&mut tile, &mut reference);
                 let acc = reference.clone();
                 TileState {
                     y0,
@@ -283,8 +308,11 @@ impl TileLayout {
 
     /// Adds one warped block `img` to every tile's running sum, per frequency
     /// T_k + A_k (T_ref − T_k) with A_k = |D_k|² / (|D_k|² + c·σ²), D_k = T_ref − T_k.
+    /// Spectra in the layout of [`Fft2::forward_transposed`], as the tiles hold them.
     fn merge_block(&self, tiles: &mut [TileState], img: &Array2<f32>, noise: GreyNoise, c: f32) {
         let n = self.n;
+        let image = img.as_standard_layout();
+        let image = image.as_slice().expect("standard layout");
         tiles.par_iter_mut().for_each_init(
             || {
                 (
@@ -292,9 +320,9 @@ impl TileLayout {
                     vec![Complex32::default(); n * n],
                 )
             },
-            |(other, scratch), tile| {
-                let mean_k = self.load(img, tile.y0, tile.x0, other);
-                self.fft.run(other, scratch, false);
+            |(pixels, other), tile| {
+                let mean_k = self.load(image, tile.y0, tile.x0, pixels);
+                self.fft.forward_transposed(pixels, other);
                 let sigma2 =
                     (n * n) as f32 * (noise.variance(tile.mean_ref) + noise.variance(mean_k));
                 let noise = c * sigma2.max(f32::MIN_POSITIVE);
@@ -318,7 +346,7 @@ impl TileLayout {
         tiles.par_iter_mut().for_each_init(
             || vec![Complex32::default(); n * n],
             |scratch, tile| {
-                self.fft.run(&mut tile.acc, scratch, true);
+                self.fft.inverse(&mut tile.acc, scratch);
                 for v in tile.acc.iter_mut() {
                     *v = Complex32::new(v.re * scale, 0.0);
                 }

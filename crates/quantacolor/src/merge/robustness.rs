@@ -3,7 +3,7 @@
 //! photon noise (binomial, or Gaussian–Poisson for multi-bit frames) explain, its samples are
 //! rejected from the merge.
 
-use super::warp::{check_flow, warp_to_reference};
+use super::warp::{check_flow, warp_checked};
 use super::GreyNoise;
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3, Axis};
@@ -70,6 +70,53 @@ fn local_stats(image: &Array2<f32>) -> (Array2<f32>, Array2<f32>) {
             }
         });
     (mean, std)
+}
+
+/// The mean of [`local_stats`] alone (the same sums in the same order, so the same bits):
+/// each output row adds its window rows top to bottom, each row's left, centre and right
+/// neighbours in turn, as plain slice loops over the row.
+fn local_mean(image: &Array2<f32>) -> Array2<f32> {
+    let (h, w) = image.dim();
+    let image = image.as_standard_layout();
+    let pixels = image.as_slice().expect("standard layout");
+    let mut mean = vec![0.0f32; h * w];
+    if w == 0 {
+        return Array2::from_shape_vec((h, w), mean).expect("h x w");
+    }
+    mean.par_chunks_exact_mut(w)
+        .enumerate()
+        .for_each(|(y, sums)| {
+            let window = y.saturating_sub(1)..(y + 2).min(h);
+            let rows = window.len() as f32;
+            for yy in window {
+                let row = &pixels[yy * w..(yy + 1) * w];
+                // Columns x − 1, x, x + 1 where they exist, in that order.
+                if w == 1 {
+                    sums[0] += row[0];
+                    continue;
+                }
+                sums[0] += row[0];
+                sums[0] += row[1];
+                let inner = &mut sums[1..w - 1];
+                inner
+                    .iter_mut()
+                    .zip(&row[..w - 2])
+                    .for_each(|(s, &v)| *s += v);
+                inner
+                    .iter_mut()
+                    .zip(&row[1..w - 1])
+                    .for_each(|(s, &v)| *s += v);
+                inner.iter_mut().zip(&row[2..]).for_each(|(s, &v)| *s += v);
+                sums[w - 1] += row[w - 2];
+                sums[w - 1] += row[w - 1];
+            }
+            // The window's pixel count, as local_stats counts it (exact small integers).
+            let count = |x: usize| rows * ((x + 2).min(w) - x.saturating_sub(1)) as f32;
+            for (x, s) in sums.iter_mut().enumerate() {
+                *s /= count(x);
+            }
+        });
+    Array2::from_shape_vec((h, w), mean).expect("h x w")
 }
 
 /// Running extremum along each row over x−r..=x+r, clipped to the row (`take_max` picks max or
@@ -223,9 +270,8 @@ pub fn robustness_against(
     if !super::warp::positive(noise.trials) {
         return Err(Error::invalid("robustness: trials must be positive"));
     }
-    let warped = warp_to_reference(grey_block, flow)?;
-    let (mean_k, _) = local_stats(&warped);
-    let flow_range = [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
+    let mean_k = local_mean(&warp_checked(grey_block, flow)?);
+    let flow_range = flow_ranges(flow);
     // Every window's spread is at most the whole flow's (max − min over a subset): when that
     // is under the threshold, no pixel takes `s_motion` and the running extrema are skipped.
     let spread = if spread_exceeds(flow_range[0], flow_range[1], config) {
@@ -285,6 +331,22 @@ fn weights(
     out
 }
 
+/// Max − min of a (H, W, 2) flow's dy and of its dx ([`value_range`] of each), in one pass.
+fn flow_ranges(flow: &Array3<f32>) -> [f32; 2] {
+    let Some(values) = flow.as_slice() else {
+        return [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
+    };
+    let mut lo = [f32::INFINITY; 2];
+    let mut hi = [f32::NEG_INFINITY; 2];
+    for d in values.chunks_exact(2) {
+        for c in 0..2 {
+            lo[c] = lo[c].min(d[c]);
+            hi[c] = hi[c].max(d[c]);
+        }
+    }
+    [0, 1].map(|c| if hi[c] >= lo[c] { hi[c] - lo[c] } else { 0.0 })
+}
+
 /// Max − min of all of `values` (0 for none).
 fn value_range(values: ndarray::ArrayView2<f32>) -> f32 {
     let (lo, hi) = values
@@ -339,7 +401,7 @@ mod tests {
         let range = [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
         assert!(!spread_exceeds(range[0], range[1], &config));
         let stats = ReferenceStats::new(&reference);
-        let (mean_k, _) = local_stats(&warp_to_reference(&block, &flow).unwrap());
+        let mean_k = local_mean(&super::super::warp::warp_to_reference(&block, &flow).unwrap());
         let spread = [0, 1].map(|c| {
             local_spread(
                 &flow.index_axis(Axis(2), c).to_owned(),
@@ -354,6 +416,27 @@ mod tests {
             robustness_against(&stats, &block, &flow, 64.0f32, &config).unwrap(),
             without
         );
+    }
+
+    /// The mean alone equals [`local_stats`]' mean bit for bit, and the one-pass flow ranges
+    /// equal each component's [`value_range`], on shapes down to one row or column.
+    #[test]
+    fn local_mean_and_flow_ranges_match_their_reference_forms() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for (h, w) in [(13, 29), (1, 7), (6, 1), (2, 2), (1, 1), (9, 40)] {
+            let image = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0).powi(3));
+            let (mean, _) = local_stats(&image);
+            let fast = local_mean(&image);
+            assert!(
+                fast.iter()
+                    .zip(&mean)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "{h}x{w}"
+            );
+            let flow = Array3::from_shape_fn((h, w, 2), |_| rng.gen_range(-20.0f32..20.0));
+            let expected = [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
+            assert_eq!(flow_ranges(&flow), expected, "{h}x{w}");
+        }
     }
 
     #[test]
