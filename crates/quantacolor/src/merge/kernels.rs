@@ -176,6 +176,8 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
             }
         });
 
+    // Plain (y, x, product) slices for the 3x3 sums below.
+    let products = products.as_slice().expect("fresh array is contiguous");
     let mut inv_cov = Array3::<f32>::zeros((h, w, 3));
     let mut anisotropy = Array2::<f32>::zeros((h, w));
     let mut flatness = Array2::<f32>::zeros((h, w));
@@ -190,10 +192,12 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
             for x in 0..w {
                 let mut t = [0.0f32; 3];
                 for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
-                        for (ti, &p) in t.iter_mut().zip(products.slice(ndarray::s![yy, xx, ..])) {
-                            *ti += p;
-                        }
+                    let row = &products[yy * w * 3..(yy + 1) * w * 3];
+                    let window = &row[x.saturating_sub(1) * 3..(x + 2).min(w) * 3];
+                    for p in window.chunks_exact(3) {
+                        t[0] += p[0];
+                        t[1] += p[1];
+                        t[2] += p[2];
                     }
                 }
                 let [syy, syx, sxx] = t;
