@@ -409,20 +409,46 @@ impl Weight {
     }
 }
 
-/// Max − min of a (H, W, 2) flow's dy and of its dx ([`value_range`] of each), in one pass.
+/// Max − min of a (H, W, 2) flow's dy and of its dx ([`value_range`] of each), in one pass:
+/// sixteen running extrema (even lanes dy, odd lanes dx) that compile to vector min and max.
+/// The extremum of a set does not depend on the order it is taken in (the flow is finite,
+/// [`check_flow`]; a zero's sign does not matter to [`spread_exceeds`]).
 fn flow_ranges(flow: &Array3<f32>) -> [f32; 2] {
+    const LANES: usize = 16;
     let Some(values) = flow.as_slice() else {
         return [0, 1].map(|c| value_range(flow.index_axis(Axis(2), c)));
     };
-    let mut lo = [f32::INFINITY; 2];
-    let mut hi = [f32::NEG_INFINITY; 2];
-    for d in values.chunks_exact(2) {
-        for c in 0..2 {
-            lo[c] = lo[c].min(d[c]);
-            hi[c] = hi[c].max(d[c]);
+    let mut lo = [f32::INFINITY; LANES];
+    let mut hi = [f32::NEG_INFINITY; LANES];
+    let chunks = values.chunks_exact(LANES);
+    let tail = chunks.remainder();
+    for chunk in chunks {
+        for i in 0..LANES {
+            let v = chunk[i];
+            lo[i] = if v < lo[i] { v } else { lo[i] };
+            hi[i] = if v > hi[i] { v } else { hi[i] };
         }
     }
-    [0, 1].map(|c| if hi[c] >= lo[c] { hi[c] - lo[c] } else { 0.0 })
+    // LANES is even, so the tail starts on a dy.
+    for (i, &v) in tail.iter().enumerate() {
+        lo[i] = if v < lo[i] { v } else { lo[i] };
+        hi[i] = if v > hi[i] { v } else { hi[i] };
+    }
+    [0, 1].map(|c| {
+        let lo = (c..LANES)
+            .step_by(2)
+            .map(|i| lo[i])
+            .fold(f32::INFINITY, f32::min);
+        let hi = (c..LANES)
+            .step_by(2)
+            .map(|i| hi[i])
+            .fold(f32::NEG_INFINITY, f32::max);
+        if hi >= lo {
+            hi - lo
+        } else {
+            0.0
+        }
+    })
 }
 
 /// Max − min of all of `values` (0 for none).
