@@ -1836,7 +1836,7 @@ fn prev_power_of_two(k: usize) -> usize {
 pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
     if rem == 0 && m <= MAX_LANE_GROUP {
-        haar_lanes(g, m, n2, haar_forward_lanes);
+        haar_lanes::<true>(g, m, n2);
     } else {
         haar_forward_general(g, m, n2, tmp);
     }
@@ -1866,7 +1866,7 @@ fn haar_forward_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
 pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
     if rem == 0 && m <= MAX_LANE_GROUP {
-        haar_lanes(g, m, n2, haar_inverse_lanes);
+        haar_lanes::<false>(g, m, n2);
     } else {
         haar_inverse_general(g, m, n2, tmp);
     }
@@ -1897,25 +1897,32 @@ const MAX_LANE_GROUP: usize = 32;
 /// Eight lanes of every group member (`[[f32; 8]; MAX_LANE_GROUP]`, first `m` rows used).
 type Lanes = [[f32; 8]; MAX_LANE_GROUP];
 
-/// Eight coefficients of every group member at a time, held in stack arrays while
-/// `transform` runs all levels on them: the same operations on the same values as the general
-/// path of [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole
-/// group back after every level.
+/// Eight coefficients of every group member at a time, held in stack arrays while the
+/// transform ([`haar_forward_lanes`] when `FORWARD`, else [`haar_inverse_lanes`]) runs all
+/// levels on them: the same operations on the same values as the general path of
+/// [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole group back
+/// after every level.
+///
+/// The transforms are called directly, not passed as functions: passed as a value, the
+/// transform was compiled on its own (through `Fn::call`, without AVX2 and out of line) and
+/// took 8 % of the denoiser's time (perf); called directly it is inlined into the AVX2 build.
+/// The work arrays are made once per call, not once per eight coefficients (every row a
+/// transform reads was written by it first, so their contents never matter).
 #[inline(always)]
-fn haar_lanes(
-    g: &mut [f32],
-    m: usize,
-    n2: usize,
-    transform: impl Fn(&mut Lanes, &mut Lanes, usize),
-) {
+fn haar_lanes<const FORWARD: bool>(g: &mut [f32], m: usize, n2: usize) {
     let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    let mut work = [[[0.0f32; 8]; MAX_LANE_GROUP]; 2];
     for k0 in (0..n2).step_by(8) {
         for (b, lanes) in x[..m].iter_mut().enumerate() {
             *lanes = g[b * n2 + k0..b * n2 + k0 + 8]
                 .try_into()
                 .expect("eight lanes");
         }
-        transform(&mut x, &mut y, m);
+        if FORWARD {
+            haar_forward_lanes(&mut x, &mut y, &mut work[0], m);
+        } else {
+            haar_inverse_lanes(&mut x, &mut y, &mut work, m);
+        }
         for (b, lanes) in y[..m].iter().enumerate() {
             g[b * n2 + k0..b * n2 + k0 + 8].copy_from_slice(lanes);
         }
@@ -1923,11 +1930,10 @@ fn haar_lanes(
 }
 
 /// [`haar_forward`] of the lanes `x` into `y` (`x` is overwritten): each level's details go
-/// straight to their place in `y`, its approximation to the other of two work arrays.
+/// straight to their place in `y`, its approximation to the other of `x` and `work`.
 #[inline(always)]
-fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
-    let mut other = [[0.0f32; 8]; MAX_LANE_GROUP];
-    let (mut src, mut dst) = (x, &mut other);
+fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, work: &mut Lanes, m: usize) {
+    let (mut src, mut dst) = (x, work);
     let mut len = m;
     while len > 1 {
         let half = len / 2;
@@ -1946,17 +1952,17 @@ fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
 }
 
 /// [`haar_inverse`] of the lanes `x` into `y`: each level reads the approximation of the
-/// level before (at first `x[0]`) and its details in `x`, and writes to the other of two work
-/// arrays; the last level writes `y`.
+/// level before (at first `x[0]`) and its details in `x`, and writes to the other of the two
+/// `work` arrays; the last level writes `y`.
 #[inline(always)]
-fn haar_inverse_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
+fn haar_inverse_lanes(x: &mut Lanes, y: &mut Lanes, work: &mut [Lanes; 2], m: usize) {
     if m == 1 {
         y[0] = x[0];
         return;
     }
-    let (mut p, mut q) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    let [p, q] = work;
     p[0] = x[0];
-    let (mut approx, mut next) = (&mut p, &mut q);
+    let (mut approx, mut next) = (p, q);
     let mut len = 2;
     while len <= m {
         let half = len / 2;
