@@ -925,12 +925,21 @@ fn squared_distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
 /// vertical frequencies, where most of a mismatch shows): the same bits, or `None` under the
 /// same condition (a partial sum of non-negative terms, summed over the lanes in the same
 /// order as the full one, only grows).
+///
+/// `two_rows`: the sum after the first two rows when the caller has it already (the
+/// [`low_partial_distances`] lane of this candidate: the same bits), so that the check
+/// after two rows compares it instead of totalling the lanes again.
 #[inline(always)]
-fn distance_at_most(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
+fn distance_at_most(a: &[f32], b: &[f32], limit: f32, two_rows: Option<f32>) -> Option<f32> {
     if let (Ok(a), Ok(b)) = (<&[f32; 64]>::try_from(a), <&[f32; 64]>::try_from(b)) {
         let mut acc = [0.0f32; 8];
         for chunk in 0..8 {
-            if (chunk == 2 || chunk == 4) && acc.iter().sum::<f32>() > limit {
+            let early = match chunk {
+                2 => Some(two_rows.unwrap_or_else(|| acc.iter().sum::<f32>())),
+                4 => Some(acc.iter().sum::<f32>()),
+                _ => None,
+            };
+            if early.is_some_and(|e| e > limit) {
                 return None;
             }
             for j in 0..8 {
@@ -1646,7 +1655,7 @@ fn find_group<const AVX2: bool>(
     for &pos in &s.previous_group {
         if in_window(pos) {
             if let Some(d) =
-                distance_at_most_dispatch::<AVX2>(reference, p.matching.block(pos), bound)
+                distance_at_most_dispatch::<AVX2>(reference, p.matching.block(pos), bound, None)
             {
                 s.warm.push(d);
             }
@@ -1659,9 +1668,12 @@ fn find_group<const AVX2: bool>(
     // Every position of the window; the list is cut back to the best `keep` (and the bound
     // lowered to the last of them) whenever it reaches `cap`.
     let cap = 2 * keep.max(8);
-    let consider = |pos: usize, bound: &mut f32, candidates: &mut Vec<(f32, u32)>| {
-        consider_candidate::<AVX2>(reference, p.matching, pos, bound, candidates, keep, cap);
-    };
+    let consider =
+        |pos: usize, two_rows: Option<f32>, bound: &mut f32, candidates: &mut Vec<(f32, u32)>| {
+            consider_candidate::<AVX2>(
+                reference, p.matching, pos, two_rows, bound, candidates, keep, cap,
+            );
+        };
     // Rows from the reference's out: its best matches usually lie near it, so the bound falls
     // early and fewer candidates are summed in full (any order gives the same group).
     for y in centre_out(yr, y0, y1) {
@@ -1683,10 +1695,13 @@ fn find_group<const AVX2: bool>(
                         prefetch_blocks(p.matching, y * pw + x, pass);
                     }
                     while pass != 0 {
-                        let pos = y * pw + x + pass.trailing_zeros() as usize;
+                        let lane = pass.trailing_zeros() as usize;
+                        let pos = y * pw + x + lane;
                         pass &= pass - 1;
                         if pos != ref_pos {
-                            consider(pos, &mut bound, &mut s.candidates);
+                            // The lane's partial is the candidate's sum after two rows.
+                            let two_rows = Some(partial[lane]);
+                            consider(pos, two_rows, &mut bound, &mut s.candidates);
                         }
                     }
                     x += LANES8;
@@ -1696,7 +1711,7 @@ fn find_group<const AVX2: bool>(
                 for x in x0..=x1 {
                     let pos = y * pw + x;
                     if pos != ref_pos {
-                        consider(pos, &mut bound, &mut s.candidates);
+                        consider(pos, None, &mut bound, &mut s.candidates);
                     }
                 }
             }
@@ -1746,18 +1761,22 @@ fn prefetch_blocks(coeffs: &BlockCoeffs, first: usize, lanes: u32) {
 /// One candidate of [`find_group`]'s scan: its distance to `reference` when at most `bound`
 /// joins `candidates`, which are cut back to the best `keep` (and `bound` lowered to the last
 /// of them) whenever they reach `cap`. A function rather than a closure, so that it is inlined
-/// into the AVX2 build (the closure was compiled on its own, without AVX2).
+/// into the AVX2 build (the closure was compiled on its own, without AVX2). `two_rows`: the
+/// candidate's distance after two rows when known ([`distance_at_most`]).
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn consider_candidate<const AVX2: bool>(
     reference: &[f32],
     matching: &BlockCoeffs,
     pos: usize,
+    two_rows: Option<f32>,
     bound: &mut f32,
     candidates: &mut Vec<(f32, u32)>,
     keep: usize,
     cap: usize,
 ) {
-    if let Some(d) = distance_at_most_dispatch::<AVX2>(reference, matching.block(pos), *bound) {
+    let block = matching.block(pos);
+    if let Some(d) = distance_at_most_dispatch::<AVX2>(reference, block, *bound, two_rows) {
         candidates.push((d, pos as u32));
         if candidates.len() == cap {
             *bound = cut_candidates(candidates, keep);
@@ -1778,18 +1797,23 @@ fn cut_candidates(candidates: &mut Vec<(f32, u32)>, keep: usize) -> f32 {
 /// [`distance_at_most`], through [`distance_at_most_avx2`] when `AVX2` and the blocks are
 /// 8 × 8.
 #[inline(always)]
-fn distance_at_most_dispatch<const AVX2: bool>(a: &[f32], b: &[f32], limit: f32) -> Option<f32> {
+fn distance_at_most_dispatch<const AVX2: bool>(
+    a: &[f32],
+    b: &[f32],
+    limit: f32,
+    two_rows: Option<f32>,
+) -> Option<f32> {
     #[cfg(target_arch = "x86_64")]
     {
         if AVX2 {
             if let (Ok(a), Ok(b)) = (<&[f32; 64]>::try_from(a), <&[f32; 64]>::try_from(b)) {
                 // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked
                 // the CPU.
-                return unsafe { distance_at_most_avx2(a, b, limit) };
+                return unsafe { distance_at_most_avx2(a, b, limit, two_rows) };
             }
         }
     }
-    distance_at_most(a, b, limit)
+    distance_at_most(a, b, limit, two_rows)
 }
 
 /// [`distance_at_most`] of 8 × 8 blocks with its eight partial sums as the lanes of one AVX2
@@ -1801,7 +1825,12 @@ fn distance_at_most_dispatch<const AVX2: bool>(a: &[f32], b: &[f32], limit: f32)
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn distance_at_most_avx2(a: &[f32; 64], b: &[f32; 64], limit: f32) -> Option<f32> {
+unsafe fn distance_at_most_avx2(
+    a: &[f32; 64],
+    b: &[f32; 64],
+    limit: f32,
+    two_rows: Option<f32>,
+) -> Option<f32> {
     use std::arch::x86_64::*;
     let total = |acc: __m256| {
         let mut lanes = [0.0f32; 8];
@@ -1810,7 +1839,12 @@ unsafe fn distance_at_most_avx2(a: &[f32; 64], b: &[f32; 64], limit: f32) -> Opt
     };
     let mut acc = _mm256_setzero_ps();
     for chunk in 0..8 {
-        if (chunk == 2 || chunk == 4) && total(acc) > limit {
+        let early = match chunk {
+            2 => Some(two_rows.unwrap_or_else(|| total(acc))),
+            4 => Some(total(acc)),
+            _ => None,
+        };
+        if early.is_some_and(|e| e > limit) {
             return None;
         }
         let d = _mm256_sub_ps(
@@ -1836,7 +1870,7 @@ fn prev_power_of_two(k: usize) -> usize {
 pub(crate) fn haar_forward(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
     if rem == 0 && m <= MAX_LANE_GROUP {
-        haar_lanes(g, m, n2, haar_forward_lanes);
+        haar_lanes::<true>(g, m, n2);
     } else {
         haar_forward_general(g, m, n2, tmp);
     }
@@ -1866,7 +1900,7 @@ fn haar_forward_general(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
 pub(crate) fn haar_inverse(g: &mut [f32], m: usize, n2: usize, tmp: &mut [f32]) {
     let rem = n2 % 8; // not is_multiple_of: rust-version is 1.80
     if rem == 0 && m <= MAX_LANE_GROUP {
-        haar_lanes(g, m, n2, haar_inverse_lanes);
+        haar_lanes::<false>(g, m, n2);
     } else {
         haar_inverse_general(g, m, n2, tmp);
     }
@@ -1897,25 +1931,32 @@ const MAX_LANE_GROUP: usize = 32;
 /// Eight lanes of every group member (`[[f32; 8]; MAX_LANE_GROUP]`, first `m` rows used).
 type Lanes = [[f32; 8]; MAX_LANE_GROUP];
 
-/// Eight coefficients of every group member at a time, held in stack arrays while
-/// `transform` runs all levels on them: the same operations on the same values as the general
-/// path of [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole
-/// group back after every level.
+/// Eight coefficients of every group member at a time, held in stack arrays while the
+/// transform ([`haar_forward_lanes`] when `FORWARD`, else [`haar_inverse_lanes`]) runs all
+/// levels on them: the same operations on the same values as the general path of
+/// [`haar_forward`] / [`haar_inverse`] (so the same bits), without copying the whole group back
+/// after every level.
+///
+/// The transforms are called directly, not passed as functions: passed as a value, the
+/// transform was compiled on its own (through `Fn::call`, without AVX2 and out of line) and
+/// took 8 % of the denoiser's time (perf); called directly it is inlined into the AVX2 build.
+/// The work arrays are made once per call, not once per eight coefficients (every row a
+/// transform reads was written by it first, so their contents never matter).
 #[inline(always)]
-fn haar_lanes(
-    g: &mut [f32],
-    m: usize,
-    n2: usize,
-    transform: impl Fn(&mut Lanes, &mut Lanes, usize),
-) {
+fn haar_lanes<const FORWARD: bool>(g: &mut [f32], m: usize, n2: usize) {
     let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    let mut work = [[[0.0f32; 8]; MAX_LANE_GROUP]; 2];
     for k0 in (0..n2).step_by(8) {
         for (b, lanes) in x[..m].iter_mut().enumerate() {
             *lanes = g[b * n2 + k0..b * n2 + k0 + 8]
                 .try_into()
                 .expect("eight lanes");
         }
-        transform(&mut x, &mut y, m);
+        if FORWARD {
+            haar_forward_lanes(&mut x, &mut y, &mut work[0], m);
+        } else {
+            haar_inverse_lanes(&mut x, &mut y, &mut work, m);
+        }
         for (b, lanes) in y[..m].iter().enumerate() {
             g[b * n2 + k0..b * n2 + k0 + 8].copy_from_slice(lanes);
         }
@@ -1923,21 +1964,18 @@ fn haar_lanes(
 }
 
 /// [`haar_forward`] of the lanes `x` into `y` (`x` is overwritten): each level's details go
-/// straight to their place in `y`, its approximation to the other of two work arrays.
+/// straight to their place in `y`, its approximation to the other of `x` and `work`.
 #[inline(always)]
-fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
-    let mut other = [[0.0f32; 8]; MAX_LANE_GROUP];
-    let (mut src, mut dst) = (x, &mut other);
+fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, work: &mut Lanes, m: usize) {
+    let (mut src, mut dst) = (x, work);
     let mut len = m;
     while len > 1 {
         let half = len / 2;
         for i in 0..half {
-            for k in 0..8 {
-                let a = src[2 * i][k];
-                let b = src[2 * i + 1][k];
-                dst[i][k] = (a + b) * FRAC_1_SQRT_2;
-                y[half + i][k] = (a - b) * FRAC_1_SQRT_2;
-            }
+            // Whole rows into locals first: no store can alias a load, so it vectorises.
+            let (a, b) = (src[2 * i], src[2 * i + 1]);
+            dst[i] = std::array::from_fn(|k| (a[k] + b[k]) * FRAC_1_SQRT_2);
+            y[half + i] = std::array::from_fn(|k| (a[k] - b[k]) * FRAC_1_SQRT_2);
         }
         std::mem::swap(&mut src, &mut dst);
         len = half;
@@ -1946,28 +1984,27 @@ fn haar_forward_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
 }
 
 /// [`haar_inverse`] of the lanes `x` into `y`: each level reads the approximation of the
-/// level before (at first `x[0]`) and its details in `x`, and writes to the other of two work
-/// arrays; the last level writes `y`.
+/// level before (at first `x[0]`) and its details in `x`, and writes to the other of the two
+/// `work` arrays; the last level writes `y`.
 #[inline(always)]
-fn haar_inverse_lanes(x: &mut Lanes, y: &mut Lanes, m: usize) {
+fn haar_inverse_lanes(x: &mut Lanes, y: &mut Lanes, work: &mut [Lanes; 2], m: usize) {
     if m == 1 {
         y[0] = x[0];
         return;
     }
-    let (mut p, mut q) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    let [p, q] = work;
     p[0] = x[0];
-    let (mut approx, mut next) = (&mut p, &mut q);
+    let (mut approx, mut next) = (p, q);
     let mut len = 2;
     while len <= m {
         let half = len / 2;
         let out: &mut Lanes = if len == m { &mut *y } else { &mut *next };
         for i in 0..half {
-            for k in 0..8 {
-                let a = approx[i][k];
-                let d = x[half + i][k];
-                out[2 * i][k] = (a + d) * FRAC_1_SQRT_2;
-                out[2 * i + 1][k] = (a - d) * FRAC_1_SQRT_2;
-            }
+            // As in `haar_forward_lanes` (here `out` is one of two arrays chosen at run time,
+            // and the compiler left the element-wise loop scalar).
+            let (a, d) = (approx[i], x[half + i]);
+            out[2 * i] = std::array::from_fn(|k| (a[k] + d[k]) * FRAC_1_SQRT_2);
+            out[2 * i + 1] = std::array::from_fn(|k| (a[k] - d[k]) * FRAC_1_SQRT_2);
         }
         std::mem::swap(&mut approx, &mut next);
         len *= 2;
@@ -2078,15 +2115,35 @@ mod tests {
                     if len == 64 {
                         let (a8, b8): (&[f32; 64], &[f32; 64]) =
                             (a[..].try_into().unwrap(), b[..].try_into().unwrap());
-                        let portable = distance_at_most(&a, &b, limit);
+                        let portable = distance_at_most(&a, &b, limit, None);
                         assert_eq!(portable.map(f32::to_bits), bounded.map(f32::to_bits));
+                        // Given the sum after two rows (as `low_partial_distances` makes
+                        // it), the same answer.
+                        let two_rows = (0..8).fold(0.0f32, |sum, j| {
+                            let (d0, d1) = (a[j] - b[j], a[j + 8] - b[j + 8]);
+                            let acc = d0 * d0 + d1 * d1;
+                            if j == 0 {
+                                acc
+                            } else {
+                                sum + acc
+                            }
+                        });
+                        for l in [limit, two_rows, two_rows * 0.999, full * 0.3] {
+                            let given = distance_at_most(&a, &b, l, Some(two_rows));
+                            let own = distance_at_most(&a, &b, l, None);
+                            assert_eq!(given.map(f32::to_bits), own.map(f32::to_bits));
+                        }
                         #[cfg(target_arch = "x86_64")]
                         if std::arch::is_x86_feature_detected!("avx2") {
                             for l in [limit, full * 0.1, full * 0.3, full * 0.6] {
                                 // SAFETY: AVX2 checked just above.
-                                let wide = unsafe { distance_at_most_avx2(a8, b8, l) };
-                                let portable = distance_at_most(&a, &b, l);
+                                let wide = unsafe { distance_at_most_avx2(a8, b8, l, None) };
+                                let portable = distance_at_most(&a, &b, l, None);
                                 assert_eq!(wide.map(f32::to_bits), portable.map(f32::to_bits));
+                                // SAFETY: AVX2 checked just above.
+                                let given =
+                                    unsafe { distance_at_most_avx2(a8, b8, l, Some(two_rows)) };
+                                assert_eq!(given.map(f32::to_bits), portable.map(f32::to_bits));
                             }
                         }
                         let _ = (a8, b8);
