@@ -374,32 +374,77 @@ unsafe fn chacha8_blocks_avx2(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u
         15, 12, 13, 14,
     );
     let mut x = init;
-    let quarter = |x: &mut [__m256i; 16], a: usize, b: usize, c: usize, d: usize| {
-        x[a] = _mm256_add_epi32(x[a], x[b]);
-        x[d] = _mm256_shuffle_epi8(_mm256_xor_si256(x[d], x[a]), rot16);
-        x[c] = _mm256_add_epi32(x[c], x[d]);
-        let t = _mm256_xor_si256(x[b], x[c]);
-        x[b] = _mm256_or_si256(_mm256_slli_epi32::<12>(t), _mm256_srli_epi32::<20>(t));
-        x[a] = _mm256_add_epi32(x[a], x[b]);
-        x[d] = _mm256_shuffle_epi8(_mm256_xor_si256(x[d], x[a]), rot8);
-        x[c] = _mm256_add_epi32(x[c], x[d]);
-        let t = _mm256_xor_si256(x[b], x[c]);
-        x[b] = _mm256_or_si256(_mm256_slli_epi32::<7>(t), _mm256_srli_epi32::<25>(t));
-    };
+    // Literal indices (a macro, not a loop over the index tables): the state then lives in
+    // registers instead of being read and written through memory at computed offsets.
+    macro_rules! quarter {
+        ($a:literal, $b:literal, $c:literal, $d:literal) => {
+            x[$a] = _mm256_add_epi32(x[$a], x[$b]);
+            x[$d] = _mm256_shuffle_epi8(_mm256_xor_si256(x[$d], x[$a]), rot16);
+            x[$c] = _mm256_add_epi32(x[$c], x[$d]);
+            let t = _mm256_xor_si256(x[$b], x[$c]);
+            x[$b] = _mm256_or_si256(_mm256_slli_epi32::<12>(t), _mm256_srli_epi32::<20>(t));
+            x[$a] = _mm256_add_epi32(x[$a], x[$b]);
+            x[$d] = _mm256_shuffle_epi8(_mm256_xor_si256(x[$d], x[$a]), rot8);
+            x[$c] = _mm256_add_epi32(x[$c], x[$d]);
+            let t = _mm256_xor_si256(x[$b], x[$c]);
+            x[$b] = _mm256_or_si256(_mm256_slli_epi32::<7>(t), _mm256_srli_epi32::<25>(t));
+        };
+    }
     for _ in 0..4 {
-        for (a, b, c, d) in CHACHA_COLUMNS.into_iter().chain(CHACHA_DIAGONALS) {
-            quarter(&mut x, a, b, c, d);
+        // The quarter rounds of CHACHA_COLUMNS, then of CHACHA_DIAGONALS.
+        quarter!(0, 4, 8, 12);
+        quarter!(1, 5, 9, 13);
+        quarter!(2, 6, 10, 14);
+        quarter!(3, 7, 11, 15);
+        quarter!(0, 5, 10, 15);
+        quarter!(1, 6, 11, 12);
+        quarter!(2, 7, 8, 13);
+        quarter!(3, 4, 9, 14);
+    }
+    let words: [__m256i; 16] = std::array::from_fn(|j| _mm256_add_epi32(x[j], init[j]));
+    // Vector j holds word j of the eight blocks: transposed, eight words of one block each.
+    for (half, rows) in words.chunks_exact(8).enumerate() {
+        let columns = transpose8x8(rows.try_into().expect("eight rows"));
+        for (block, column) in out.iter_mut().zip(columns) {
+            _mm256_storeu_si256(block[8 * half..].as_mut_ptr().cast(), column);
         }
     }
-    let mut words = [[0u32; 8]; 16];
-    for ((w, x), i) in words.iter_mut().zip(x).zip(init) {
-        _mm256_storeu_si256(w.as_mut_ptr().cast(), _mm256_add_epi32(x, i));
-    }
-    for (l, block) in out.iter_mut().enumerate() {
-        for (j, word) in block.iter_mut().enumerate() {
-            *word = words[j][l];
+}
+
+/// The 8x8 transpose of 32-bit words: lane l of output k is lane k of input l.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn transpose8x8(r: &[std::arch::x86_64::__m256i; 8]) -> [std::arch::x86_64::__m256i; 8] {
+    use std::arch::x86_64::*;
+    // Pairs of rows interleaved by word, then by word pair; 128-bit halves then swapped.
+    let t: [__m256i; 8] = std::array::from_fn(|i| {
+        let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
+        if i % 2 == 0 {
+            _mm256_unpacklo_epi32(a, b)
+        } else {
+            _mm256_unpackhi_epi32(a, b)
         }
-    }
+    });
+    // u[k] (k < 4): words k and k + 4 of rows 0..4; u[4 + k]: of rows 4..8.
+    let u: [__m256i; 8] = std::array::from_fn(|i| {
+        let (base, k) = (i / 4 * 4, i % 4);
+        let (a, b) = (t[base + k / 2], t[base + 2 + k / 2]);
+        if k % 2 == 0 {
+            _mm256_unpacklo_epi64(a, b)
+        } else {
+            _mm256_unpackhi_epi64(a, b)
+        }
+    });
+    std::array::from_fn(|k| {
+        if k < 4 {
+            _mm256_permute2x128_si256::<0x20>(u[k], u[4 + k])
+        } else {
+            _mm256_permute2x128_si256::<0x31>(u[k - 4], u[k])
+        }
+    })
 }
 
 /// Dark-count rate of every pixel (counts per second, `(H, W)`) from frames captured in the dark:
