@@ -15,7 +15,7 @@ use crate::model::{
     detection_probability, mle_flux, mle_variance_from_probability, SATURATION_MARGIN,
 };
 use ndarray::Array2;
-use rand::{Rng, RngCore, SeedableRng};
+use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -47,8 +47,12 @@ impl Default for HotPixelConfig {
 const HOT_GROUP: usize = 64;
 
 /// Frames whose draws [`HotPixelCorrector::corrected_block_sum`] makes at a time (per hot pixel
-/// of a group).
+/// of a group): chunks end at multiples of it, so that a chunk's draws lie in at most
+/// `DRAW_CHUNK / 16` ChaCha blocks of each pixel's stream.
 const DRAW_CHUNK: usize = 64;
+
+/// 32-bit words of one ChaCha block.
+const BLOCK_WORDS: usize = 16;
 
 /// Frames ahead of the one being read whose candidate bytes
 /// [`HotPixelCorrector::corrected_block_sum`] asks the cache for (frames lie a frame's size
@@ -61,6 +65,8 @@ pub struct HotPixelCorrector {
     height: usize,
     width: usize,
     seed: u64,
+    /// The ChaCha key that `ChaCha8Rng::seed_from_u64(seed)` uses, as little-endian words.
+    key: [u32; 8],
     /// Flat pixel index `y * W + x` of each hot pixel.
     hot: Vec<usize>,
     /// For each hot pixel, its candidates' `(y, x)`, nearest first.
@@ -110,10 +116,15 @@ impl HotPixelCorrector {
                 "hot pixel (y={y}, x={x}) has no non-hot pixel of the same colour to borrow from"
             )));
         }
+        let key_bytes = ChaCha8Rng::seed_from_u64(seed).get_seed();
+        let key = std::array::from_fn(|i| {
+            u32::from_le_bytes(key_bytes[4 * i..4 * i + 4].try_into().expect("4 bytes"))
+        });
         Ok(HotPixelCorrector {
             height: h,
             width: w,
             seed,
+            key,
             hot,
             candidates,
         })
@@ -153,19 +164,16 @@ impl HotPixelCorrector {
             .par_chunks(HOT_GROUP)
             .zip(self.candidates.par_chunks(HOT_GROUP))
             .map(|(hot, candidates)| {
-                let mut rngs: Vec<ChaCha8Rng> = hot
-                    .iter()
-                    .map(|&idx| self.stream(idx, range.start))
-                    .collect();
                 let mut counts = vec![0u32; hot.len()];
                 if packed {
                     // Packed frames: the bit read straight from the frame's bytes, each
                     // candidate as its bit's position in a frame (byte · 8 + shift), the
                     // group's candidates in one flat list (`spans`: each hot pixel's start and
-                    // count). The draws of DRAW_CHUNK frames are made a pixel at a time (each
-                    // stream's next words, as `next_u32` would give them one by one) and
-                    // turned into bit positions frame-major, so the reads of a frame are
-                    // independent loads with no generator work between them.
+                    // count). The draws of a chunk of frames are the ChaCha blocks of every
+                    // pixel's stream that hold them (eight blocks at a time, [`chacha8_blocks`]:
+                    // the words `next_u32` would give one by one), turned into bit positions
+                    // frame-major, so the reads of a frame are independent loads with no
+                    // generator work between them.
                     let mut sites: Vec<u32> = Vec::new();
                     let mut spans: Vec<(usize, u64)> = Vec::with_capacity(hot.len());
                     for cands in candidates {
@@ -182,15 +190,31 @@ impl HotPixelCorrector {
                         (Some(&lo), Some(&hi)) => (lo >> 3) as usize..(hi >> 3) as usize + 1,
                         _ => 0..0,
                     };
-                    let mut words = vec![0u32; DRAW_CHUNK];
+                    // Per pixel, the DRAW_CHUNK / 16 blocks from the one holding the chunk's first
+                    // frame: pixel i's draw of frame t is word t − 16·(t0 / 16) of its run.
+                    let per_pixel = DRAW_CHUNK / BLOCK_WORDS;
+                    let mut blocks = vec![[0u32; BLOCK_WORDS]; per_pixel * g];
+                    let mut jobs: Vec<(u64, u64)> = Vec::with_capacity(per_pixel * g);
                     let mut bits = vec![0u32; DRAW_CHUNK * g];
                     let mut t0 = range.start;
                     while t0 < range.end {
-                        let c = (range.end - t0).min(DRAW_CHUNK);
-                        for (i, (rng, &(start, n))) in rngs.iter_mut().zip(&spans).enumerate() {
-                            rng.fill(&mut words[..c]);
+                        let t1 = ((t0 / DRAW_CHUNK + 1) * DRAW_CHUNK).min(range.end);
+                        let c = t1 - t0;
+                        let first = t0 / BLOCK_WORDS;
+                        let count = (t1 - 1) / BLOCK_WORDS + 1 - first;
+                        jobs.clear();
+                        for &idx in hot {
+                            jobs.extend((first..first + count).map(|b| (idx as u64, b as u64)));
+                        }
+                        chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g]);
+                        for (i, (run, &(start, n))) in blocks[..count * g]
+                            .chunks_exact(count)
+                            .zip(&spans)
+                            .enumerate()
+                        {
+                            let words = &run.as_flattened()[t0 - first * BLOCK_WORDS..][..c];
                             let sites = &sites[start..];
-                            for (f, &r) in words[..c].iter().enumerate() {
+                            for (f, &r) in words.iter().enumerate() {
                                 bits[f * g + i] = sites[((r as u64 * n) >> 32) as usize];
                             }
                         }
@@ -206,9 +230,13 @@ impl HotPixelCorrector {
                                 *count += ((frame[(b >> 3) as usize] >> (b & 7)) & 1) as u32;
                             }
                         }
-                        t0 += c;
+                        t0 = t1;
                     }
                 } else {
+                    let mut rngs: Vec<ChaCha8Rng> = hot
+                        .iter()
+                        .map(|&idx| self.stream(idx, range.start))
+                        .collect();
                     for t in range.clone() {
                         for ((rng, cands), count) in
                             rngs.iter_mut().zip(candidates).zip(counts.iter_mut())
@@ -239,6 +267,184 @@ impl HotPixelCorrector {
         rng.set_word_pos(t as u128);
         rng
     }
+}
+
+/// The ChaCha constant words ("expand 32-byte k").
+const CHACHA_CONSTANTS: [u32; 4] = [0x6170_7865, 0x3320_646e, 0x7962_2d32, 0x6b20_6574];
+
+/// The ChaCha8 blocks `(stream, block)` of `jobs` under `key` into `out` (one per job): the
+/// words `ChaCha8Rng` (rand_chacha) gives, word `16·block + j` of stream `stream` being word j
+/// of that block. The generator's own refill makes four consecutive blocks of one stream at a
+/// time; here any eight blocks go side by side, one per 32-bit lane (AVX2), so that the few
+/// blocks each hot pixel needs per chunk of frames are made at full width. Integer arithmetic:
+/// every path gives the same words.
+fn chacha8_blocks(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u32; BLOCK_WORDS]]) {
+    assert_eq!(jobs.len(), out.len(), "one output block per job");
+    #[allow(unused_mut)]
+    let mut done = 0;
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") {
+            for (jobs, out) in jobs.chunks_exact(8).zip(out.chunks_exact_mut(8)) {
+                // SAFETY: AVX2 checked just above.
+                unsafe { chacha8_blocks_avx2(key, jobs, out) };
+                done += 8;
+            }
+        }
+    }
+    for (&(stream, block), out) in jobs[done..].iter().zip(&mut out[done..]) {
+        *out = chacha8_block(key, stream, block);
+    }
+}
+
+/// The initial ChaCha state of block `block` of stream `stream`: constants, key, 64-bit block
+/// counter, 64-bit stream number (rand_chacha's layout).
+fn chacha_state(key: &[u32; 8], stream: u64, block: u64) -> [u32; 16] {
+    let mut state = [0u32; 16];
+    state[..4].copy_from_slice(&CHACHA_CONSTANTS);
+    state[4..12].copy_from_slice(key);
+    state[12..].copy_from_slice(&[
+        block as u32,
+        (block >> 32) as u32,
+        stream as u32,
+        (stream >> 32) as u32,
+    ]);
+    state
+}
+
+/// One ChaCha8 block (4 double rounds, then the initial state added), scalar.
+fn chacha8_block(key: &[u32; 8], stream: u64, block: u64) -> [u32; 16] {
+    let init = chacha_state(key, stream, block);
+    let mut x = init;
+    let quarter = |x: &mut [u32; 16], a: usize, b: usize, c: usize, d: usize| {
+        x[a] = x[a].wrapping_add(x[b]);
+        x[d] = (x[d] ^ x[a]).rotate_left(16);
+        x[c] = x[c].wrapping_add(x[d]);
+        x[b] = (x[b] ^ x[c]).rotate_left(12);
+        x[a] = x[a].wrapping_add(x[b]);
+        x[d] = (x[d] ^ x[a]).rotate_left(8);
+        x[c] = x[c].wrapping_add(x[d]);
+        x[b] = (x[b] ^ x[c]).rotate_left(7);
+    };
+    for _ in 0..4 {
+        for (a, b, c, d) in CHACHA_COLUMNS.into_iter().chain(CHACHA_DIAGONALS) {
+            quarter(&mut x, a, b, c, d);
+        }
+    }
+    for (x, i) in x.iter_mut().zip(init) {
+        *x = x.wrapping_add(i);
+    }
+    x
+}
+
+/// The quarter rounds of a ChaCha column round and diagonal round (state word indices).
+const CHACHA_COLUMNS: [(usize, usize, usize, usize); 4] =
+    [(0, 4, 8, 12), (1, 5, 9, 13), (2, 6, 10, 14), (3, 7, 11, 15)];
+const CHACHA_DIAGONALS: [(usize, usize, usize, usize); 4] =
+    [(0, 5, 10, 15), (1, 6, 11, 12), (2, 7, 8, 13), (3, 4, 9, 14)];
+
+/// [`chacha8_block`] of eight jobs at once, job l in 32-bit lane l of every state vector.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn chacha8_blocks_avx2(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u32; BLOCK_WORDS]]) {
+    use std::arch::x86_64::*;
+    debug_assert!(jobs.len() == 8 && out.len() == 8);
+    let lanes = |word: fn(u64, u64) -> u32| {
+        let w: [u32; 8] = std::array::from_fn(|l| word(jobs[l].0, jobs[l].1));
+        _mm256_loadu_si256(w.as_ptr().cast())
+    };
+    let mut init = [_mm256_setzero_si256(); 16];
+    for (v, &c) in init.iter_mut().zip(CHACHA_CONSTANTS.iter().chain(key)) {
+        *v = _mm256_set1_epi32(c as i32);
+    }
+    init[12] = lanes(|_, b| b as u32);
+    init[13] = lanes(|_, b| (b >> 32) as u32);
+    init[14] = lanes(|s, _| s as u32);
+    init[15] = lanes(|s, _| (s >> 32) as u32);
+    // Byte shuffles rotating every 32-bit word left by 16 and by 8.
+    let rot16 = _mm256_setr_epi8(
+        2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9, 14, 15, 12, 13, 2, 3, 0, 1, 6, 7, 4, 5, 10, 11, 8, 9,
+        14, 15, 12, 13,
+    );
+    let rot8 = _mm256_setr_epi8(
+        3, 0, 1, 2, 7, 4, 5, 6, 11, 8, 9, 10, 15, 12, 13, 14, 3, 0, 1, 2, 7, 4, 5, 6, 11, 8, 9, 10,
+        15, 12, 13, 14,
+    );
+    let mut x = init;
+    // Literal indices (a macro, not a loop over the index tables): the state then lives in
+    // registers instead of being read and written through memory at computed offsets.
+    macro_rules! quarter {
+        ($a:literal, $b:literal, $c:literal, $d:literal) => {
+            x[$a] = _mm256_add_epi32(x[$a], x[$b]);
+            x[$d] = _mm256_shuffle_epi8(_mm256_xor_si256(x[$d], x[$a]), rot16);
+            x[$c] = _mm256_add_epi32(x[$c], x[$d]);
+            let t = _mm256_xor_si256(x[$b], x[$c]);
+            x[$b] = _mm256_or_si256(_mm256_slli_epi32::<12>(t), _mm256_srli_epi32::<20>(t));
+            x[$a] = _mm256_add_epi32(x[$a], x[$b]);
+            x[$d] = _mm256_shuffle_epi8(_mm256_xor_si256(x[$d], x[$a]), rot8);
+            x[$c] = _mm256_add_epi32(x[$c], x[$d]);
+            let t = _mm256_xor_si256(x[$b], x[$c]);
+            x[$b] = _mm256_or_si256(_mm256_slli_epi32::<7>(t), _mm256_srli_epi32::<25>(t));
+        };
+    }
+    for _ in 0..4 {
+        // The quarter rounds of CHACHA_COLUMNS, then of CHACHA_DIAGONALS.
+        quarter!(0, 4, 8, 12);
+        quarter!(1, 5, 9, 13);
+        quarter!(2, 6, 10, 14);
+        quarter!(3, 7, 11, 15);
+        quarter!(0, 5, 10, 15);
+        quarter!(1, 6, 11, 12);
+        quarter!(2, 7, 8, 13);
+        quarter!(3, 4, 9, 14);
+    }
+    let words: [__m256i; 16] = std::array::from_fn(|j| _mm256_add_epi32(x[j], init[j]));
+    // Vector j holds word j of the eight blocks: transposed, eight words of one block each.
+    for (half, rows) in words.chunks_exact(8).enumerate() {
+        let columns = transpose8x8(rows.try_into().expect("eight rows"));
+        for (block, column) in out.iter_mut().zip(columns) {
+            _mm256_storeu_si256(block[8 * half..].as_mut_ptr().cast(), column);
+        }
+    }
+}
+
+/// The 8x8 transpose of 32-bit words: lane l of output k is lane k of input l.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn transpose8x8(r: &[std::arch::x86_64::__m256i; 8]) -> [std::arch::x86_64::__m256i; 8] {
+    use std::arch::x86_64::*;
+    // Pairs of rows interleaved by word, then by word pair; 128-bit halves then swapped.
+    let t: [__m256i; 8] = std::array::from_fn(|i| {
+        let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
+        if i % 2 == 0 {
+            _mm256_unpacklo_epi32(a, b)
+        } else {
+            _mm256_unpackhi_epi32(a, b)
+        }
+    });
+    // u[k] (k < 4): words k and k + 4 of rows 0..4; u[4 + k]: of rows 4..8.
+    let u: [__m256i; 8] = std::array::from_fn(|i| {
+        let (base, k) = (i / 4 * 4, i % 4);
+        let (a, b) = (t[base + k / 2], t[base + 2 + k / 2]);
+        if k % 2 == 0 {
+            _mm256_unpacklo_epi64(a, b)
+        } else {
+            _mm256_unpackhi_epi64(a, b)
+        }
+    });
+    std::array::from_fn(|k| {
+        if k < 4 {
+            _mm256_permute2x128_si256::<0x20>(u[k], u[4 + k])
+        } else {
+            _mm256_permute2x128_si256::<0x31>(u[k - 4], u[k])
+        }
+    })
 }
 
 /// Dark-count rate of every pixel (counts per second, `(H, W)`) from frames captured in the dark:
@@ -439,6 +645,32 @@ mod tests {
     use crate::cfa::colorspad_cfa;
     use ndarray::Array3;
     use rand::Rng;
+
+    /// The ChaCha8 blocks of `chacha8_blocks` (eight-lane and scalar paths) are the words of
+    /// rand_chacha's `ChaCha8Rng` for the same seed, stream and position, for streams and block
+    /// counters that use their high words too.
+    #[test]
+    fn chacha8_blocks_equal_the_generator_words() {
+        let cfa = colorspad_cfa();
+        let mask = Array2::from_elem((cfa.height(), cfa.width()), false);
+        let corrector = HotPixelCorrector::new(&cfa, &mask, 8, 77).unwrap();
+        let jobs: Vec<(u64, u64)> = (0..21u64)
+            .map(|i| {
+                let stream = i.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> ((i % 3) * 20);
+                (stream, i * 7 + ((i % 4) << 33))
+            })
+            .collect();
+        let mut got = vec![[0u32; BLOCK_WORDS]; jobs.len()];
+        chacha8_blocks(&corrector.key, &jobs, &mut got);
+        for (&(stream, block), got) in jobs.iter().zip(&got) {
+            let mut rng = ChaCha8Rng::seed_from_u64(77);
+            rng.set_stream(stream);
+            rng.set_word_pos(block as u128 * BLOCK_WORDS as u128);
+            let expected: [u32; BLOCK_WORDS] = std::array::from_fn(|_| rng.next_u32());
+            assert_eq!(*got, expected, "stream {stream} block {block}");
+            assert_eq!(chacha8_block(&corrector.key, stream, block), expected);
+        }
+    }
 
     /// The grouped, frame-by-frame draws of `corrected_block_sum` are the per-pixel draws of
     /// supplement §1.4 as a plain loop makes them (more hot pixels than one group holds).

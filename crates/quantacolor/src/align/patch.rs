@@ -564,8 +564,16 @@ impl ReferenceAligner {
                 self.dim()
             )));
         }
-        let block = block.as_standard_layout().to_owned();
-        let mut alt = Pyramid::new(&block, &self.config);
+        // A copy only where the block is not already row-major (the pyramid's filters read
+        // rows as slices); grey block images always are.
+        let owned;
+        let block = if block.is_standard_layout() {
+            block
+        } else {
+            owned = block.as_standard_layout().to_owned();
+            &owned
+        };
+        let mut alt = Pyramid::new(block, &self.config);
         let n_levels = self.grids.len();
         alt.levels.truncate(n_levels);
         // Offsets of the coarser level, in that level's pixels.
