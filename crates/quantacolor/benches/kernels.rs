@@ -72,6 +72,7 @@ fn pipeline_kernels(c: &mut Criterion) {
         &alignment,
         config.align.affine_tolerance_px,
         config.refine.min_local_tiles,
+        config.refine.local_consistency,
     );
     let reference_block = alignment.plan.reference_block;
     let detections = alignment.grey[reference_block].mean().unwrap_or(0.0) as f64;

@@ -203,6 +203,7 @@ pub(crate) fn estimate_motion(
         &alignment,
         config.align.affine_tolerance_px,
         config.refine.min_local_tiles,
+        config.refine.local_consistency,
     );
     if !config.refine.keep_local_motion {
         motion.drop_local_motion();

@@ -377,6 +377,7 @@ impl VideoReconstructor<'_> {
             &alignment,
             config.align.affine_tolerance_px,
             config.refine.min_local_tiles,
+            config.refine.local_consistency,
         );
         if !config.refine.keep_local_motion || shared.tracked {
             motion.drop_local_motion();

@@ -61,7 +61,7 @@ fn true_frame_motion(motion: &Motion) -> FrameMotion {
         plan,
         grid,
     };
-    let mut frame_motion = FrameMotion::from_alignment(&alignment, 2.0, 80);
+    let mut frame_motion = FrameMotion::from_alignment(&alignment, 2.0, 80, 0.5);
     frame_motion.sub_blocks = (0..t).map(|f| f..f + 1).collect();
     frame_motion.block_of = (0..t)
         .map(|f| {
