@@ -560,10 +560,22 @@ impl FrameMotion {
             camera.b[0] + camera.m[0][0] * ry,
             camera.b[1] + camera.m[1][0] * ry,
         ];
-        let near_row = local.map(|(l, near)| {
-            let (ty, _) = near.dim();
-            (l, near.row((y / stride).min(ty - 1)))
-        });
+        let near_row = local
+            .map(|(l, near)| {
+                let (ty, _) = near.dim();
+                (l, near.row((y / stride).min(ty - 1)))
+            })
+            .filter(|(_, near)| near.iter().any(|&n| n));
+        if near_row.is_none() {
+            // The camera alone (the loop below with a zero residual, in a form that
+            // vectorises).
+            for (x, out) in row.chunks_exact_mut(2).enumerate() {
+                let rx = x as f64 - centre[1];
+                out[0] = (base[0] + camera.m[0][1] * rx) as f32 + 0.0;
+                out[1] = (base[1] + camera.m[1][1] * rx) as f32 + 0.0;
+            }
+            return;
+        }
         for (x, out) in row.chunks_exact_mut(2).enumerate() {
             let rx = x as f64 - centre[1];
             let d = [base[0] + camera.m[0][1] * rx, base[1] + camera.m[1][1] * rx];

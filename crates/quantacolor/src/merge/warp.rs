@@ -56,12 +56,35 @@ pub fn warp_to_reference(block: &Array2<f32>, flow: &Array3<f32>) -> Result<Arra
 }
 
 /// Row `y` of [`warp_to_reference`] of the (H, W) image `pixels` (row-major) with that row's
-/// flow `flow` ((dy, dx) pairs) into `out`. Plain slices: the same taps and arithmetic as
-/// [`crate::filters::bilinear`], without the 2-D index checks.
+/// flow `flow` ((dy, dx) pairs, finite) into `out`: eight pixels at a time in AVX2 registers
+/// where the CPU has them ([`warp_row_avx2`], the same bits), else [`warp_row_scalar`].
 #[inline]
 fn warp_row(pixels: &[f32], h: usize, y: usize, flow: &[f32], out: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && pixels.len() < i32::MAX as usize {
+            // SAFETY: the CPU supports AVX2 (checked just above).
+            unsafe { warp_row_avx2(pixels, h, y, flow, out) };
+            return;
+        }
+    }
+    warp_row_scalar(pixels, h, y, 0, flow, out);
+}
+
+/// Pixels `start..` of row `y` of [`warp_row`]. Plain slices: the same taps and arithmetic as
+/// [`crate::filters::bilinear`], without the 2-D index checks.
+#[inline]
+fn warp_row_scalar(
+    pixels: &[f32],
+    h: usize,
+    y: usize,
+    start: usize,
+    flow: &[f32],
+    out: &mut [f32],
+) {
     let w = out.len();
-    for (x, (out, d)) in out.iter_mut().zip(flow.chunks_exact(2)).enumerate() {
+    let flow = &flow[2 * start..];
+    for (x, (out, d)) in (start..).zip(out[start..].iter_mut().zip(flow.chunks_exact(2))) {
         let (y0, y1, fy) = bilinear_taps(y as f32 + d[0], h);
         let (x0, x1, fx) = bilinear_taps(x as f32 + d[1], w);
         let (top, bottom) = (&pixels[y0 * w..(y0 + 1) * w], &pixels[y1 * w..(y1 + 1) * w]);
@@ -69,6 +92,74 @@ fn warp_row(pixels: &[f32], h: usize, y: usize, flow: &[f32], out: &mut [f32]) {
         let bottom = bottom[x0] * (1.0 - fx) + bottom[x1] * fx;
         *out = top * (1.0 - fy) + bottom * fy;
     }
+}
+
+/// [`warp_row_scalar`] eight pixels at a time: the positions clamped as
+/// [`bilinear_taps`] clamps them (`min(hi, max(0, v))`, operands in that order, keeps a −0 as
+/// `clamp` does; the flow is finite, so no NaN), the four taps gathered, and the same products and sums in the same order (no
+/// fused multiply-add), so the same bits; the row's last `W mod 8` pixels scalar.
+///
+/// # Safety
+/// The CPU must support AVX2; `pixels` (H·W values) must be indexable in i32 and `flow` hold
+/// 2·W finite values.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn warp_row_avx2(pixels: &[f32], h: usize, y: usize, flow: &[f32], out: &mut [f32]) {
+    use std::arch::x86_64::*;
+    let w = out.len();
+    assert!(pixels.len() == h * w && flow.len() == 2 * w && h * w < i32::MAX as usize);
+    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let (y_hi, x_hi) = (
+        _mm256_set1_ps((h - 1) as f32),
+        _mm256_set1_ps((w - 1) as f32),
+    );
+    let (y_last, x_last) = (
+        _mm256_set1_epi32((h - 1) as i32),
+        _mm256_set1_epi32((w - 1) as i32),
+    );
+    let (width, step) = (_mm256_set1_epi32(w as i32), _mm256_set1_epi32(1));
+    let row = _mm256_set1_ps(y as f32);
+    let lanes = _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0);
+    let base = pixels.as_ptr();
+    let taps = |v: __m256, hi: __m256, last: __m256i| {
+        // `bilinear_taps`: clamp, truncate, the next tap and the fraction.
+        let v = _mm256_min_ps(hi, _mm256_max_ps(zero, v));
+        let v0 = _mm256_cvttps_epi32(v);
+        let v1 = _mm256_min_epi32(_mm256_add_epi32(v0, step), last);
+        (v0, v1, _mm256_sub_ps(v, _mm256_cvtepi32_ps(v0)))
+    };
+    let mut x = 0;
+    while x + 8 <= w {
+        // (dy, dx) of pixels x..x + 8, split into dy and dx in pixel order.
+        let a = _mm256_loadu_ps(flow.as_ptr().add(2 * x));
+        let b = _mm256_loadu_ps(flow.as_ptr().add(2 * x + 8));
+        let dy = _mm256_castpd_ps(_mm256_permute4x64_pd::<0xD8>(_mm256_castps_pd(
+            _mm256_shuffle_ps::<0x88>(a, b),
+        )));
+        let dx = _mm256_castpd_ps(_mm256_permute4x64_pd::<0xD8>(_mm256_castps_pd(
+            _mm256_shuffle_ps::<0xDD>(a, b),
+        )));
+        let column = _mm256_add_ps(_mm256_set1_ps(x as f32), lanes);
+        let (y0, y1, fy) = taps(_mm256_add_ps(row, dy), y_hi, y_last);
+        let (x0, x1, fx) = taps(_mm256_add_ps(column, dx), x_hi, x_last);
+        let (top, bottom) = (_mm256_mullo_epi32(y0, width), _mm256_mullo_epi32(y1, width));
+        let gather = |i: __m256i| _mm256_i32gather_ps::<4>(base, i);
+        let (t0, t1) = (
+            gather(_mm256_add_epi32(top, x0)),
+            gather(_mm256_add_epi32(top, x1)),
+        );
+        let (b0, b1) = (
+            gather(_mm256_add_epi32(bottom, x0)),
+            gather(_mm256_add_epi32(bottom, x1)),
+        );
+        let (gx, gy) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy));
+        let t = _mm256_add_ps(_mm256_mul_ps(t0, gx), _mm256_mul_ps(t1, fx));
+        let b = _mm256_add_ps(_mm256_mul_ps(b0, gx), _mm256_mul_ps(b1, fx));
+        let v = _mm256_add_ps(_mm256_mul_ps(t, gy), _mm256_mul_ps(b, fy));
+        _mm256_storeu_ps(out.as_mut_ptr().add(x), v);
+        x += 8;
+    }
+    warp_row_scalar(pixels, h, y, x, flow, out);
 }
 
 /// [`warp_to_reference`] with the flow made row by row: `flow_row(y, row)` fills `row` with
