@@ -934,18 +934,22 @@ pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLev
     let (h, w) = value.dim();
     let value = value.as_standard_layout();
     let value = value.as_slice().expect("standard layout");
+    // Central differences over 2 px inside, one-sided over 1 px at the edges: the difference
+    // divided by the span, made as a product with 1 / span (1 or 1/2, so the same bits as the
+    // division, without one per value).
+    let inverse_span = |a: usize, b: usize| if b - a == 2 { 0.5f32 } else { 1.0 };
     let mut samples = vec![[0.0f32; 4]; h * w];
     for (y, out) in samples.chunks_exact_mut(w.max(1)).enumerate() {
         let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
-        let dy = (yb - ya).max(1) as f32;
+        let scale_y = inverse_span(ya, yb);
         let row = &value[y * w..(y + 1) * w];
         let (above, below) = (&value[ya * w..(ya + 1) * w], &value[yb * w..(yb + 1) * w]);
         for (x, out) in out.iter_mut().enumerate() {
             let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
             *out = [
                 row[x],
-                (below[x] - above[x]) / dy,
-                (row[xb] - row[xa]) / (xb - xa).max(1) as f32,
+                (below[x] - above[x]) * scale_y,
+                (row[xb] - row[xa]) * inverse_span(xa, xb),
                 0.0,
             ];
         }
@@ -2050,6 +2054,7 @@ fn refine_pass(
 mod tests {
     use super::*;
     use crate::cfa::colorspad_cfa;
+    use crate::merge::warp_to_reference;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Binomial, Distribution};
@@ -2206,6 +2211,99 @@ mod tests {
                 assert!(local.iter().any(|&m| m) && !local.iter().all(|&m| m))
             }
             other => panic!("block 2 holds the object, got {other:?}"),
+        }
+    }
+
+    /// The block warp made row by row from the block camera equals the warp by the dense
+    /// block flow bit for bit: blocks with and without a local residual, and a motion without
+    /// any.
+    #[test]
+    fn block_warp_equals_the_warp_by_the_dense_block_flow() {
+        let (h, w) = (96, 160);
+        let grid = TileGrid::new(h, w, 16, 8);
+        let plan = BlockPlan::new(1000, 100, 500).unwrap();
+        let blocks = plan.len();
+        let mut local = Flow::zeros((blocks, grid.tiles_y, grid.tiles_x, 2));
+        local.slice_mut(s![2, 1..11, 2..12, 1]).fill(3.0);
+        let camera: Vec<AffineMotion> = (0..blocks)
+            .map(|b| AffineMotion {
+                b: [0.5 - 0.3 * b as f64, -1.0 + 0.7 * b as f64],
+                m: [[0.001, 0.002 * b as f64], [-0.0015, -0.001]],
+            })
+            .collect();
+        let mut motion = FrameMotion {
+            height: h,
+            width: w,
+            sub_blocks: plan.blocks.clone(),
+            block_of: (0..blocks).collect(),
+            plan,
+            grid,
+            camera,
+            local,
+            has_local: true,
+        };
+        let image = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        for has_local in [true, false] {
+            if !has_local {
+                motion.drop_local_motion();
+            }
+            for b in [0, 2, 5] {
+                let dense = warp_to_reference(&image, &motion.block_flow(b)).unwrap();
+                let rows = motion.warp_block(b, &image).unwrap();
+                assert!(
+                    dense
+                        .iter()
+                        .zip(&rows)
+                        .all(|(a, r)| a.to_bits() == r.to_bits()),
+                    "block {b}, local {has_local}"
+                );
+            }
+        }
+        assert!(motion.warp_block(0, &Array2::zeros((h, w + 1))).is_err());
+    }
+
+    /// The template's gradients are the differences divided by their span (2 px inside, 1 px
+    /// at the edges) bit for bit.
+    #[test]
+    fn template_gradients_are_the_divided_differences() {
+        let (h, w) = (9usize, 14usize);
+        let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        let level = template_level(&reference, 0.4);
+        let value = gaussian_blur(&reference, 0.4);
+        for y in 0..h {
+            for x in 0..w {
+                let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
+                let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
+                let gy = (value[[yb, x]] - value[[ya, x]]) / (yb - ya) as f32;
+                let gx = (value[[y, xb]] - value[[y, xa]]) / (xb - xa) as f32;
+                let [v, ty, tx, _] = level.samples[y * w + x];
+                assert_eq!(v, value[[y, x]]);
+                assert_eq!((ty.to_bits(), tx.to_bits()), (gy.to_bits(), gx.to_bits()));
+            }
+        }
+    }
+
+    /// The bins' means from the table of quotients equal the division bin by bin, for 1 px
+    /// bins (one site each) and larger ones.
+    #[test]
+    fn bin_observations_are_the_divided_counts() {
+        let cfa = colorspad_cfa();
+        let (h, w) = (cfa.height(), cfa.width());
+        let frames = 37;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let counts: Vec<u32> = (0..h * w)
+            .map(|_| rng.gen_range(0..=frames as u32))
+            .collect();
+        for bin in [1, 4] {
+            let layout = bin_layout(&cfa, GreyMethod::InterpolateW, None, bin);
+            let (observed, trials) = bin_observations(&layout, &counts, frames);
+            for b in 0..layout.len() {
+                let sites = layout.sites(b);
+                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+                let n = sites.len() as f64 * frames as f64;
+                assert_eq!(observed[b].to_bits(), ((sum as f64 / n) as f32).to_bits());
+                assert_eq!(trials[b], n as f32);
+            }
         }
     }
 
