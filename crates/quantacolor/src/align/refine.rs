@@ -33,7 +33,8 @@ use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
 use crate::filters::gaussian_blur;
-use crate::merge::{warp_to_reference, SubBlockMotion};
+use crate::merge::warp::warp_rows_to_reference;
+use crate::merge::SubBlockMotion;
 use crate::progress::Progress;
 use ndarray::{s, Array2, Array3, Axis};
 use rayon::prelude::*;
@@ -645,39 +646,61 @@ impl FrameMotion {
         camera: &AffineMotion,
         local: Option<&(Array3<f32>, Array2<bool>)>,
     ) -> Array3<f32> {
-        let (h, w) = (self.height, self.width);
-        let centre = self.centre();
-        let stride = self.grid.tile_stride.max(1);
-        let mut out = Array3::<f32>::zeros((h, w, 2));
+        let mut out = Array3::<f32>::zeros((self.height, self.width, 2));
         out.outer_iter_mut()
             .into_par_iter()
             .enumerate()
             .for_each(|(y, mut row)| {
                 let row = row.as_slice_mut().expect("fresh array is contiguous");
-                // `AffineMotion::at` with its row part added once: (b + m·ry) + m'·rx.
-                let ry = y as f64 - centre[0];
-                let base = [
-                    camera.b[0] + camera.m[0][0] * ry,
-                    camera.b[1] + camera.m[1][0] * ry,
-                ];
-                let near_row = local.map(|(l, near)| {
-                    let (ty, _) = near.dim();
-                    (l, near.row((y / stride).min(ty - 1)))
-                });
-                for (x, out) in row.chunks_exact_mut(2).enumerate() {
-                    let rx = x as f64 - centre[1];
-                    let d = [base[0] + camera.m[0][1] * rx, base[1] + camera.m[1][1] * rx];
-                    let l = match &near_row {
-                        Some((l, near)) if near[(x / stride).min(near.len() - 1)] => {
-                            flow_at(l, &self.grid, y as f32, x as f32)
-                        }
-                        _ => [0.0; 2],
-                    };
-                    out[0] = d[0] as f32 + l[0];
-                    out[1] = d[1] as f32 + l[1];
-                }
+                self.dense_row(camera, local, y, row);
             });
         out
+    }
+
+    /// Row `y` of [`Self::dense_with`] into `row` ((dy, dx) pairs, 2·W values).
+    fn dense_row(
+        &self,
+        camera: &AffineMotion,
+        local: Option<&(Array3<f32>, Array2<bool>)>,
+        y: usize,
+        row: &mut [f32],
+    ) {
+        let centre = self.centre();
+        let stride = self.grid.tile_stride.max(1);
+        // `AffineMotion::at` with its row part added once: (b + m·ry) + m'·rx.
+        let ry = y as f64 - centre[0];
+        let base = [
+            camera.b[0] + camera.m[0][0] * ry,
+            camera.b[1] + camera.m[1][0] * ry,
+        ];
+        let near_row = local
+            .map(|(l, near)| {
+                let (ty, _) = near.dim();
+                (l, near.row((y / stride).min(ty - 1)))
+            })
+            .filter(|(_, near)| near.iter().any(|&n| n));
+        if near_row.is_none() {
+            // The camera alone (the loop below with a zero residual, in a form that
+            // vectorises).
+            for (x, out) in row.chunks_exact_mut(2).enumerate() {
+                let rx = x as f64 - centre[1];
+                out[0] = (base[0] + camera.m[0][1] * rx) as f32 + 0.0;
+                out[1] = (base[1] + camera.m[1][1] * rx) as f32 + 0.0;
+            }
+            return;
+        }
+        for (x, out) in row.chunks_exact_mut(2).enumerate() {
+            let rx = x as f64 - centre[1];
+            let d = [base[0] + camera.m[0][1] * rx, base[1] + camera.m[1][1] * rx];
+            let l = match &near_row {
+                Some((l, near)) if near[(x / stride).min(near.len() - 1)] => {
+                    flow_at(l, &self.grid, y as f32, x as f32)
+                }
+                _ => [0.0; 2],
+            };
+            out[0] = d[0] as f32 + l[0];
+            out[1] = d[1] as f32 + l[1];
+        }
     }
 
     /// Sub-block `k`'s motion as the merge takes it: its affine reference map
@@ -790,6 +813,12 @@ impl FrameMotion {
     /// Dense (H, W, 2) flow of block `b`: the frame-weighted mean camera motion of its
     /// sub-blocks (a block image is the time average of its frames) plus its local residual.
     pub fn block_flow(&self, b: usize) -> Array3<f32> {
+        self.dense(&self.block_camera(b), self.plan.center_frames()[b])
+    }
+
+    /// The camera part of [`Self::block_flow`]: the frame-weighted mean camera motion of block
+    /// `b`'s sub-blocks.
+    fn block_camera(&self, b: usize) -> AffineMotion {
         let mut sum = [0.0f64; 6];
         let mut n = 0.0;
         for (k, range) in self.sub_blocks.iter().enumerate() {
@@ -800,8 +829,26 @@ impl FrameMotion {
                 n += f;
             }
         }
-        let mean = AffineMotion::from_params(sum.map(|s| s / n.max(1.0)));
-        self.dense(&mean, self.plan.center_frames()[b])
+        AffineMotion::from_params(sum.map(|s| s / n.max(1.0)))
+    }
+
+    /// `image` (block `b`'s) warped onto the reference grid by [`Self::block_flow`]: the same
+    /// numbers as [`warp_to_reference`] of that flow, made a row at a time without the dense
+    /// (H, W, 2) flow ([`warp_rows_to_reference`]).
+    pub fn warp_block(&self, b: usize, image: &Array2<f32>) -> Result<Array2<f32>> {
+        if image.dim() != (self.height, self.width) {
+            return Err(Error::invalid(format!(
+                "warp: block image of {:?} for a motion of {}x{}",
+                image.dim(),
+                self.height,
+                self.width
+            )));
+        }
+        let camera = self.block_camera(b);
+        let local = self.local_at(self.plan.center_frames()[b]);
+        warp_rows_to_reference(image, |y, row| {
+            self.dense_row(&camera, local.as_ref(), y, row)
+        })
     }
 }
 
@@ -1000,18 +1047,22 @@ pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLev
     let (h, w) = value.dim();
     let value = value.as_standard_layout();
     let value = value.as_slice().expect("standard layout");
+    // Central differences over 2 px inside, one-sided over 1 px at the edges: the difference
+    // divided by the span, made as a product with 1 / span (1 or 1/2, so the same bits as the
+    // division, without one per value).
+    let inverse_span = |a: usize, b: usize| if b - a == 2 { 0.5f32 } else { 1.0 };
     let mut samples = vec![[0.0f32; 4]; h * w];
     for (y, out) in samples.chunks_exact_mut(w.max(1)).enumerate() {
         let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
-        let dy = (yb - ya).max(1) as f32;
+        let scale_y = inverse_span(ya, yb);
         let row = &value[y * w..(y + 1) * w];
         let (above, below) = (&value[ya * w..(ya + 1) * w], &value[yb * w..(yb + 1) * w]);
         for (x, out) in out.iter_mut().enumerate() {
             let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
             *out = [
                 row[x],
-                (below[x] - above[x]) / dy,
-                (row[xb] - row[xa]) / (xb - xa).max(1) as f32,
+                (below[x] - above[x]) * scale_y,
+                (row[xb] - row[xa]) * inverse_span(xa, xb),
                 0.0,
             ];
         }
@@ -1441,36 +1492,36 @@ fn fit_sub_block_generic(
 }
 
 /// Mean bit rate and number of trials (sites x frames) of every bin of `layout` over `frames`
-/// frames with per-site `counts`: the photon counts summed bin by bin first, then every mean
-/// divided in one loop (the divisions independent, so they run in vector registers; the same
-/// numbers as bin by bin).
+/// frames with per-site `counts`: the photon counts summed bin by bin, each mean divided in
+/// double precision and rounded once to single precision for the fit. With one site per bin
+/// (1 px bins) a count is at most `frames`, so the means are looked up in a table of the
+/// `frames + 1` possible quotients (the same numbers, without a division per bin).
 fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f32>, Vec<f32>) {
-    let (sums, trials): (Vec<f64>, Vec<f64>) = if layout.site_index.len() == layout.len() {
+    let mean = |sum: f64, trials: f64| (sum / trials.max(1.0)) as f32;
+    if layout.site_index.len() == layout.len() {
         // One site per bin (1 px bins): the bins' sites in order.
-        let sums = (layout.site_index.iter())
-            .map(|&i| counts[i as usize] as f64)
-            .collect();
-        (sums, vec![frames as f64; layout.len()])
-    } else {
-        let sums = (0..layout.len())
-            .map(|b| {
-                let sum: u64 = (layout.sites(b).iter())
-                    .map(|&i| counts[i as usize] as u64)
-                    .sum();
-                sum as f64
+        let trials = frames as f64;
+        let table: Vec<f32> = (0..=frames).map(|c| mean(c as f64, trials)).collect();
+        let observed = (layout.site_index.iter())
+            .map(|&i| {
+                let c = counts[i as usize];
+                match table.get(c as usize) {
+                    Some(&m) => m,
+                    None => mean(c as f64, trials),
+                }
             })
             .collect();
-        let trials = (0..layout.len())
-            .map(|b| layout.sites(b).len() as f64 * frames as f64)
-            .collect();
-        (sums, trials)
-    };
-    // Divided in double precision, then rounded once for the single-precision fit; one plain
-    // loop per output, so that each runs in vector registers.
-    let observed = (sums.iter().zip(&trials))
-        .map(|(&sum, &trials)| (sum / trials.max(1.0)) as f32)
-        .collect();
-    (observed, trials.iter().map(|&t| t as f32).collect())
+        (observed, vec![trials as f32; layout.len()])
+    } else {
+        (0..layout.len())
+            .map(|b| {
+                let sites = layout.sites(b);
+                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+                let trials = sites.len() as f64 * frames as f64;
+                (mean(sum as f64, trials), trials as f32)
+            })
+            .unzip()
+    }
 }
 
 /// The bins of one run of a [`BinLayout`] (one centroid row), as [`fit_sub_block`] reads them.
@@ -1981,7 +2032,7 @@ fn refine_pass(
     let half = motion.half_size();
     // Each block's grey image on the reference grid, made when needed rather than kept: the
     // blocks' dense flows would grow with the number of frames.
-    let warped = |b: usize| warp_to_reference(&grey_blocks[b], &motion.block_flow(b));
+    let warped = |b: usize| motion.warp_block(b, &grey_blocks[b]);
     let block_ids: Vec<usize> = (0..n_blocks).collect();
     let mut total = Array2::<f32>::zeros(grey_blocks[0].dim());
     // The warped images are kept for the blocks' own templates below when they fit in
@@ -2035,7 +2086,10 @@ fn refine_pass(
                         Some(image) => image,
                         None => warped(b)?,
                     };
-                    let others = (&total - &own) / (n_blocks - 1) as f32;
+                    // (total − own) / (n − 1) in one pass, element by element.
+                    let others = ndarray::Zip::from(&total)
+                        .and(&own)
+                        .map_collect(|&t, &o| (t - o) / (n_blocks - 1) as f32);
                     Ok(Some(template_level(&others, config.levels[last].sigma_px)))
                 } else {
                     Ok(None)
@@ -2113,6 +2167,7 @@ fn refine_pass(
 mod tests {
     use super::*;
     use crate::cfa::colorspad_cfa;
+    use crate::merge::warp_to_reference;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Binomial, Distribution};
@@ -2337,6 +2392,99 @@ mod tests {
                 assert!(local.iter().any(|&m| m) && !local.iter().all(|&m| m))
             }
             other => panic!("block 2 holds the object, got {other:?}"),
+        }
+    }
+
+    /// The block warp made row by row from the block camera equals the warp by the dense
+    /// block flow bit for bit: blocks with and without a local residual, and a motion without
+    /// any.
+    #[test]
+    fn block_warp_equals_the_warp_by_the_dense_block_flow() {
+        let (h, w) = (96, 160);
+        let grid = TileGrid::new(h, w, 16, 8);
+        let plan = BlockPlan::new(1000, 100, 500).unwrap();
+        let blocks = plan.len();
+        let mut local = Flow::zeros((blocks, grid.tiles_y, grid.tiles_x, 2));
+        local.slice_mut(s![2, 1..11, 2..12, 1]).fill(3.0);
+        let camera: Vec<AffineMotion> = (0..blocks)
+            .map(|b| AffineMotion {
+                b: [0.5 - 0.3 * b as f64, -1.0 + 0.7 * b as f64],
+                m: [[0.001, 0.002 * b as f64], [-0.0015, -0.001]],
+            })
+            .collect();
+        let mut motion = FrameMotion {
+            height: h,
+            width: w,
+            sub_blocks: plan.blocks.clone(),
+            block_of: (0..blocks).collect(),
+            plan,
+            grid,
+            camera,
+            local,
+            has_local: true,
+        };
+        let image = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        for has_local in [true, false] {
+            if !has_local {
+                motion.drop_local_motion();
+            }
+            for b in [0, 2, 5] {
+                let dense = warp_to_reference(&image, &motion.block_flow(b)).unwrap();
+                let rows = motion.warp_block(b, &image).unwrap();
+                assert!(
+                    dense
+                        .iter()
+                        .zip(&rows)
+                        .all(|(a, r)| a.to_bits() == r.to_bits()),
+                    "block {b}, local {has_local}"
+                );
+            }
+        }
+        assert!(motion.warp_block(0, &Array2::zeros((h, w + 1))).is_err());
+    }
+
+    /// The template's gradients are the differences divided by their span (2 px inside, 1 px
+    /// at the edges) bit for bit.
+    #[test]
+    fn template_gradients_are_the_divided_differences() {
+        let (h, w) = (9usize, 14usize);
+        let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+        let level = template_level(&reference, 0.4);
+        let value = gaussian_blur(&reference, 0.4);
+        for y in 0..h {
+            for x in 0..w {
+                let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
+                let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
+                let gy = (value[[yb, x]] - value[[ya, x]]) / (yb - ya) as f32;
+                let gx = (value[[y, xb]] - value[[y, xa]]) / (xb - xa) as f32;
+                let [v, ty, tx, _] = level.samples[y * w + x];
+                assert_eq!(v, value[[y, x]]);
+                assert_eq!((ty.to_bits(), tx.to_bits()), (gy.to_bits(), gx.to_bits()));
+            }
+        }
+    }
+
+    /// The bins' means from the table of quotients equal the division bin by bin, for 1 px
+    /// bins (one site each) and larger ones.
+    #[test]
+    fn bin_observations_are_the_divided_counts() {
+        let cfa = colorspad_cfa();
+        let (h, w) = (cfa.height(), cfa.width());
+        let frames = 37;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let counts: Vec<u32> = (0..h * w)
+            .map(|_| rng.gen_range(0..=frames as u32))
+            .collect();
+        for bin in [1, 4] {
+            let layout = bin_layout(&cfa, GreyMethod::InterpolateW, None, bin);
+            let (observed, trials) = bin_observations(&layout, &counts, frames);
+            for b in 0..layout.len() {
+                let sites = layout.sites(b);
+                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+                let n = sites.len() as f64 * frames as f64;
+                assert_eq!(observed[b].to_bits(), ((sum as f64 / n) as f32).to_bits());
+                assert_eq!(trials[b], n as f32);
+            }
         }
     }
 

@@ -164,6 +164,40 @@ unsafe fn warp_row_avx2(
     lanes
 }
 
+/// [`warp_to_reference`] with the flow made row by row: `flow_row(y, row)` fills `row` with
+/// the (dy, dx) pairs of image row `y` (2·W values). The same output as the dense flow those
+/// rows make up, without holding it: a flow given by a formula (a camera's affine motion)
+/// costs neither the (H, W, 2) array nor its memory traffic. A row holding a non-finite value
+/// is an error, as [`check_flow`] makes it.
+pub(crate) fn warp_rows_to_reference(
+    block: &Array2<f32>,
+    flow_row: impl Fn(usize, &mut [f32]) + Sync,
+) -> Result<Array2<f32>> {
+    let (h, w) = block.dim();
+    if h == 0 || w == 0 {
+        return Err(Error::invalid("cannot warp an empty block image"));
+    }
+    let block = block.as_standard_layout();
+    let pixels = block.as_slice().expect("standard layout");
+    let mut out = Array2::<f32>::zeros((h, w));
+    out.as_slice_mut()
+        .expect("fresh array is contiguous")
+        .par_chunks_exact_mut(w)
+        .enumerate()
+        .try_for_each_init(
+            || vec![0.0f32; 2 * w],
+            |flow, (y, row)| {
+                flow_row(y, flow);
+                if flow.iter().any(|v| !v.is_finite()) {
+                    return Err(Error::invalid("warp: flow holds non-finite values"));
+                }
+                warp_row(pixels, h, y, flow, row);
+                Ok(())
+            },
+        )?;
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -195,5 +229,30 @@ mod tests {
                 assert_eq!(v.to_bits(), expected.to_bits(), "{h}x{w} at ({y}, {x})");
             }
         }
+    }
+
+    /// The row-by-row warp equals the dense one, and a non-finite flow is an error in both.
+    #[test]
+    fn row_warp_matches_the_dense_warp() {
+        let (h, w) = (19usize, 29usize);
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let block = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let mut flow = Array3::from_shape_fn((h, w, 2), |_| rng.gen_range(-4.0f32..4.0));
+        let dense = warp_to_reference(&block, &flow).unwrap();
+        let rows = warp_rows_to_reference(&block, |y, row| {
+            row.copy_from_slice(flow.slice(ndarray::s![y, .., ..]).as_slice().unwrap())
+        })
+        .unwrap();
+        assert!(dense
+            .iter()
+            .zip(&rows)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!(dense.iter().zip(&block).any(|(a, b)| a != b));
+        flow[[3, 4, 1]] = f32::NAN;
+        assert!(warp_to_reference(&block, &flow).is_err());
+        assert!(warp_rows_to_reference(&block, |y, row| {
+            row.copy_from_slice(flow.slice(ndarray::s![y, .., ..]).as_slice().unwrap())
+        })
+        .is_err());
     }
 }
