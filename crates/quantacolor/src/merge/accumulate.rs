@@ -227,6 +227,9 @@ pub struct MergeAccumulator<'a> {
     /// Sites never splatted (hot pixels), row-major (H·W).
     excluded: Option<Vec<bool>>,
     channel_scale: [f32; 4],
+    /// Each channel's kernel factor as a multiple of the sparsest channel's (0: its own;
+    /// [`snap_scales`]).
+    multiples: [u32; 4],
     inv_scale: [f32; 4],
     /// Gather radius of the regression (reference px).
     radius: f32,
@@ -265,25 +268,73 @@ const SUMS: usize = 12;
 /// only the work, not the result).
 const OWN_ELLIPSE_RATIO: f64 = 0.8;
 
-/// Relative difference of two channels' areas per site within which they count as the same
-/// site density ([`share_near_scales`]).
-const SHARED_SCALE_TOLERANCE: f32 = 1e-3;
+/// Relative difference between a channel's kernel factor and a whole multiple of the sparsest
+/// channel's within which the channel takes that multiple ([`snap_scales`]).
+const SNAP_SCALE_TOLERANCE: f32 = 0.02;
+/// Largest multiple of the sparsest channel's kernel factor that a channel is snapped to: its
+/// weights are that power of the sparsest channel's ([`lane_power`], one multiplication per bit
+/// of the multiple and one per set bit after the first).
+const MAX_SNAP_MULTIPLE: u32 = 32;
 
-/// `scales` (area per site of R, G, B, W: [`KernelField::channel_scale`]) with every channel
-/// whose scale is within [`SHARED_SCALE_TOLERANCE`] of an earlier channel's taking that one's:
-/// a pattern with as many sites of each colour give or take a few (e.g. 10,499 R and G and
-/// 10,498 B sites) has colours of one density, whose kernels are then the same, so that the
-/// regression evaluates their weights once ([`gather_row_generic`]). This project's heuristic:
-/// it changes those kernels' widths by at most 0.05 %.
-fn share_near_scales(mut scales: [f32; 4]) -> [f32; 4] {
-    for ch in 1..4 {
-        if let Some(&same) = scales[..ch].iter().find(|&&s| {
-            s > 0.0 && scales[ch] > 0.0 && (scales[ch] - s).abs() <= SHARED_SCALE_TOLERANCE * s
-        }) {
-            scales[ch] = same;
+/// `scales` (the kernel scale of R, G, B, W, [`KernelField::channel_scale`] to the power α;
+/// 0: absent) with the scale of every channel whose kernel factor 1/scale is within
+/// [`SNAP_SCALE_TOLERANCE`] of a whole multiple k of the sparsest channel's (the largest
+/// scale, the first of equal ones) set to that channel's scale / k, and each channel's k (0:
+/// not snapped, and the sparsest channel itself). The kernel weight exp(−½·k·q) of a snapped
+/// channel is then the k-th power of the sparsest channel's exp(−½·q), a few multiplications
+/// instead of an exponential ([`gather_row_generic`]); k = 1 (a pattern with as many sites of
+/// two colours give or take a few) shares the weights. On /tmp/cap10k's CFA (7,936 R, 15,748 G,
+/// 7,812 B, 94,488 W sites) R, G and W take 1, 2 and 12 times B's factor: one exponential per
+/// bin instead of four. This project's heuristic: it changes those kernels' widths by at most
+/// 1 % (at most 2 % of their factors).
+fn snap_scales(mut scales: [f32; 4]) -> ([f32; 4], [u32; 4]) {
+    let mut multiples = [0u32; 4];
+    let Some(base) = (0..4)
+        .filter(|&ch| scales[ch] > 0.0)
+        .fold(None, |best: Option<usize>, ch| match best {
+            Some(b) if scales[b] >= scales[ch] => Some(b),
+            _ => Some(ch),
+        })
+    else {
+        return (scales, multiples);
+    };
+    let sparsest = scales[base];
+    for ch in 0..4 {
+        if ch == base || scales[ch] <= 0.0 {
+            continue;
+        }
+        let ratio = sparsest / scales[ch];
+        let k = ratio.round();
+        if (1.0..=MAX_SNAP_MULTIPLE as f32).contains(&k)
+            && (ratio - k).abs() <= SNAP_SCALE_TOLERANCE * k
+        {
+            scales[ch] = sparsest / k;
+            multiples[ch] = k as u32;
         }
     }
-    scales
+    (scales, multiples)
+}
+
+/// `w`^`k` lane-wise, by squaring (`k` ≥ 1): the kernel weights of a channel whose factor is k
+/// times that of the channel with weights `w` ([`snap_scales`]).
+#[inline(always)]
+fn lane_power(w: [f32; LANES], k: u32) -> [f32; LANES] {
+    let mut result: Option<[f32; LANES]> = None;
+    let (mut square, mut k) = (w, k);
+    loop {
+        if k & 1 == 1 {
+            result = Some(match result {
+                None => square,
+                Some(r) => std::array::from_fn(|i| r[i] * square[i]),
+            });
+        }
+        k >>= 1;
+        if k == 0 {
+            break;
+        }
+        square = std::array::from_fn(|i| square[i] * square[i]);
+    }
+    result.unwrap_or([1.0; LANES])
 }
 
 /// Bilinear sample of the interleaved (H, W, 2) `flow` at real position (y, x), clamped.
@@ -634,13 +685,13 @@ impl<'a> MergeAccumulator<'a> {
         let (h, w) = (cfa.height(), cfa.width());
         let model: PixelModel = model.into();
         validate(&[], &[], kernels, h, w, config, model.max_sample())?;
-        let channel_scale = share_near_scales(KernelField::channel_scale(cfa)).map(|s| {
+        let (channel_scale, multiples) = snap_scales(KernelField::channel_scale(cfa).map(|s| {
             if s > 0.0 {
                 s.powf(config.spacing_exponent)
             } else {
                 0.0
             }
-        });
+        }));
         let inv_scale: [f32; 4] = channel_scale.map(|s| if s > 0.0 { 1.0 / s } else { 0.0 });
         let max_scale = channel_scale.iter().copied().fold(0.0f32, f32::max);
         let radius = (3.0 * kernels.max_std * max_scale.sqrt())
@@ -669,6 +720,7 @@ impl<'a> MergeAccumulator<'a> {
             codes: cfa.codes().iter().copied().collect(),
             excluded: None,
             channel_scale,
+            multiples,
             inv_scale,
             radius,
             bins_per_px,
@@ -867,16 +919,17 @@ impl<'a> MergeAccumulator<'a> {
         // on each side against rounding ([`ellipse_span`]).
         let min_inv_scale = inv_scale.iter().copied().fold(f32::INFINITY, f32::min);
         let present = self.channel_scale.map(|s| s > 0.0);
-        // A channel whose factor equals that of the last channel with sites before it reuses
-        // its weights (R, G and B of most CFAs: the same values, computed once).
-        let mut reuse = [false; 4];
-        let mut last: Option<usize> = None;
-        for ch in 0..4 {
-            if present[ch] {
-                reuse[ch] = last.is_some_and(|l| inv_scale[l] == inv_scale[ch]);
-                last = Some(ch);
-            }
-        }
+        // The sparsest channel makes its weights with exponentials; a channel whose factor is
+        // the same reuses them (R, G and B of most CFAs: the same values, computed once), one
+        // whose factor is k times it takes their k-th power ([`snap_scales`]).
+        let base = (0..4)
+            .find(|&ch| present[ch] && self.multiples[ch] == 0 && inv_scale[ch] == min_inv_scale)
+            .unwrap_or(0);
+        let source = std::array::from_fn(|ch| if self.multiples[ch] == 1 { base } else { ch });
+        let power = std::array::from_fn(|ch| match self.multiples[ch] {
+            k if k >= 2 => k,
+            _ => 0,
+        });
         let gather = Gather {
             bins: &self.bins,
             stride: self.stride,
@@ -894,7 +947,9 @@ impl<'a> MergeAccumulator<'a> {
             cutoff,
             inv_scale,
             present,
-            reuse,
+            base,
+            source,
+            power,
             ellipse_limit: (min_inv_scale > 0.0).then(|| cutoff as f64 / min_inv_scale as f64),
             // A channel with a larger factor (W of a W-rich CFA) has its own, narrower ellipse.
             channel_limit: std::array::from_fn(|ch| {
@@ -1027,8 +1082,14 @@ struct Gather<'g> {
     inv_scale: [f32; 4],
     /// Channels with sites in the CFA.
     present: [bool; 4],
-    /// Channels whose weights equal those of the channel with sites before them.
-    reuse: [bool; 4],
+    /// The sparsest channel (the smallest factor), whose weights are exponentials.
+    base: usize,
+    /// The channel whose weights each channel uses (itself, or `base` for a channel of the
+    /// same factor).
+    source: [usize; 4],
+    /// k ≥ 2: the channel's weights are the k-th power of `base`'s ([`lane_power`]); 0: its
+    /// own (or its source's).
+    power: [u32; 4],
     /// Bound of the quadratic form inside which some channel's weight is non-zero.
     ellipse_limit: Option<f64>,
     /// Bound of the quadratic form inside which channel c's weight is non-zero, for the
@@ -1114,18 +1175,7 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             Vec::new()
         }
     });
-    // The channel whose weights each channel uses (itself, or the one it reuses).
-    let mut source = [0, 1, 2, 3];
-    for ch in 0..4 {
-        if g.reuse[ch] {
-            // The last present channel before it (absent channels in between are skipped).
-            let mut l = ch - 1;
-            while !g.present[l] {
-                l -= 1;
-            }
-            source[ch] = source[l];
-        }
-    }
+    let source = g.source;
     // Groups of eight bins of a bin row: at most the bins within the radius, plus one.
     let max_groups = ((2.0 * radius * u) as usize + 2).div_ceil(LANES) + 1;
     // weights[ch][group·8 + lane] of the channels that make their own weights.
@@ -1133,7 +1183,7 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     let mut weights: [Vec<f32>; 4] = std::array::from_fn(|ch| {
         vec![
             0.0f32;
-            if g.present[ch] && !g.reuse[ch] {
+            if g.present[ch] && g.source[ch] == ch {
                 max_groups * LANES
             } else {
                 0
@@ -1228,7 +1278,7 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             // Lanes past the row segment: a form no factor brings below the cutoff (weight 0).
             quads[(hi - lo) as usize + 1..groups * LANES].fill(f32::INFINITY);
             for (ch, weights) in weights.iter_mut().enumerate() {
-                if !g.present[ch] || g.reuse[ch] {
+                if !g.present[ch] || g.source[ch] != ch || g.power[ch] != 0 {
                     continue;
                 }
                 let (first, end) = group_range(ch);
@@ -1245,6 +1295,25 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                     }
                     weights[at..at + LANES].copy_from_slice(&lanes);
                 }
+            }
+            // The channels whose factor is a multiple of the base's: powers of its weights,
+            // which cover every group (the base's ellipse is the widest).
+            for ch in 0..4 {
+                let k = g.power[ch];
+                if !g.present[ch] || k == 0 {
+                    continue;
+                }
+                let (first, end) = group_range(ch);
+                let mut own = std::mem::take(&mut weights[ch]);
+                let base = &weights[g.base];
+                for group in first..end {
+                    let at = group * LANES;
+                    let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
+                    let w: [f32; LANES] = base[at..at + LANES].try_into().expect("lanes");
+                    let lanes = power_weights(g, ch, &quad, w, k);
+                    own[at..at + LANES].copy_from_slice(&lanes);
+                }
+                weights[ch] = own;
             }
             let row_start = by as usize * SUMS * stride;
             // The channels that share weights and groups (R, G and B of most CFAs) run over
@@ -1292,6 +1361,28 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             }
         }
     }
+}
+
+/// Weights of channel `ch` whose factor is `k` times the base channel's, from the base's
+/// weights `w` of bins with quadratic forms `quad`: `w`^k inside the channel's cutoff, 0
+/// outside ([`gather_row_generic`]).
+#[inline(always)]
+fn power_weights(
+    g: &Gather,
+    ch: usize,
+    quad: &[f32; LANES],
+    w: [f32; LANES],
+    k: u32,
+) -> [f32; LANES] {
+    let powers = lane_power(w, k);
+    let factor = g.inv_scale[ch];
+    std::array::from_fn(|i| {
+        if quad[i] * factor < g.cutoff {
+            powers[i]
+        } else {
+            0.0
+        }
+    })
 }
 
 /// One bin row's pass of the regression ([`gather_row_generic`]) for channels that share
@@ -1453,19 +1544,26 @@ fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                     quad[i] = ady2 + dx * (bdy + c * dx);
                     inside[i] = bx + (i as isize) <= hi;
                 }
-                let mut weight = [0.0f32; LANES];
                 let first = row_start + bx as usize;
                 for (ch, acc) in acc.iter_mut().enumerate() {
                     if !g.present[ch] || bx + (LANES as isize - 1) < span[ch].0 || bx > span[ch].1 {
                         continue;
                     }
-                    if !g.reuse[ch] {
-                        for i in 0..LANES {
+                    let exps = |ch: usize| -> [f32; LANES] {
+                        std::array::from_fn(|i| {
                             let q = quad[i] * g.inv_scale[ch];
                             let e = fastmath::exp(-0.5 * q);
-                            weight[i] = if inside[i] && q < g.cutoff { e } else { 0.0 };
-                        }
-                    }
+                            if inside[i] && q < g.cutoff {
+                                e
+                            } else {
+                                0.0
+                            }
+                        })
+                    };
+                    let weight = match g.power[ch] {
+                        0 => exps(ch),
+                        k => power_weights(g, ch, &quad, exps(g.base), k),
+                    };
                     let at = first + ch * 3 * stride;
                     let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
                     let at = at + stride;
@@ -1793,13 +1891,28 @@ mod tests {
             };
             // And a W-rich CFA with exactly as many R, G and B sites (one pass of three
             // channels, `RowPass::run3`).
-            let cfas = [cfa, {
-                let mut codes = Array2::from_elem((h, w), 3u8);
-                for (k, i) in (0..h * w).step_by(4).take(93).enumerate() {
-                    codes[[i / w, i % w]] = (k % 3) as u8;
-                }
-                Cfa::new(codes).unwrap()
-            }];
+            let cfas = [
+                cfa,
+                {
+                    let mut codes = Array2::from_elem((h, w), 3u8);
+                    for (k, i) in (0..h * w).step_by(4).take(93).enumerate() {
+                        codes[[i / w, i % w]] = (k % 3) as u8;
+                    }
+                    Cfa::new(codes).unwrap()
+                },
+                {
+                    // /tmp/cap10k's pattern (W rows, then W with R and G, W with G and B): as
+                    // many R as B sites, G twice and W about 14 times (weights as powers of
+                    // R's, `snap_scales`), G's and W's ellipses their own.
+                    let codes = Array2::from_shape_fn((h, w), |(y, x)| match (y % 4, x % 4) {
+                        (1, 1) => 0,
+                        (1, 3) | (3, 1) => 1,
+                        (3, 3) => 2,
+                        _ => 3,
+                    });
+                    Cfa::new(codes).unwrap()
+                },
+            ];
             for cfa in &cfas {
                 for (scale, bins, max_radius, exponent) in [
                     (1, 2, 5, 1.0),
@@ -1856,27 +1969,46 @@ mod tests {
     }
 
     #[test]
-    fn near_scales_are_shared_and_others_kept() {
-        // R and G of 10,499 sites, B of 10,498, W of 94,488 (/tmp/cap10k's CFA).
-        let n = 126_000.0f32;
-        let scales = [n / 10_499.0, n / 10_499.0, n / 10_498.0, n / 94_488.0];
-        assert_ne!(scales[0], scales[2]);
-        let shared = share_near_scales(scales);
-        assert_eq!(shared, [scales[0], scales[0], scales[0], scales[3]]);
-        // Bayer (R and B of one density, G of another), absent channels and a 1 % difference
-        // are kept.
+    fn scales_near_a_multiple_of_the_sparsest_are_snapped_and_others_kept() {
+        // /tmp/cap10k's CFA: 7,936 R, 15,748 G, 7,812 B and 94,488 W sites. B is the sparsest;
+        // R is 1.6 % denser (its factor 1 times B's), G about twice and W about 12 times.
+        let n = 125_984.0f32;
+        let scales = [n / 7_936.0, n / 15_748.0, n / 7_812.0, n / 94_488.0];
+        let (snapped, multiples) = snap_scales(scales);
+        let b = scales[2];
+        assert_eq!(multiples, [1, 2, 0, 12]);
+        assert_eq!(snapped, [b, b / 2.0, b, b / 12.0]);
+        // Bayer: R the sparsest (the first of equal ones), B shares it, G is half of it.
         assert_eq!(
-            share_near_scales([4.0, 2.0, 4.0, 0.0]),
-            [4.0, 2.0, 4.0, 0.0]
+            snap_scales([4.0, 2.0, 4.0, 0.0]),
+            ([4.0, 2.0, 4.0, 0.0], [0, 2, 1, 0])
+        );
+        // 1 % apart: shared; 3 % apart, a ratio of 1.55, absent channels: kept.
+        assert_eq!(
+            snap_scales([12.0, 12.12, 0.0, 0.0]),
+            ([12.12, 12.12, 0.0, 0.0], [1, 0, 0, 0])
         );
         assert_eq!(
-            share_near_scales([12.0, 12.12, 0.0, 0.0]),
-            [12.0, 12.12, 0.0, 0.0]
+            snap_scales([12.0, 12.4, 8.0, 0.0]),
+            ([12.0, 12.4, 8.0, 0.0], [0, 0, 0, 0])
         );
-        assert_eq!(
-            share_near_scales([0.0, 1e-9, 5.0, 5.004]),
-            [0.0, 1e-9, 5.0, 5.0]
-        );
+        assert_eq!(snap_scales([0.0; 4]), ([0.0; 4], [0; 4]));
+    }
+
+    #[test]
+    fn lane_power_is_the_power() {
+        let w: [f32; LANES] = std::array::from_fn(|i| 0.05 + 0.13 * i as f32);
+        for k in 1..=MAX_SNAP_MULTIPLE {
+            let p = lane_power(w, k);
+            for i in 0..LANES {
+                let exact = (w[i] as f64).powi(k as i32);
+                assert!(
+                    (p[i] as f64 - exact).abs() <= 1e-6 * exact + 1e-30,
+                    "{k} {i}: {} vs {exact}",
+                    p[i]
+                );
+            }
+        }
     }
 
     #[test]
