@@ -1131,9 +1131,11 @@ unsafe fn gather_row_avx2(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
 /// the end of the pixel. Deterministic and independent of the thread count; the order of the
 /// additions differs from one sum over the bins in row order only by rounding.
 ///
-/// Per bin row, the weights of every group of eight bins are made first (once per distinct
-/// channel factor), then each channel runs over the groups with its three partial sums held in
-/// registers (three channels that share weights and groups in one pass, [`RowPass::run3`]):
+/// Per bin row, the weights of every group of eight bins are made first (exponentials once per
+/// distinct channel factor; a channel whose factor is k times the sparsest channel's takes the
+/// k-th power of its weights, [`snap_scales`]), then each channel runs over the groups with its
+/// three partial sums held in registers (three channels that share weights and groups in one
+/// pass, [`RowPass::run3`]):
 /// each partial sum receives the same products in the same order (rows, then groups) as when
 /// the channels took turns per group, so the same bits
 /// (`gather_row_matches_the_group_by_group_reference`).
