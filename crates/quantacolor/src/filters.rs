@@ -75,7 +75,7 @@ fn convolve_row(inp: &[f32], out: &mut [f32], kernel: &[f32]) {
 /// inside the image, from 0 in kernel order (`rows` holds `row.len()`-wide rows).
 fn accumulate_column(y: usize, row: &mut [f32], rows: &[f32], kernel: &[f32]) {
     let w = row.len();
-    let h = if w == 0 { 0 } else { rows.len() / w };
+    let h = rows.len().checked_div(w).unwrap_or(0);
     let r = kernel.len() / 2;
     row.fill(0.0);
     for (k, &kv) in kernel.iter().enumerate() {
