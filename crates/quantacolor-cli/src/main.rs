@@ -1,5 +1,6 @@
 //! `quantacolor`: command-line interface to the quantacolor library.
 
+mod allocator;
 mod cmd_align;
 mod cmd_bench;
 mod cmd_calibrate_color;
@@ -64,6 +65,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    allocator::keep_freed_memory();
     let cli = Cli::parse();
     let progress = progress::TerminalProgress::new();
     let result = match &cli.command {
