@@ -280,6 +280,24 @@ impl Stabiliser {
         }
     }
 
+    /// `(forward(lambda), derivative(lambda))`, the same bits, with the bit rate (binary
+    /// frames) computed once for both: the denoiser needs both at every pixel (the stabilised
+    /// image and the delta method of its noise model).
+    pub fn forward_and_derivative(&self, lambda: f64) -> (f64, f64) {
+        match self {
+            Stabiliser::Binomial { anscombe, model } => {
+                let dark = model.dark_per_frame;
+                let p = Self::bit_rate(lambda, dark);
+                let slope = detection_probability_slope(Self::physical_flux(lambda, dark), dark);
+                (
+                    anscombe.forward_rate(p),
+                    anscombe.derivative_rate(p) * slope,
+                )
+            }
+            Stabiliser::GaussianPoisson { .. } => (self.forward(lambda), self.derivative(lambda)),
+        }
+    }
+
     /// The flux whose stabilised value has expectation `value` (exact unbiased inverse for
     /// binary frames, then the MLE of paper Eq. 6 with its saturation cap,
     /// [`PixelModel::flux`]; asymptotically unbiased for Gaussian–Poisson).
@@ -354,6 +372,31 @@ mod tests {
         assert!(t.inverse_exact(f64::NAN).is_nan());
         assert!(BinomialAnscombe::new(0.0).is_err());
         assert!(BinomialAnscombe::new(f64::NAN).is_err());
+    }
+
+    #[test]
+    fn forward_and_derivative_are_both_bit_for_bit() {
+        let binary = Stabiliser::new(PixelModel::binary(0.003), 700.0).unwrap();
+        let multibit = Stabiliser::new(
+            PixelModel {
+                dark_per_frame: 0.1,
+                readout: Readout::GaussianPoisson(crate::model::GaussianPoisson {
+                    gain_e_per_dn: 2.0,
+                    read_noise_e: 1.5,
+                    black_level_dn: 10.0,
+                    saturation_dn: 1023.0,
+                }),
+            },
+            40.0,
+        )
+        .unwrap();
+        for s in [&binary, &multibit] {
+            for lambda in [-0.01, 0.0, 1e-4, 0.02, 0.7, 3.0, 40.0, f64::NAN] {
+                let (a, da) = s.forward_and_derivative(lambda);
+                assert_eq!(a.to_bits(), s.forward(lambda).to_bits(), "{lambda}");
+                assert_eq!(da.to_bits(), s.derivative(lambda).to_bits(), "{lambda}");
+            }
+        }
     }
 
     #[test]

@@ -1013,40 +1013,71 @@ fn low_partial_distances(low: &LowPlanes, reference: &[f32], y: usize, x: usize)
     sum
 }
 
-/// [`low_partial_distances`], through [`low_partial_distances_avx2`] when `AVX2`.
+/// The first check of [`find_group`] for the eight block positions (y, x..x + 8): a mask of
+/// the lanes whose [`low_partial_distances`] are at most `bound` (bit l for position x + l),
+/// and those partials; through [`low_check_avx2`] when `AVX2`.
+///
+/// The first row of coefficients is checked before the second: per lane, Σ_j (r[j] − c[j])²
+/// summed over j in order is the same sum with smaller terms (each lane's two-row term is the
+/// one-row square plus a non-negative one, and rounding is monotone), so it is at most the
+/// two-row partial, which is at most the full distance. When no lane passes it, the chunk is
+/// done after eight coefficients instead of sixteen (mask 0; the partials are then unused
+/// zeros). The mask is the same either way.
 #[inline(always)]
-fn low_partials<const AVX2: bool>(
+fn low_check<const AVX2: bool>(
     low: &LowPlanes,
     reference: &[f32],
     y: usize,
     x: usize,
-) -> [f32; LANES8] {
+    bound: f32,
+) -> (u32, [f32; LANES8]) {
     #[cfg(target_arch = "x86_64")]
     {
         if AVX2 {
             // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
-            return unsafe { low_partial_distances_avx2(low, reference, y, x) };
+            return unsafe { low_check_avx2(low, reference, y, x, bound) };
         }
     }
-    low_partial_distances(low, reference, y, x)
+    let row = y * LOW_COEFFS * low.stride + x;
+    let mut first = [0.0f32; LANES8];
+    for j in 0..8 {
+        let at = row + j * low.stride;
+        let c0: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
+        for l in 0..LANES8 {
+            let d0 = reference[j] - c0[l];
+            first[l] = if j == 0 { d0 * d0 } else { first[l] + d0 * d0 };
+        }
+    }
+    if first.iter().all(|&f| !(f <= bound)) {
+        return (0, [0.0; LANES8]);
+    }
+    let partial = low_partial_distances(low, reference, y, x);
+    let mut mask = 0u32;
+    for (l, &part) in partial.iter().enumerate() {
+        mask |= ((part <= bound) as u32) << l;
+    }
+    (mask, partial)
 }
 
-/// [`low_partial_distances`] in AVX2 registers: the eight positions are the eight lanes of one
-/// register, and every lane does the same subtractions, products and sums in the same order
-/// (no fused multiply-add), so the same bits. (The compiler did not vectorise the portable
-/// version well: it split the lanes into 4 + 1 + 1 + 2.)
+/// [`low_check`] in AVX2 registers: the eight positions are the eight lanes of one register,
+/// and every lane does the subtractions, products and sums of [`low_partial_distances`] in the
+/// same order (no fused multiply-add), so the same bits; the first row's squares are kept for
+/// the second row's sums, and each mask is one vector comparison (`≤`, false for NaN as the
+/// portable `<=`). (The compiler did not vectorise the portable version well: it split the
+/// lanes into 4 + 1 + 1 + 2.)
 ///
 /// # Safety
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn low_partial_distances_avx2(
+unsafe fn low_check_avx2(
     low: &LowPlanes,
     reference: &[f32],
     y: usize,
     x: usize,
-) -> [f32; LANES8] {
+    bound: f32,
+) -> (u32, [f32; LANES8]) {
     use std::arch::x86_64::*;
     let stride = low.stride;
     let row = y * LOW_COEFFS * stride + x;
@@ -1056,18 +1087,37 @@ unsafe fn low_partial_distances_avx2(
             && row + (LOW_COEFFS - 1) * stride + LANES8 <= low.planes.len()
     );
     let base = low.planes.as_ptr().add(row);
+    let limit = _mm256_set1_ps(bound);
+    let mut squares = [_mm256_setzero_ps(); 8];
+    let mut first = _mm256_setzero_ps();
+    for (j, square) in squares.iter_mut().enumerate() {
+        let d0 = _mm256_sub_ps(
+            _mm256_set1_ps(reference[j]),
+            _mm256_loadu_ps(base.add(j * stride)),
+        );
+        *square = _mm256_mul_ps(d0, d0);
+        first = if j == 0 {
+            *square
+        } else {
+            _mm256_add_ps(first, *square)
+        };
+    }
+    if _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(first, limit)) == 0 {
+        return (0, [0.0; LANES8]);
+    }
     let mut sum = _mm256_setzero_ps();
-    for j in 0..8 {
-        let c0 = _mm256_loadu_ps(base.add(j * stride));
-        let c1 = _mm256_loadu_ps(base.add((j + 8) * stride));
-        let d0 = _mm256_sub_ps(_mm256_set1_ps(reference[j]), c0);
-        let d1 = _mm256_sub_ps(_mm256_set1_ps(reference[j + 8]), c1);
-        let acc = _mm256_add_ps(_mm256_mul_ps(d0, d0), _mm256_mul_ps(d1, d1));
+    for (j, &square) in squares.iter().enumerate() {
+        let d1 = _mm256_sub_ps(
+            _mm256_set1_ps(reference[j + 8]),
+            _mm256_loadu_ps(base.add((j + 8) * stride)),
+        );
+        let acc = _mm256_add_ps(square, _mm256_mul_ps(d1, d1));
         sum = if j == 0 { acc } else { _mm256_add_ps(sum, acc) };
     }
+    let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(sum, limit)) as u32;
     let mut out = [0.0f32; LANES8];
     _mm256_storeu_ps(out.as_mut_ptr(), sum);
-    out
+    (mask, out)
 }
 
 /// What differs between the two steps.
@@ -1239,7 +1289,7 @@ fn process_row(
 }
 
 /// The reference blocks of row `yr`; `AVX2` selects the explicit AVX2 kernels
-/// ([`low_partial_distances_avx2`], [`hard_threshold_avx2`], [`wiener_shrink_avx2`]), which
+/// ([`low_check_avx2`], [`hard_threshold_avx2`], [`wiener_shrink_avx2`]), which
 /// give the same bits as the portable ones.
 #[inline(always)]
 fn process_row_generic<const AVX2: bool>(
@@ -1683,13 +1733,9 @@ fn find_group<const AVX2: bool>(
                 // read the next positions or the padding and are not used).
                 let mut x = x0;
                 while x <= x1 {
-                    let partial = low_partials::<AVX2>(low, reference, y, x);
                     // Lanes that pass the check, as bits (the bound of the chunk's start: a
                     // lower one found meanwhile only saves work, `consider` applies it).
-                    let mut pass = 0u32;
-                    for (l, &part) in partial.iter().enumerate() {
-                        pass |= ((part <= bound) as u32) << l;
-                    }
+                    let (mut pass, partial) = low_check::<AVX2>(low, reference, y, x, bound);
                     pass &= (1u32 << (x1 + 1 - x).min(LANES8)) - 1;
                     if AVX2 {
                         prefetch_blocks(p.matching, y * pw + x, pass);
@@ -2551,15 +2597,41 @@ mod tests {
         for y in 0..geo.ph {
             for x0 in (0..geo.pw).step_by(8) {
                 let lanes = low_partial_distances(&low, reference, y, x0);
+                // With no bound every lane passes and the check returns the partials.
+                let (mask, partial) = low_check::<false>(&low, reference, y, x0, f32::INFINITY);
+                assert_eq!(mask, 0xff);
+                assert_eq!(partial.map(f32::to_bits), lanes.map(f32::to_bits));
                 #[cfg(target_arch = "x86_64")]
                 if std::arch::is_x86_feature_detected!("avx2") {
                     // SAFETY: AVX2 checked just above.
-                    let wide = unsafe { low_partial_distances_avx2(&low, reference, y, x0) };
+                    let (mask, wide) =
+                        unsafe { low_check_avx2(&low, reference, y, x0, f32::INFINITY) };
+                    assert_eq!(mask, 0xff);
                     assert_eq!(
                         wide.map(f32::to_bits),
                         lanes.map(f32::to_bits),
                         "({y}, {x0})"
                     );
+                }
+                // With bounds around the lanes' partials (and below all of them, where the
+                // first row alone rejects the chunk), the mask is the lanes at most the bound.
+                let mut bounds: Vec<f32> = lanes.to_vec();
+                bounds.extend([
+                    0.0,
+                    lanes.iter().copied().fold(f32::INFINITY, f32::min) * 0.5,
+                ]);
+                for bound in bounds {
+                    let want = lanes
+                        .iter()
+                        .enumerate()
+                        .fold(0u32, |m, (l, &v)| m | (((v <= bound) as u32) << l));
+                    assert_eq!(low_check::<false>(&low, reference, y, x0, bound).0, want);
+                    #[cfg(target_arch = "x86_64")]
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        // SAFETY: AVX2 checked just above.
+                        let (mask, _) = unsafe { low_check_avx2(&low, reference, y, x0, bound) };
+                        assert_eq!(mask, want, "({y}, {x0}) bound {bound}");
+                    }
                 }
                 for (l, &got) in lanes.iter().enumerate().take(geo.pw - x0) {
                     let block = coeffs.block(y * geo.pw + x0 + l);
