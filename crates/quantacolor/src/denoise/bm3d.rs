@@ -239,6 +239,7 @@ pub fn bm3d_multichannel_varying(
         relative_variance,
         config,
         FirstChannel::Filtered,
+        &mut Bm3dBuffers::default(),
     )
 }
 
@@ -253,13 +254,45 @@ pub(crate) enum FirstChannel {
     GuideOnly,
 }
 
-/// [`bm3d_multichannel_varying`], with channel 0 filtered or only used as the guide.
+/// The large work buffers of [`bm3d_planes`] (the matching channel's block coefficients of both
+/// steps, their [`LowPlanes`], the aggregation sums and strips of [`run_step`]), kept between
+/// its two steps and between calls (a multiscale run calls it once per scale, finest first), so
+/// that each is allocated, and its pages faulted in, once: fresh, they cost thousands of page
+/// faults per step (measured with perf). Their contents never carry over: every use
+/// overwrites or clears what it reads.
+#[derive(Default)]
+pub(crate) struct Bm3dBuffers {
+    noisy_coeffs: Vec<f32>,
+    basic_coeffs: Vec<f32>,
+    low: Vec<f32>,
+    num: Vec<f32>,
+    den: Vec<f32>,
+    strips: Vec<(Vec<f32>, Vec<f32>)>,
+}
+
+/// `buffer`'s allocation as a vector of `len` values, zeros where `zeroed` (otherwise only the
+/// values beyond its old length are zeros); a fresh zeroed vector when it is too small.
+fn recycled(mut buffer: Vec<f32>, len: usize, zeroed: bool) -> Vec<f32> {
+    if buffer.capacity() < len {
+        return vec![0.0; len];
+    }
+    buffer.truncate(len);
+    if zeroed {
+        buffer.fill(0.0);
+    }
+    buffer.resize(len, 0.0);
+    buffer
+}
+
+/// [`bm3d_multichannel_varying`], with channel 0 filtered or only used as the guide, in
+/// `buffers`.
 pub(crate) fn bm3d_planes(
     noisy: ArrayView3<f32>,
     sigmas: &[f32],
     relative_variance: Option<ArrayView3<f32>>,
     config: &Bm3dConfig,
     first_channel: FirstChannel,
+    buffers: &mut Bm3dBuffers,
 ) -> Result<Array3<f32>> {
     check_inputs(noisy, sigmas, config)?;
     if sigmas.iter().all(|&s| s == 0.0) {
@@ -277,7 +310,12 @@ pub(crate) fn bm3d_planes(
         .outer_iter()
         .map(|p| p.iter().copied().collect())
         .collect();
-    let noisy_coeffs = BlockCoeffs::compute(&planes[0], &geo, &tr);
+    let noisy_coeffs = BlockCoeffs::compute_in(
+        std::mem::take(&mut buffers.noisy_coeffs),
+        &planes[0],
+        &geo,
+        &tr,
+    );
     let noisy = block_sources(&noisy_coeffs, &planes);
     let regime = NoiseRegime::of(sigmas[0], config);
     let shared = SharedParams {
@@ -289,17 +327,19 @@ pub(crate) fn bm3d_planes(
         tr: &tr,
     };
 
-    let basic = hard_threshold_step(&shared, &regime, sigmas, config, &planes);
-    if !config.wiener {
-        return Ok(to_array(basic, h, w));
-    }
-    // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
-    let mut step2_sigmas = sigmas.to_vec();
-    if first_channel == FirstChannel::GuideOnly {
-        step2_sigmas[0] = 0.0;
-    }
-    let fin = wiener_step(&shared, &regime, &step2_sigmas, config, &basic);
-    Ok(to_array(fin, h, w))
+    let basic = hard_threshold_step(&shared, &regime, sigmas, config, &planes, buffers);
+    let out = if config.wiener {
+        // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
+        let mut step2_sigmas = sigmas.to_vec();
+        if first_channel == FirstChannel::GuideOnly {
+            step2_sigmas[0] = 0.0;
+        }
+        wiener_step(&shared, &regime, &step2_sigmas, config, &basic, buffers)
+    } else {
+        basic
+    };
+    buffers.noisy_coeffs = noisy_coeffs.data;
+    Ok(to_array(out, h, w))
 }
 
 /// The argument checks of [`bm3d_multichannel_varying`] that do not need the geometry.
@@ -408,6 +448,7 @@ fn hard_threshold_step(
     sigmas: &[f32],
     config: &Bm3dConfig,
     planes: &[Vec<f32>],
+    buffers: &mut Bm3dBuffers,
 ) -> Vec<Vec<f32>> {
     let thresholded;
     let matching = if regime.high_noise && config.lambda_2d > 0.0 {
@@ -418,7 +459,7 @@ fn hard_threshold_step(
     } else {
         shared.noisy_coeffs
     };
-    let low = low_planes(matching, shared.geo);
+    let low = low_planes_in(std::mem::take(&mut buffers.low), matching, shared.geo);
     let step = StepParams {
         matching,
         low: low.as_ref(),
@@ -439,7 +480,11 @@ fn hard_threshold_step(
         },
         profiles: shared.profiles,
     };
-    run_step(&step, shared.geo, shared.tr, planes)
+    let out = run_step(&step, shared.geo, shared.tr, planes, buffers);
+    if let Some(low) = low {
+        buffers.low = low.planes;
+    }
+    out
 }
 
 /// Step 2 (TIP 2007 §III-B): matching on the basic estimate's channel 0, empirical Wiener
@@ -450,10 +495,16 @@ fn wiener_step(
     sigmas: &[f32],
     config: &Bm3dConfig,
     basic: &[Vec<f32>],
+    buffers: &mut Bm3dBuffers,
 ) -> Vec<Vec<f32>> {
-    let basic_coeffs = BlockCoeffs::compute(&basic[0], shared.geo, shared.tr);
+    let basic_coeffs = BlockCoeffs::compute_in(
+        std::mem::take(&mut buffers.basic_coeffs),
+        &basic[0],
+        shared.geo,
+        shared.tr,
+    );
     let basic_sources = block_sources(&basic_coeffs, basic);
-    let low = low_planes(&basic_coeffs, shared.geo);
+    let low = low_planes_in(std::mem::take(&mut buffers.low), &basic_coeffs, shared.geo);
     let step = StepParams {
         matching: &basic_coeffs,
         low: low.as_ref(),
@@ -470,7 +521,12 @@ fn wiener_step(
         lambda_3d: config.lambda_3d,
         profiles: shared.profiles,
     };
-    run_step(&step, shared.geo, shared.tr, basic)
+    let out = run_step(&step, shared.geo, shared.tr, basic, buffers);
+    if let Some(low) = low {
+        buffers.low = low.planes;
+    }
+    buffers.basic_coeffs = basic_coeffs.data;
+    out
 }
 
 /// Relative σ of every 2D DCT coefficient (row-major `n × n`) of white noise smoothed by a
@@ -724,9 +780,16 @@ struct BlockCoeffs {
 }
 
 impl BlockCoeffs {
+    #[cfg(test)]
     fn compute(plane: &[f32], geo: &Geometry, tr: &Transforms) -> Self {
+        Self::compute_in(Vec::new(), plane, geo, tr)
+    }
+
+    /// [`BlockCoeffs::compute`] in `buffer`'s allocation ([`Bm3dBuffers`]; every value is
+    /// overwritten).
+    fn compute_in(buffer: Vec<f32>, plane: &[f32], geo: &Geometry, tr: &Transforms) -> Self {
         let (n, n2, pw, w) = (geo.n, geo.n * geo.n, geo.pw, geo.w);
-        let mut data = vec![0.0f32; geo.ph * pw * n2];
+        let mut data = recycled(buffer, geo.ph * pw * n2, false);
         data.par_chunks_mut(pw * n2)
             .enumerate()
             .for_each(|(y, row)| {
@@ -966,13 +1029,19 @@ struct LowPlanes {
 }
 
 /// The [`LowPlanes`] of `coeffs` for 8 × 8 blocks, `None` for other sizes.
+#[cfg(test)]
 fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
+    low_planes_in(Vec::new(), coeffs, geo)
+}
+
+/// [`low_planes`] in `buffer`'s allocation ([`Bm3dBuffers`]).
+fn low_planes_in(buffer: Vec<f32>, coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
     if coeffs.n2 != 64 {
         return None;
     }
     let pw = geo.pw;
     let stride = pw + LANES8;
-    let mut planes = vec![0.0f32; geo.ph * LOW_COEFFS * stride];
+    let mut planes = recycled(buffer, geo.ph * LOW_COEFFS * stride, false);
     planes
         .par_chunks_mut(LOW_COEFFS * stride)
         .zip(coeffs.data.par_chunks(pw * 64))
@@ -981,6 +1050,10 @@ fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
                 for (k, &v) in block[..LOW_COEFFS].iter().enumerate() {
                     rows[k * stride + x] = v;
                 }
+            }
+            // The padding (a recycled buffer holds old values there).
+            for row in rows.chunks_exact_mut(stride) {
+                row[pw..].fill(0.0);
             }
         });
     Some(LowPlanes { planes, stride })
@@ -1184,22 +1257,30 @@ struct Strip<'b> {
 
 /// One BM3D step over the whole image; returns one plane per channel. Channels with σ = 0 are
 /// copied from `planes`.
-fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]) -> Vec<Vec<f32>> {
+fn run_step(
+    p: &StepParams,
+    geo: &Geometry,
+    tr: &Transforms,
+    planes: &[Vec<f32>],
+    work: &mut Bm3dBuffers,
+) -> Vec<Vec<f32>> {
     let (h, w, n) = (geo.h, geo.w, geo.n);
     let n2 = n * n;
     let channels = planes.len();
-    let mut num = vec![0.0f32; channels * h * w];
-    let mut den = vec![0.0f32; channels * h * w];
+    let mut num = recycled(std::mem::take(&mut work.num), channels * h * w, true);
+    let mut den = recycled(std::mem::take(&mut work.den), channels * h * w, true);
     // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once; their
-    // buffers are made once and cleared for every batch (fresh ones cost page faults).
+    // buffers are made once (or kept from the last step, `work`) and cleared for every batch
+    // (fresh ones cost page faults).
     const ROWS_PER_BATCH: usize = 16;
     let strip_rows = (2 * geo.half_window + n).min(h);
-    let mut buffers: Vec<(Vec<f32>, Vec<f32>)> = (0..ROWS_PER_BATCH.min(geo.ref_ys.len()))
-        .map(|_| {
-            let len = channels * strip_rows * w;
-            (vec![0.0; len], vec![0.0; len])
-        })
-        .collect();
+    let mut buffers = std::mem::take(&mut work.strips);
+    buffers.resize_with(ROWS_PER_BATCH.min(geo.ref_ys.len()), Default::default);
+    for (num, den) in &mut buffers {
+        let len = channels * strip_rows * w;
+        *num = recycled(std::mem::take(num), len, false);
+        *den = recycled(std::mem::take(den), len, false);
+    }
     // Group members lie within the search window's rows.
     let strip_of = |yr: usize| {
         let y0 = yr.saturating_sub(geo.half_window);
@@ -1249,7 +1330,7 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
                 add_rows(den, i * SUM_ROWS, false);
             });
     }
-    (0..channels)
+    let out = (0..channels)
         .map(|c| {
             if p.sigmas[c] == 0.0 {
                 return planes[c].clone();
@@ -1261,7 +1342,9 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
                 .map(|(&a, &b)| a / b)
                 .collect()
         })
-        .collect()
+        .collect();
+    (work.num, work.den, work.strips) = (num, den, buffers);
+    out
 }
 
 /// Every reference block of row `yr` ([`process_reference`]), with AVX2 where the CPU has it.

@@ -15,7 +15,7 @@
 //! three channels (the RMS noise of the stabilised R, G, B).
 
 use super::anscombe::Stabiliser;
-use super::bm3d::{bm3d_planes, Bm3dConfig, FirstChannel};
+use super::bm3d::{bm3d_planes, Bm3dBuffers, Bm3dConfig, FirstChannel};
 use crate::error::{Error, Result};
 use crate::filters::{bilinear, box_downsample};
 use crate::model::PixelModel;
@@ -395,11 +395,14 @@ pub fn bm3d_multiscale(
         coarse_sigma_factor,
         config,
         FirstChannel::Filtered,
+        &mut Bm3dBuffers::default(),
     )
 }
 
 /// [`bm3d_multiscale`]; the coarse scales use only their chroma, so their Y is only the
-/// grouping guide ([`FirstChannel::GuideOnly`]: the same chroma, less work).
+/// grouping guide ([`FirstChannel::GuideOnly`]: the same chroma, less work). Every scale's BM3D
+/// works in `buffers`, allocated at the finest.
+#[allow(clippy::too_many_arguments)]
 fn multiscale(
     planes: ArrayView3<f32>,
     sigmas: [f32; 3],
@@ -408,8 +411,16 @@ fn multiscale(
     coarse_sigma_factor: f32,
     config: &Bm3dConfig,
     first_channel: FirstChannel,
+    buffers: &mut Bm3dBuffers,
 ) -> Result<Array3<f32>> {
-    let mut fine = bm3d_planes(planes, &sigmas, relative_variance, config, first_channel)?;
+    let mut fine = bm3d_planes(
+        planes,
+        &sigmas,
+        relative_variance,
+        config,
+        first_channel,
+        buffers,
+    )?;
     let (_, h, w) = planes.dim();
     let min_side = 4 * config.block_size;
     if scales == 0 || h / 2 < min_side || w / 2 < min_side {
@@ -436,6 +447,7 @@ fn multiscale(
         coarse_sigma_factor,
         config,
         FirstChannel::GuideOnly,
+        buffers,
     )?;
     for ch in 1..3 {
         let correction =
