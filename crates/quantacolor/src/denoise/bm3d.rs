@@ -36,8 +36,9 @@
 //! Memory: the 2D DCT of every block position of the matching channel (channel 0: noisy in
 //! Step 1, basic estimate in Step 2) is computed once per step and stored,
 //! `(H−N1+1)·(W−N1+1)·N1²` f32 (about 65 MB for 512×512 and 250 MB for 1000×1000), so
-//! matching is a cheap distance on stored coefficients; Step 2 keeps noisy channel 0's as well.
-//! The other channels' blocks are transformed when a group takes them ([`BlockSource`]): each
+//! matching is a cheap distance on stored coefficients. The other blocks (every channel's but
+//! the matching one's, and in Step 2 noisy channel 0's as well, so that one coefficient buffer
+//! serves both steps) are transformed when a group takes them ([`BlockSource`]): each
 //! position is a group member only about once or twice per step, so that is cheaper than
 //! storing every position (the same bits either way).
 //! For 8×8 blocks the matching channel's first two coefficient rows are also stored as planes
@@ -262,8 +263,8 @@ pub(crate) enum FirstChannel {
 /// overwrites or clears what it reads.
 #[derive(Default)]
 pub(crate) struct Bm3dBuffers {
-    noisy_coeffs: Vec<f32>,
-    basic_coeffs: Vec<f32>,
+    /// The matching channel's coefficients (noisy in Step 1, basic estimate in Step 2).
+    coeffs: Vec<f32>,
     low: Vec<f32>,
     num: Vec<f32>,
     den: Vec<f32>,
@@ -310,24 +311,16 @@ pub(crate) fn bm3d_planes(
         .outer_iter()
         .map(|p| p.iter().copied().collect())
         .collect();
-    let noisy_coeffs = BlockCoeffs::compute_in(
-        std::mem::take(&mut buffers.noisy_coeffs),
-        &planes[0],
-        &geo,
-        &tr,
-    );
-    let noisy = block_sources(&noisy_coeffs, &planes);
     let regime = NoiseRegime::of(sigmas[0], config);
     let shared = SharedParams {
-        noisy: &noisy,
-        noisy_coeffs: &noisy_coeffs,
+        planes: &planes,
         block_variance: block_variance.as_deref(),
         profiles: &profiles,
         geo: &geo,
         tr: &tr,
     };
 
-    let basic = hard_threshold_step(&shared, &regime, sigmas, config, &planes, buffers);
+    let basic = hard_threshold_step(&shared, &regime, sigmas, config, buffers);
     let out = if config.wiener {
         // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
         let mut step2_sigmas = sigmas.to_vec();
@@ -338,7 +331,6 @@ pub(crate) fn bm3d_planes(
     } else {
         basic
     };
-    buffers.noisy_coeffs = noisy_coeffs.data;
     Ok(to_array(out, h, w))
 }
 
@@ -430,10 +422,8 @@ impl NoiseRegime {
 
 /// What both steps read: the noisy coefficients, noise model and geometry.
 struct SharedParams<'a> {
-    /// Per channel, where the noisy blocks' coefficients come from.
-    noisy: &'a [BlockSource<'a>],
-    /// The stored coefficients of noisy channel 0 (Step 1 matches on them).
-    noisy_coeffs: &'a BlockCoeffs,
+    /// The noisy planes, one per channel.
+    planes: &'a [Vec<f32>],
     block_variance: Option<&'a [Vec<f32>]>,
     profiles: &'a [Vec<f32>],
     geo: &'a Geometry,
@@ -447,17 +437,21 @@ fn hard_threshold_step(
     regime: &NoiseRegime,
     sigmas: &[f32],
     config: &Bm3dConfig,
-    planes: &[Vec<f32>],
     buffers: &mut Bm3dBuffers,
 ) -> Vec<Vec<f32>> {
+    let noisy_coeffs = BlockCoeffs::compute_in(
+        std::mem::take(&mut buffers.coeffs),
+        &shared.planes[0],
+        shared.geo,
+        shared.tr,
+    );
+    let noisy = block_sources(&noisy_coeffs, shared.planes);
     let thresholded;
     let matching = if regime.high_noise && config.lambda_2d > 0.0 {
-        thresholded = shared
-            .noisy_coeffs
-            .hard_thresholded(config.lambda_2d * sigmas[0]);
+        thresholded = noisy_coeffs.hard_thresholded(config.lambda_2d * sigmas[0]);
         &thresholded
     } else {
-        shared.noisy_coeffs
+        &noisy_coeffs
     };
     let low = low_planes_in(std::mem::take(&mut buffers.low), matching, shared.geo);
     let step = StepParams {
@@ -469,7 +463,7 @@ fn hard_threshold_step(
             config.block_size,
         ),
         max_group: config.max_group_ht,
-        noisy: shared.noisy,
+        noisy: &noisy,
         basic: None,
         sigmas,
         block_variance: shared.block_variance,
@@ -480,15 +474,18 @@ fn hard_threshold_step(
         },
         profiles: shared.profiles,
     };
-    let out = run_step(&step, shared.geo, shared.tr, planes, buffers);
+    let out = run_step(&step, shared.geo, shared.tr, shared.planes, buffers);
     if let Some(low) = low {
         buffers.low = low.planes;
     }
+    buffers.coeffs = noisy_coeffs.data;
     out
 }
 
 /// Step 2 (TIP 2007 §III-B): matching on the basic estimate's channel 0, empirical Wiener
 /// shrinkage of the noisy groups with the basic estimate as the oracle; the final estimate.
+/// The basic estimate's coefficients take the buffer of Step 1's noisy ones, so the noisy
+/// blocks of every channel are transformed from the planes (the same bits).
 fn wiener_step(
     shared: &SharedParams,
     regime: &NoiseRegime,
@@ -498,12 +495,17 @@ fn wiener_step(
     buffers: &mut Bm3dBuffers,
 ) -> Vec<Vec<f32>> {
     let basic_coeffs = BlockCoeffs::compute_in(
-        std::mem::take(&mut buffers.basic_coeffs),
+        std::mem::take(&mut buffers.coeffs),
         &basic[0],
         shared.geo,
         shared.tr,
     );
     let basic_sources = block_sources(&basic_coeffs, basic);
+    let noisy: Vec<BlockSource> = shared
+        .planes
+        .iter()
+        .map(|p| BlockSource::Plane(p))
+        .collect();
     let low = low_planes_in(std::mem::take(&mut buffers.low), &basic_coeffs, shared.geo);
     let step = StepParams {
         matching: &basic_coeffs,
@@ -514,7 +516,7 @@ fn wiener_step(
             config.block_size,
         ),
         max_group: config.max_group_wiener,
-        noisy: shared.noisy,
+        noisy: &noisy,
         basic: Some(&basic_sources),
         sigmas,
         block_variance: shared.block_variance,
@@ -525,7 +527,7 @@ fn wiener_step(
     if let Some(low) = low {
         buffers.low = low.planes;
     }
-    buffers.basic_coeffs = basic_coeffs.data;
+    buffers.coeffs = basic_coeffs.data;
     out
 }
 
@@ -881,12 +883,13 @@ impl BlockCoeffs {
 }
 
 /// Where a step reads the 2D DCT coefficients of a channel's blocks: stored for every
-/// position (channel 0, which groups are matched on and which is read at every position of
-/// every search window), or computed from the plane for each group member (the other
-/// channels: with the reference grid's stride of 5 and groups of up to 16 / 32, a position is
-/// a group member about once or twice per step on average, so storing every position's
-/// coefficients, tens of MB per channel, cost more in page faults and cache misses than
-/// transforming the members; measured with perf). Both give the same bits
+/// position (the step's matching channel, which is read at every position of every search
+/// window), or computed from the plane for each group member (the other channels, and noisy
+/// channel 0 in Step 2: with the reference grid's stride of 5 and groups of up to 16 / 32, a
+/// position is a group member about once or twice per step on average, so storing every
+/// position's coefficients, tens of MB per channel, cost more in page faults and cache misses
+/// than transforming the members; measured with perf: keeping Step 1's noisy channel 0 for
+/// Step 2 cost 14k page faults per call on a 496 × 254 image). Both give the same bits
 /// ([`Transforms::forward`] is [`BlockCoeffs`]' transform, test
 /// `block_coefficients_are_each_blocks_own_transform_bit_for_bit`).
 enum BlockSource<'a> {
