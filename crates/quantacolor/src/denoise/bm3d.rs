@@ -1116,15 +1116,15 @@ fn low_check<const AVX2: bool>(
     }
     let row = y * LOW_COEFFS * low.stride + x;
     let mut first = [0.0f32; LANES8];
-    for j in 0..8 {
+    for (j, &r) in reference[..8].iter().enumerate() {
         let at = row + j * low.stride;
         let c0: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
         for l in 0..LANES8 {
-            let d0 = reference[j] - c0[l];
+            let d0 = r - c0[l];
             first[l] = if j == 0 { d0 * d0 } else { first[l] + d0 * d0 };
         }
     }
-    if first.iter().all(|&f| !(f <= bound)) {
+    if !first.iter().any(|&f| f <= bound) {
         return (0, [0.0; LANES8]);
     }
     let partial = low_partial_distances(low, reference, y, x);
