@@ -28,7 +28,18 @@ pub struct BinomialAnscombe {
     table_p: Vec<f64>,
     /// E[A(X) | p] for X ~ Binomial(trials, p), increasing.
     table_expected: Vec<f64>,
+    /// Where [`BinomialAnscombe::inverse_exact`] searches `table_expected`: the range of E[A]
+    /// cut into [`SEARCH_BUCKETS`] equal buckets, `bucket_start[k]` the lowest value of bucket
+    /// k and `bucket_first[k]` the first table index whose E[A] exceeds it (one more entry,
+    /// the table's length, ends the last bucket), so that a value's table interval lies
+    /// between the firsts of its bucket and the next (usually a step or two, instead of a
+    /// binary search over the whole table).
+    bucket_start: Vec<f64>,
+    bucket_first: Vec<usize>,
 }
+
+/// Buckets of the search index of [`BinomialAnscombe::inverse_exact`].
+const SEARCH_BUCKETS: usize = 4096;
 
 impl BinomialAnscombe {
     /// The transform for `trials` binary frames (rounded to the nearest integer, at least 1).
@@ -43,22 +54,28 @@ impl BinomialAnscombe {
             trials,
             table_p: Vec::with_capacity(TABLE_POINTS),
             table_expected: Vec::with_capacity(TABLE_POINTS),
+            bucket_start: Vec::with_capacity(SEARCH_BUCKETS + 1),
+            bucket_first: Vec::with_capacity(SEARCH_BUCKETS + 1),
         };
         // A(k) of every count k, made once (the expectations below visit each many times);
         // beyond `MAX_COUNT_TABLE` trials each is computed where it is needed.
         const MAX_COUNT_TABLE: f64 = 4_194_304.0;
-        let counts: Option<Vec<f64>> = (trials <= MAX_COUNT_TABLE).then(|| {
-            (0..=trials as u64)
-                .map(|k| transform.forward(k as f64))
-                .collect()
-        });
+        // With them, the ratios P(k+1)/P(k) and P(k−1)/P(k) of the binomial distribution
+        // without their p factor, the same for every p (no divisions in the sums).
+        let counts: Option<CountTables> =
+            (trials <= MAX_COUNT_TABLE).then(|| CountTables::new(&transform));
         let points: Vec<(f64, f64)> = (0..TABLE_POINTS)
             .into_par_iter()
             .map(|i| {
                 let theta = std::f64::consts::FRAC_PI_2 * i as f64 / (TABLE_POINTS - 1) as f64;
                 let p = theta.sin().powi(2).clamp(0.0, 1.0);
                 let expected = match &counts {
-                    Some(counts) => transform.expected_with(p, |k| counts[k as usize]),
+                    Some(t) => transform.expected_with(
+                        p,
+                        |k| t.forward[k as usize],
+                        |k| t.up[k as usize],
+                        |k| t.down[k as usize],
+                    ),
                     None => transform.expected(p),
                 };
                 (p, expected)
@@ -74,6 +91,17 @@ impl BinomialAnscombe {
                 transform.table_expected[i] = transform.table_expected[i - 1];
             }
         }
+        let table = &transform.table_expected;
+        let (lo, hi) = (table[0], table[TABLE_POINTS - 1]);
+        for k in 0..SEARCH_BUCKETS {
+            let start = lo + (hi - lo) * (k as f64 / SEARCH_BUCKETS as f64);
+            transform.bucket_start.push(start);
+            transform
+                .bucket_first
+                .push(table.partition_point(|&e| e <= start));
+        }
+        // The last bucket reaches to the end of the table.
+        transform.bucket_first.push(TABLE_POINTS);
         Ok(transform)
     }
 
@@ -112,11 +140,24 @@ impl BinomialAnscombe {
 
     /// E[A(X) | p] for X ~ Binomial(n, p), summed over the binomial distribution.
     pub fn expected(&self, p: f64) -> f64 {
-        self.expected_with(p, |k| self.forward(k as f64))
+        let n = self.trials;
+        self.expected_with(
+            p,
+            |k| self.forward(k as f64),
+            |k| ratio_up(n, k),
+            |k| ratio_down(n, k),
+        )
     }
 
-    /// [`BinomialAnscombe::expected`] with A(k) of count k given by `forward_count`.
-    fn expected_with(&self, p: f64, forward_count: impl Fn(u64) -> f64) -> f64 {
+    /// [`BinomialAnscombe::expected`] with A(k) of count k given by `forward_count`, and
+    /// [`ratio_up`] and [`ratio_down`] of count k by `up` and `down`.
+    fn expected_with(
+        &self,
+        p: f64,
+        forward_count: impl Fn(u64) -> f64,
+        up: impl Fn(u64) -> f64,
+        down: impl Fn(u64) -> f64,
+    ) -> f64 {
         let n = self.trials;
         if p <= 0.0 {
             return forward_count(0);
@@ -132,7 +173,7 @@ impl BinomialAnscombe {
         let (mut weight_sum, mut value_sum) = (1.0, forward_count(mode));
         let mut weight = 1.0f64;
         for k in mode..n_int {
-            weight *= (n - k as f64) / (k as f64 + 1.0) * odds;
+            weight *= up(k) * odds;
             if weight < 1e-17 {
                 break;
             }
@@ -142,7 +183,7 @@ impl BinomialAnscombe {
         weight = 1.0;
         for k in (1..=mode).rev() {
             // P(k−1)/P(k) = k/(n−k+1) · (1−p)/p
-            weight *= k as f64 / (n - k as f64 + 1.0) / odds;
+            weight *= down(k) / odds;
             if weight < 1e-17 {
                 break;
             }
@@ -165,7 +206,7 @@ impl BinomialAnscombe {
         if value >= table[TABLE_POINTS - 1] {
             return 1.0;
         }
-        let hi = table.partition_point(|&e| e <= value).min(TABLE_POINTS - 1);
+        let hi = self.first_above(value).min(TABLE_POINTS - 1);
         let lo = hi - 1;
         let span = table[hi] - table[lo];
         let t = if span > 0.0 {
@@ -174,6 +215,67 @@ impl BinomialAnscombe {
             0.0
         };
         self.table_p[lo] + t * (self.table_p[hi] - self.table_p[lo])
+    }
+}
+
+impl BinomialAnscombe {
+    /// The first table index whose E[A] exceeds `value` (`table_expected.partition_point(|&e|
+    /// e <= value)`, found within the value's bucket of the search index), for `value` within
+    /// the table's range.
+    fn first_above(&self, value: f64) -> usize {
+        let (starts, table) = (&self.bucket_start, &self.table_expected);
+        let (lo, hi) = (table[0], table[TABLE_POINTS - 1]);
+        let guess = if hi > lo {
+            ((value - lo) / (hi - lo) * SEARCH_BUCKETS as f64) as usize
+        } else {
+            0
+        };
+        // The bucket k with start[k] ≤ value < start[k + 1] (the last bucket has no end; the
+        // guess is at most one off by rounding).
+        let mut k = guess.min(SEARCH_BUCKETS - 1);
+        while k > 0 && value < starts[k] {
+            k -= 1;
+        }
+        while k + 1 < SEARCH_BUCKETS && value >= starts[k + 1] {
+            k += 1;
+        }
+        // E[A] > start[k + 1] > value from `first[k + 1]` on, and E[A] ≤ start[k] ≤ value
+        // before `first[k]`.
+        let (from, to) = (self.bucket_first[k], self.bucket_first[k + 1]);
+        from + table[from..to].partition_point(|&e| e <= value)
+    }
+}
+
+/// P(k+1)/P(k) of Binomial(n, p) without its factor p/(1 − p): (n − k)/(k + 1).
+fn ratio_up(n: f64, k: u64) -> f64 {
+    (n - k as f64) / (k as f64 + 1.0)
+}
+
+/// P(k−1)/P(k) of Binomial(n, p) without its factor (1 − p)/p: k/(n − k + 1).
+fn ratio_down(n: f64, k: u64) -> f64 {
+    k as f64 / (n - k as f64 + 1.0)
+}
+
+/// A(k), [`ratio_up`] and [`ratio_down`] of every count k of a [`BinomialAnscombe`], made once
+/// for its table (each expectation visits them many times).
+struct CountTables {
+    forward: Vec<f64>,
+    up: Vec<f64>,
+    down: Vec<f64>,
+}
+
+impl CountTables {
+    fn new(transform: &BinomialAnscombe) -> Self {
+        let n = transform.trials;
+        let counts = 0..=n as u64;
+        CountTables {
+            forward: counts
+                .clone()
+                .map(|k| transform.forward(k as f64))
+                .collect(),
+            up: counts.clone().map(|k| ratio_up(n, k)).collect(),
+            down: counts.map(|k| ratio_down(n, k)).collect(),
+        }
     }
 }
 
@@ -280,6 +382,24 @@ impl Stabiliser {
         }
     }
 
+    /// `(forward(lambda), derivative(lambda))`, the same bits, with the bit rate (binary
+    /// frames) computed once for both: the denoiser needs both at every pixel (the stabilised
+    /// image and the delta method of its noise model).
+    pub fn forward_and_derivative(&self, lambda: f64) -> (f64, f64) {
+        match self {
+            Stabiliser::Binomial { anscombe, model } => {
+                let dark = model.dark_per_frame;
+                let p = Self::bit_rate(lambda, dark);
+                let slope = detection_probability_slope(Self::physical_flux(lambda, dark), dark);
+                (
+                    anscombe.forward_rate(p),
+                    anscombe.derivative_rate(p) * slope,
+                )
+            }
+            Stabiliser::GaussianPoisson { .. } => (self.forward(lambda), self.derivative(lambda)),
+        }
+    }
+
     /// The flux whose stabilised value has expectation `value` (exact unbiased inverse for
     /// binary frames, then the MLE of paper Eq. 6 with its saturation cap,
     /// [`PixelModel::flux`]; asymptotically unbiased for Gaussian–Poisson).
@@ -354,6 +474,57 @@ mod tests {
         assert!(t.inverse_exact(f64::NAN).is_nan());
         assert!(BinomialAnscombe::new(0.0).is_err());
         assert!(BinomialAnscombe::new(f64::NAN).is_err());
+    }
+
+    #[test]
+    fn bucketed_search_is_the_binary_search() {
+        for n in [1.0, 20.0, 700.0, 5000.0] {
+            let t = BinomialAnscombe::new(n).unwrap();
+            let (lo, hi) = (t.table_expected[0], t.table_expected[TABLE_POINTS - 1]);
+            let mut values: Vec<f64> = (0..20_000)
+                .map(|i| lo + (hi - lo) * (i as f64 + 0.5) / 20_000.0)
+                .collect();
+            // Every table value and its neighbours (ties are where the two could differ).
+            for &e in t.table_expected.iter().step_by(7) {
+                // E[A] ≥ 0: the neighbouring floats are one step of the bits away.
+                let bits = e.to_bits();
+                values.extend([
+                    e,
+                    f64::from_bits(bits.saturating_sub(1)),
+                    f64::from_bits(bits + 1),
+                ]);
+            }
+            values.extend(t.bucket_start.iter().copied());
+            for v in values.into_iter().filter(|v| *v > lo && *v < hi) {
+                let want = t.table_expected.partition_point(|&e| e <= v);
+                assert_eq!(t.first_above(v), want, "n {n} value {v}");
+            }
+        }
+    }
+
+    #[test]
+    fn forward_and_derivative_are_both_bit_for_bit() {
+        let binary = Stabiliser::new(PixelModel::binary(0.003), 700.0).unwrap();
+        let multibit = Stabiliser::new(
+            PixelModel {
+                dark_per_frame: 0.1,
+                readout: Readout::GaussianPoisson(crate::model::GaussianPoisson {
+                    gain_e_per_dn: 2.0,
+                    read_noise_e: 1.5,
+                    black_level_dn: 10.0,
+                    saturation_dn: 1023.0,
+                }),
+            },
+            40.0,
+        )
+        .unwrap();
+        for s in [&binary, &multibit] {
+            for lambda in [-0.01, 0.0, 1e-4, 0.02, 0.7, 3.0, 40.0, f64::NAN] {
+                let (a, da) = s.forward_and_derivative(lambda);
+                assert_eq!(a.to_bits(), s.forward(lambda).to_bits(), "{lambda}");
+                assert_eq!(da.to_bits(), s.derivative(lambda).to_bits(), "{lambda}");
+            }
+        }
     }
 
     #[test]

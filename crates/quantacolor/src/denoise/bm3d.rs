@@ -36,8 +36,9 @@
 //! Memory: the 2D DCT of every block position of the matching channel (channel 0: noisy in
 //! Step 1, basic estimate in Step 2) is computed once per step and stored,
 //! `(H−N1+1)·(W−N1+1)·N1²` f32 (about 65 MB for 512×512 and 250 MB for 1000×1000), so
-//! matching is a cheap distance on stored coefficients; Step 2 keeps noisy channel 0's as well.
-//! The other channels' blocks are transformed when a group takes them ([`BlockSource`]): each
+//! matching is a cheap distance on stored coefficients. The other blocks (every channel's but
+//! the matching one's, and in Step 2 noisy channel 0's as well, so that one coefficient buffer
+//! serves both steps) are transformed when a group takes them ([`BlockSource`]): each
 //! position is a group member only about once or twice per step, so that is cheaper than
 //! storing every position (the same bits either way).
 //! For 8×8 blocks the matching channel's first two coefficient rows are also stored as planes
@@ -239,6 +240,7 @@ pub fn bm3d_multichannel_varying(
         relative_variance,
         config,
         FirstChannel::Filtered,
+        &mut Bm3dBuffers::default(),
     )
 }
 
@@ -253,13 +255,45 @@ pub(crate) enum FirstChannel {
     GuideOnly,
 }
 
-/// [`bm3d_multichannel_varying`], with channel 0 filtered or only used as the guide.
+/// The large work buffers of [`bm3d_planes`] (the matching channel's block coefficients of both
+/// steps, their [`LowPlanes`], the aggregation sums and strips of [`run_step`]), kept between
+/// its two steps and between calls (a multiscale run calls it once per scale, finest first), so
+/// that each is allocated, and its pages faulted in, once: fresh, they cost thousands of page
+/// faults per step (measured with perf). Their contents never carry over: every use
+/// overwrites or clears what it reads.
+#[derive(Default)]
+pub(crate) struct Bm3dBuffers {
+    /// The matching channel's coefficients (noisy in Step 1, basic estimate in Step 2).
+    coeffs: Vec<f32>,
+    low: Vec<f32>,
+    num: Vec<f32>,
+    den: Vec<f32>,
+    strips: Vec<(Vec<f32>, Vec<f32>)>,
+}
+
+/// `buffer`'s allocation as a vector of `len` values, zeros where `zeroed` (otherwise only the
+/// values beyond its old length are zeros); a fresh zeroed vector when it is too small.
+fn recycled(mut buffer: Vec<f32>, len: usize, zeroed: bool) -> Vec<f32> {
+    if buffer.capacity() < len {
+        return vec![0.0; len];
+    }
+    buffer.truncate(len);
+    if zeroed {
+        buffer.fill(0.0);
+    }
+    buffer.resize(len, 0.0);
+    buffer
+}
+
+/// [`bm3d_multichannel_varying`], with channel 0 filtered or only used as the guide, in
+/// `buffers`.
 pub(crate) fn bm3d_planes(
     noisy: ArrayView3<f32>,
     sigmas: &[f32],
     relative_variance: Option<ArrayView3<f32>>,
     config: &Bm3dConfig,
     first_channel: FirstChannel,
+    buffers: &mut Bm3dBuffers,
 ) -> Result<Array3<f32>> {
     check_inputs(noisy, sigmas, config)?;
     if sigmas.iter().all(|&s| s == 0.0) {
@@ -277,29 +311,27 @@ pub(crate) fn bm3d_planes(
         .outer_iter()
         .map(|p| p.iter().copied().collect())
         .collect();
-    let noisy_coeffs = BlockCoeffs::compute(&planes[0], &geo, &tr);
-    let noisy = block_sources(&noisy_coeffs, &planes);
     let regime = NoiseRegime::of(sigmas[0], config);
     let shared = SharedParams {
-        noisy: &noisy,
-        noisy_coeffs: &noisy_coeffs,
+        planes: &planes,
         block_variance: block_variance.as_deref(),
         profiles: &profiles,
         geo: &geo,
         tr: &tr,
     };
 
-    let basic = hard_threshold_step(&shared, &regime, sigmas, config, &planes);
-    if !config.wiener {
-        return Ok(to_array(basic, h, w));
-    }
-    // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
-    let mut step2_sigmas = sigmas.to_vec();
-    if first_channel == FirstChannel::GuideOnly {
-        step2_sigmas[0] = 0.0;
-    }
-    let fin = wiener_step(&shared, &regime, &step2_sigmas, config, &basic);
-    Ok(to_array(fin, h, w))
+    let basic = hard_threshold_step(&shared, &regime, sigmas, config, buffers);
+    let out = if config.wiener {
+        // σ = 0 leaves a channel out of Step 2's filtering (its plane is copied from `basic`).
+        let mut step2_sigmas = sigmas.to_vec();
+        if first_channel == FirstChannel::GuideOnly {
+            step2_sigmas[0] = 0.0;
+        }
+        wiener_step(&shared, &regime, &step2_sigmas, config, &basic, buffers)
+    } else {
+        basic
+    };
+    Ok(to_array(out, h, w))
 }
 
 /// The argument checks of [`bm3d_multichannel_varying`] that do not need the geometry.
@@ -390,10 +422,8 @@ impl NoiseRegime {
 
 /// What both steps read: the noisy coefficients, noise model and geometry.
 struct SharedParams<'a> {
-    /// Per channel, where the noisy blocks' coefficients come from.
-    noisy: &'a [BlockSource<'a>],
-    /// The stored coefficients of noisy channel 0 (Step 1 matches on them).
-    noisy_coeffs: &'a BlockCoeffs,
+    /// The noisy planes, one per channel.
+    planes: &'a [Vec<f32>],
     block_variance: Option<&'a [Vec<f32>]>,
     profiles: &'a [Vec<f32>],
     geo: &'a Geometry,
@@ -407,18 +437,23 @@ fn hard_threshold_step(
     regime: &NoiseRegime,
     sigmas: &[f32],
     config: &Bm3dConfig,
-    planes: &[Vec<f32>],
+    buffers: &mut Bm3dBuffers,
 ) -> Vec<Vec<f32>> {
+    let noisy_coeffs = BlockCoeffs::compute_in(
+        std::mem::take(&mut buffers.coeffs),
+        &shared.planes[0],
+        shared.geo,
+        shared.tr,
+    );
+    let noisy = block_sources(&noisy_coeffs, shared.planes);
     let thresholded;
     let matching = if regime.high_noise && config.lambda_2d > 0.0 {
-        thresholded = shared
-            .noisy_coeffs
-            .hard_thresholded(config.lambda_2d * sigmas[0]);
+        thresholded = noisy_coeffs.hard_thresholded(config.lambda_2d * sigmas[0]);
         &thresholded
     } else {
-        shared.noisy_coeffs
+        &noisy_coeffs
     };
-    let low = low_planes(matching, shared.geo);
+    let low = low_planes_in(std::mem::take(&mut buffers.low), matching, shared.geo);
     let step = StepParams {
         matching,
         low: low.as_ref(),
@@ -428,7 +463,7 @@ fn hard_threshold_step(
             config.block_size,
         ),
         max_group: config.max_group_ht,
-        noisy: shared.noisy,
+        noisy: &noisy,
         basic: None,
         sigmas,
         block_variance: shared.block_variance,
@@ -439,21 +474,39 @@ fn hard_threshold_step(
         },
         profiles: shared.profiles,
     };
-    run_step(&step, shared.geo, shared.tr, planes)
+    let out = run_step(&step, shared.geo, shared.tr, shared.planes, buffers);
+    if let Some(low) = low {
+        buffers.low = low.planes;
+    }
+    buffers.coeffs = noisy_coeffs.data;
+    out
 }
 
 /// Step 2 (TIP 2007 §III-B): matching on the basic estimate's channel 0, empirical Wiener
 /// shrinkage of the noisy groups with the basic estimate as the oracle; the final estimate.
+/// The basic estimate's coefficients take the buffer of Step 1's noisy ones, so the noisy
+/// blocks of every channel are transformed from the planes (the same bits).
 fn wiener_step(
     shared: &SharedParams,
     regime: &NoiseRegime,
     sigmas: &[f32],
     config: &Bm3dConfig,
     basic: &[Vec<f32>],
+    buffers: &mut Bm3dBuffers,
 ) -> Vec<Vec<f32>> {
-    let basic_coeffs = BlockCoeffs::compute(&basic[0], shared.geo, shared.tr);
+    let basic_coeffs = BlockCoeffs::compute_in(
+        std::mem::take(&mut buffers.coeffs),
+        &basic[0],
+        shared.geo,
+        shared.tr,
+    );
     let basic_sources = block_sources(&basic_coeffs, basic);
-    let low = low_planes(&basic_coeffs, shared.geo);
+    let noisy: Vec<BlockSource> = shared
+        .planes
+        .iter()
+        .map(|p| BlockSource::Plane(p))
+        .collect();
+    let low = low_planes_in(std::mem::take(&mut buffers.low), &basic_coeffs, shared.geo);
     let step = StepParams {
         matching: &basic_coeffs,
         low: low.as_ref(),
@@ -463,14 +516,19 @@ fn wiener_step(
             config.block_size,
         ),
         max_group: config.max_group_wiener,
-        noisy: shared.noisy,
+        noisy: &noisy,
         basic: Some(&basic_sources),
         sigmas,
         block_variance: shared.block_variance,
         lambda_3d: config.lambda_3d,
         profiles: shared.profiles,
     };
-    run_step(&step, shared.geo, shared.tr, basic)
+    let out = run_step(&step, shared.geo, shared.tr, basic, buffers);
+    if let Some(low) = low {
+        buffers.low = low.planes;
+    }
+    buffers.coeffs = basic_coeffs.data;
+    out
 }
 
 /// Relative σ of every 2D DCT coefficient (row-major `n × n`) of white noise smoothed by a
@@ -724,9 +782,16 @@ struct BlockCoeffs {
 }
 
 impl BlockCoeffs {
+    #[cfg(test)]
     fn compute(plane: &[f32], geo: &Geometry, tr: &Transforms) -> Self {
+        Self::compute_in(Vec::new(), plane, geo, tr)
+    }
+
+    /// [`BlockCoeffs::compute`] in `buffer`'s allocation ([`Bm3dBuffers`]; every value is
+    /// overwritten).
+    fn compute_in(buffer: Vec<f32>, plane: &[f32], geo: &Geometry, tr: &Transforms) -> Self {
         let (n, n2, pw, w) = (geo.n, geo.n * geo.n, geo.pw, geo.w);
-        let mut data = vec![0.0f32; geo.ph * pw * n2];
+        let mut data = recycled(buffer, geo.ph * pw * n2, false);
         data.par_chunks_mut(pw * n2)
             .enumerate()
             .for_each(|(y, row)| {
@@ -818,12 +883,13 @@ impl BlockCoeffs {
 }
 
 /// Where a step reads the 2D DCT coefficients of a channel's blocks: stored for every
-/// position (channel 0, which groups are matched on and which is read at every position of
-/// every search window), or computed from the plane for each group member (the other
-/// channels: with the reference grid's stride of 5 and groups of up to 16 / 32, a position is
-/// a group member about once or twice per step on average, so storing every position's
-/// coefficients, tens of MB per channel, cost more in page faults and cache misses than
-/// transforming the members; measured with perf). Both give the same bits
+/// position (the step's matching channel, which is read at every position of every search
+/// window), or computed from the plane for each group member (the other channels, and noisy
+/// channel 0 in Step 2: with the reference grid's stride of 5 and groups of up to 16 / 32, a
+/// position is a group member about once or twice per step on average, so storing every
+/// position's coefficients, tens of MB per channel, cost more in page faults and cache misses
+/// than transforming the members; measured with perf: keeping Step 1's noisy channel 0 for
+/// Step 2 cost 14k page faults per call on a 496 × 254 image). Both give the same bits
 /// ([`Transforms::forward`] is [`BlockCoeffs`]' transform, test
 /// `block_coefficients_are_each_blocks_own_transform_bit_for_bit`).
 enum BlockSource<'a> {
@@ -966,13 +1032,19 @@ struct LowPlanes {
 }
 
 /// The [`LowPlanes`] of `coeffs` for 8 × 8 blocks, `None` for other sizes.
+#[cfg(test)]
 fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
+    low_planes_in(Vec::new(), coeffs, geo)
+}
+
+/// [`low_planes`] in `buffer`'s allocation ([`Bm3dBuffers`]).
+fn low_planes_in(buffer: Vec<f32>, coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
     if coeffs.n2 != 64 {
         return None;
     }
     let pw = geo.pw;
     let stride = pw + LANES8;
-    let mut planes = vec![0.0f32; geo.ph * LOW_COEFFS * stride];
+    let mut planes = recycled(buffer, geo.ph * LOW_COEFFS * stride, false);
     planes
         .par_chunks_mut(LOW_COEFFS * stride)
         .zip(coeffs.data.par_chunks(pw * 64))
@@ -981,6 +1053,10 @@ fn low_planes(coeffs: &BlockCoeffs, geo: &Geometry) -> Option<LowPlanes> {
                 for (k, &v) in block[..LOW_COEFFS].iter().enumerate() {
                     rows[k * stride + x] = v;
                 }
+            }
+            // The padding (a recycled buffer holds old values there).
+            for row in rows.chunks_exact_mut(stride) {
+                row[pw..].fill(0.0);
             }
         });
     Some(LowPlanes { planes, stride })
@@ -1013,40 +1089,71 @@ fn low_partial_distances(low: &LowPlanes, reference: &[f32], y: usize, x: usize)
     sum
 }
 
-/// [`low_partial_distances`], through [`low_partial_distances_avx2`] when `AVX2`.
+/// The first check of [`find_group`] for the eight block positions (y, x..x + 8): a mask of
+/// the lanes whose [`low_partial_distances`] are at most `bound` (bit l for position x + l),
+/// and those partials; through [`low_check_avx2`] when `AVX2`.
+///
+/// The first row of coefficients is checked before the second: per lane, Σ_j (r[j] − c[j])²
+/// summed over j in order is the same sum with smaller terms (each lane's two-row term is the
+/// one-row square plus a non-negative one, and rounding is monotone), so it is at most the
+/// two-row partial, which is at most the full distance. When no lane passes it, the chunk is
+/// done after eight coefficients instead of sixteen (mask 0; the partials are then unused
+/// zeros). The mask is the same either way.
 #[inline(always)]
-fn low_partials<const AVX2: bool>(
+fn low_check<const AVX2: bool>(
     low: &LowPlanes,
     reference: &[f32],
     y: usize,
     x: usize,
-) -> [f32; LANES8] {
+    bound: f32,
+) -> (u32, [f32; LANES8]) {
     #[cfg(target_arch = "x86_64")]
     {
         if AVX2 {
             // SAFETY: `AVX2` is only true under `process_row_avx2`, whose caller checked the CPU.
-            return unsafe { low_partial_distances_avx2(low, reference, y, x) };
+            return unsafe { low_check_avx2(low, reference, y, x, bound) };
         }
     }
-    low_partial_distances(low, reference, y, x)
+    let row = y * LOW_COEFFS * low.stride + x;
+    let mut first = [0.0f32; LANES8];
+    for (j, &r) in reference[..8].iter().enumerate() {
+        let at = row + j * low.stride;
+        let c0: &[f32; LANES8] = low.planes[at..at + LANES8].try_into().expect("lanes");
+        for l in 0..LANES8 {
+            let d0 = r - c0[l];
+            first[l] = if j == 0 { d0 * d0 } else { first[l] + d0 * d0 };
+        }
+    }
+    if !first.iter().any(|&f| f <= bound) {
+        return (0, [0.0; LANES8]);
+    }
+    let partial = low_partial_distances(low, reference, y, x);
+    let mut mask = 0u32;
+    for (l, &part) in partial.iter().enumerate() {
+        mask |= ((part <= bound) as u32) << l;
+    }
+    (mask, partial)
 }
 
-/// [`low_partial_distances`] in AVX2 registers: the eight positions are the eight lanes of one
-/// register, and every lane does the same subtractions, products and sums in the same order
-/// (no fused multiply-add), so the same bits. (The compiler did not vectorise the portable
-/// version well: it split the lanes into 4 + 1 + 1 + 2.)
+/// [`low_check`] in AVX2 registers: the eight positions are the eight lanes of one register,
+/// and every lane does the subtractions, products and sums of [`low_partial_distances`] in the
+/// same order (no fused multiply-add), so the same bits; the first row's squares are kept for
+/// the second row's sums, and each mask is one vector comparison (`≤`, false for NaN as the
+/// portable `<=`). (The compiler did not vectorise the portable version well: it split the
+/// lanes into 4 + 1 + 1 + 2.)
 ///
 /// # Safety
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 #[inline]
-unsafe fn low_partial_distances_avx2(
+unsafe fn low_check_avx2(
     low: &LowPlanes,
     reference: &[f32],
     y: usize,
     x: usize,
-) -> [f32; LANES8] {
+    bound: f32,
+) -> (u32, [f32; LANES8]) {
     use std::arch::x86_64::*;
     let stride = low.stride;
     let row = y * LOW_COEFFS * stride + x;
@@ -1056,18 +1163,37 @@ unsafe fn low_partial_distances_avx2(
             && row + (LOW_COEFFS - 1) * stride + LANES8 <= low.planes.len()
     );
     let base = low.planes.as_ptr().add(row);
+    let limit = _mm256_set1_ps(bound);
+    let mut squares = [_mm256_setzero_ps(); 8];
+    let mut first = _mm256_setzero_ps();
+    for (j, square) in squares.iter_mut().enumerate() {
+        let d0 = _mm256_sub_ps(
+            _mm256_set1_ps(reference[j]),
+            _mm256_loadu_ps(base.add(j * stride)),
+        );
+        *square = _mm256_mul_ps(d0, d0);
+        first = if j == 0 {
+            *square
+        } else {
+            _mm256_add_ps(first, *square)
+        };
+    }
+    if _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(first, limit)) == 0 {
+        return (0, [0.0; LANES8]);
+    }
     let mut sum = _mm256_setzero_ps();
-    for j in 0..8 {
-        let c0 = _mm256_loadu_ps(base.add(j * stride));
-        let c1 = _mm256_loadu_ps(base.add((j + 8) * stride));
-        let d0 = _mm256_sub_ps(_mm256_set1_ps(reference[j]), c0);
-        let d1 = _mm256_sub_ps(_mm256_set1_ps(reference[j + 8]), c1);
-        let acc = _mm256_add_ps(_mm256_mul_ps(d0, d0), _mm256_mul_ps(d1, d1));
+    for (j, &square) in squares.iter().enumerate() {
+        let d1 = _mm256_sub_ps(
+            _mm256_set1_ps(reference[j + 8]),
+            _mm256_loadu_ps(base.add((j + 8) * stride)),
+        );
+        let acc = _mm256_add_ps(square, _mm256_mul_ps(d1, d1));
         sum = if j == 0 { acc } else { _mm256_add_ps(sum, acc) };
     }
+    let mask = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(sum, limit)) as u32;
     let mut out = [0.0f32; LANES8];
     _mm256_storeu_ps(out.as_mut_ptr(), sum);
-    out
+    (mask, out)
 }
 
 /// What differs between the two steps.
@@ -1134,22 +1260,30 @@ struct Strip<'b> {
 
 /// One BM3D step over the whole image; returns one plane per channel. Channels with σ = 0 are
 /// copied from `planes`.
-fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]) -> Vec<Vec<f32>> {
+fn run_step(
+    p: &StepParams,
+    geo: &Geometry,
+    tr: &Transforms,
+    planes: &[Vec<f32>],
+    work: &mut Bm3dBuffers,
+) -> Vec<Vec<f32>> {
     let (h, w, n) = (geo.h, geo.w, geo.n);
     let n2 = n * n;
     let channels = planes.len();
-    let mut num = vec![0.0f32; channels * h * w];
-    let mut den = vec![0.0f32; channels * h * w];
+    let mut num = recycled(std::mem::take(&mut work.num), channels * h * w, true);
+    let mut den = recycled(std::mem::take(&mut work.den), channels * h * w, true);
     // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once; their
-    // buffers are made once and cleared for every batch (fresh ones cost page faults).
+    // buffers are made once (or kept from the last step, `work`) and cleared for every batch
+    // (fresh ones cost page faults).
     const ROWS_PER_BATCH: usize = 16;
     let strip_rows = (2 * geo.half_window + n).min(h);
-    let mut buffers: Vec<(Vec<f32>, Vec<f32>)> = (0..ROWS_PER_BATCH.min(geo.ref_ys.len()))
-        .map(|_| {
-            let len = channels * strip_rows * w;
-            (vec![0.0; len], vec![0.0; len])
-        })
-        .collect();
+    let mut buffers = std::mem::take(&mut work.strips);
+    buffers.resize_with(ROWS_PER_BATCH.min(geo.ref_ys.len()), Default::default);
+    for (num, den) in &mut buffers {
+        let len = channels * strip_rows * w;
+        *num = recycled(std::mem::take(num), len, false);
+        *den = recycled(std::mem::take(den), len, false);
+    }
     // Group members lie within the search window's rows.
     let strip_of = |yr: usize| {
         let y0 = yr.saturating_sub(geo.half_window);
@@ -1199,7 +1333,7 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
                 add_rows(den, i * SUM_ROWS, false);
             });
     }
-    (0..channels)
+    let out = (0..channels)
         .map(|c| {
             if p.sigmas[c] == 0.0 {
                 return planes[c].clone();
@@ -1211,7 +1345,9 @@ fn run_step(p: &StepParams, geo: &Geometry, tr: &Transforms, planes: &[Vec<f32>]
                 .map(|(&a, &b)| a / b)
                 .collect()
         })
-        .collect()
+        .collect();
+    (work.num, work.den, work.strips) = (num, den, buffers);
+    out
 }
 
 /// Every reference block of row `yr` ([`process_reference`]), with AVX2 where the CPU has it.
@@ -1239,7 +1375,7 @@ fn process_row(
 }
 
 /// The reference blocks of row `yr`; `AVX2` selects the explicit AVX2 kernels
-/// ([`low_partial_distances_avx2`], [`hard_threshold_avx2`], [`wiener_shrink_avx2`]), which
+/// ([`low_check_avx2`], [`hard_threshold_avx2`], [`wiener_shrink_avx2`]), which
 /// give the same bits as the portable ones.
 #[inline(always)]
 fn process_row_generic<const AVX2: bool>(
@@ -1683,13 +1819,9 @@ fn find_group<const AVX2: bool>(
                 // read the next positions or the padding and are not used).
                 let mut x = x0;
                 while x <= x1 {
-                    let partial = low_partials::<AVX2>(low, reference, y, x);
                     // Lanes that pass the check, as bits (the bound of the chunk's start: a
                     // lower one found meanwhile only saves work, `consider` applies it).
-                    let mut pass = 0u32;
-                    for (l, &part) in partial.iter().enumerate() {
-                        pass |= ((part <= bound) as u32) << l;
-                    }
+                    let (mut pass, partial) = low_check::<AVX2>(low, reference, y, x, bound);
                     pass &= (1u32 << (x1 + 1 - x).min(LANES8)) - 1;
                     if AVX2 {
                         prefetch_blocks(p.matching, y * pw + x, pass);
@@ -2551,15 +2683,41 @@ mod tests {
         for y in 0..geo.ph {
             for x0 in (0..geo.pw).step_by(8) {
                 let lanes = low_partial_distances(&low, reference, y, x0);
+                // With no bound every lane passes and the check returns the partials.
+                let (mask, partial) = low_check::<false>(&low, reference, y, x0, f32::INFINITY);
+                assert_eq!(mask, 0xff);
+                assert_eq!(partial.map(f32::to_bits), lanes.map(f32::to_bits));
                 #[cfg(target_arch = "x86_64")]
                 if std::arch::is_x86_feature_detected!("avx2") {
                     // SAFETY: AVX2 checked just above.
-                    let wide = unsafe { low_partial_distances_avx2(&low, reference, y, x0) };
+                    let (mask, wide) =
+                        unsafe { low_check_avx2(&low, reference, y, x0, f32::INFINITY) };
+                    assert_eq!(mask, 0xff);
                     assert_eq!(
                         wide.map(f32::to_bits),
                         lanes.map(f32::to_bits),
                         "({y}, {x0})"
                     );
+                }
+                // With bounds around the lanes' partials (and below all of them, where the
+                // first row alone rejects the chunk), the mask is the lanes at most the bound.
+                let mut bounds: Vec<f32> = lanes.to_vec();
+                bounds.extend([
+                    0.0,
+                    lanes.iter().copied().fold(f32::INFINITY, f32::min) * 0.5,
+                ]);
+                for bound in bounds {
+                    let want = lanes
+                        .iter()
+                        .enumerate()
+                        .fold(0u32, |m, (l, &v)| m | (((v <= bound) as u32) << l));
+                    assert_eq!(low_check::<false>(&low, reference, y, x0, bound).0, want);
+                    #[cfg(target_arch = "x86_64")]
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        // SAFETY: AVX2 checked just above.
+                        let (mask, _) = unsafe { low_check_avx2(&low, reference, y, x0, bound) };
+                        assert_eq!(mask, want, "({y}, {x0}) bound {bound}");
+                    }
                 }
                 for (l, &got) in lanes.iter().enumerate().take(geo.pw - x0) {
                     let block = coeffs.block(y * geo.pw + x0 + l);

@@ -15,7 +15,7 @@
 //! three channels (the RMS noise of the stabilised R, G, B).
 
 use super::anscombe::Stabiliser;
-use super::bm3d::{bm3d_planes, Bm3dConfig, FirstChannel};
+use super::bm3d::{bm3d_planes, Bm3dBuffers, Bm3dConfig, FirstChannel};
 use crate::error::{Error, Result};
 use crate::filters::{bilinear, box_downsample};
 use crate::model::PixelModel;
@@ -395,11 +395,14 @@ pub fn bm3d_multiscale(
         coarse_sigma_factor,
         config,
         FirstChannel::Filtered,
+        &mut Bm3dBuffers::default(),
     )
 }
 
 /// [`bm3d_multiscale`]; the coarse scales use only their chroma, so their Y is only the
-/// grouping guide ([`FirstChannel::GuideOnly`]: the same chroma, less work).
+/// grouping guide ([`FirstChannel::GuideOnly`]: the same chroma, less work). Every scale's BM3D
+/// works in `buffers`, allocated at the finest.
+#[allow(clippy::too_many_arguments)]
 fn multiscale(
     planes: ArrayView3<f32>,
     sigmas: [f32; 3],
@@ -408,8 +411,16 @@ fn multiscale(
     coarse_sigma_factor: f32,
     config: &Bm3dConfig,
     first_channel: FirstChannel,
+    buffers: &mut Bm3dBuffers,
 ) -> Result<Array3<f32>> {
-    let mut fine = bm3d_planes(planes, &sigmas, relative_variance, config, first_channel)?;
+    let mut fine = bm3d_planes(
+        planes,
+        &sigmas,
+        relative_variance,
+        config,
+        first_channel,
+        buffers,
+    )?;
     let (_, h, w) = planes.dim();
     let min_side = 4 * config.block_size;
     if scales == 0 || h / 2 < min_side || w / 2 < min_side {
@@ -436,6 +447,7 @@ fn multiscale(
         coarse_sigma_factor,
         config,
         FirstChannel::GuideOnly,
+        buffers,
     )?;
     for ch in 1..3 {
         let correction =
@@ -490,24 +502,41 @@ pub fn stabilise(
     };
     let stabiliser = Stabiliser::new(input.model, trials.max(1.0))?;
     let mut planes = Array3::<f32>::zeros((3, h, w));
-    // In parallel by rows of the planes (`rows[y]` holds row y of all three).
-    let rows: Vec<Vec<[f32; 3]>> = (0..h)
+    // With a noise model, the stabiliser's derivative at every pixel as well (the delta method
+    // of `variance_map`), from the same bit rate as the stabilised value.
+    let with_derivative = input.noise.is_some();
+    // In parallel by rows of the planes (`rows[y]` holds row y of all three, and of the
+    // derivatives).
+    let rows: Vec<Vec<([f32; 3], [f64; 3])>> = (0..h)
         .into_par_iter()
         .map(|y| {
             (0..w)
                 .map(|x| {
+                    let mut da = [0.0; 3];
                     let a = [0, 1, 2].map(|ch| {
                         let v = linear[[y, x, ch]];
-                        let v = if v.is_finite() { v as f64 } else { 0.0 };
-                        stabiliser.forward(v)
+                        if !v.is_finite() {
+                            // The noise model takes the value as it is (`model_variance_map`).
+                            if with_derivative {
+                                da[ch] = stabiliser.derivative(v as f64);
+                            }
+                            return stabiliser.forward(0.0);
+                        }
+                        if !with_derivative {
+                            return stabiliser.forward(v as f64);
+                        }
+                        let (a, d) = stabiliser.forward_and_derivative(v as f64);
+                        da[ch] = d;
+                        a
                     });
-                    ColorTransform::apply(&transform.forward, a).map(|t| t as f32)
+                    let t = ColorTransform::apply(&transform.forward, a).map(|t| t as f32);
+                    (t, da)
                 })
                 .collect()
         })
         .collect();
     for (y, row) in rows.iter().enumerate() {
-        for (x, t) in row.iter().enumerate() {
+        for (x, (t, _)) in row.iter().enumerate() {
             for ch in 0..3 {
                 planes[[ch, y, x]] = t[ch];
             }
@@ -515,8 +544,13 @@ pub fn stabilise(
     }
     let (sigmas, source, relative_variance) = match input.noise {
         Some(noise) => {
-            let variance =
-                model_variance_map(&linear, &noise, &stabiliser, &transform, input.w_weights);
+            let variance = variance_map(
+                &noise,
+                stabiliser.model(),
+                &transform,
+                input.w_weights,
+                |y, x| rows[y][x].1,
+            );
             let sigmas = median_sigmas(&variance);
             let relative = relative_variance(variance, sigmas);
             let source = if input.model.is_binary() {
@@ -620,7 +654,21 @@ pub fn model_variance_map(
     transform: &ColorTransform,
     w_weights: [f64; 3],
 ) -> Array3<f32> {
-    let (h, w, _) = linear.dim();
+    variance_map(noise, stabiliser.model(), transform, w_weights, |y, x| {
+        [0, 1, 2].map(|c| stabiliser.derivative(linear[[y, x, c]] as f64))
+    })
+}
+
+/// [`model_variance_map`] with the stabiliser's derivative ∂a_c/∂λ_c at pixel (y, x) given by
+/// `derivative(y, x)` ([`stabilise`] has them from the stabilisation itself).
+fn variance_map(
+    noise: &MergeNoise,
+    model: &PixelModel,
+    transform: &ColorTransform,
+    w_weights: [f64; 3],
+    derivative: impl Fn(usize, usize) -> [f64; 3] + Sync,
+) -> Array3<f32> {
+    let (_, h, w) = noise.flux.dim();
     let has_w = noise
         .flux
         .index_axis(Axis(0), 3)
@@ -632,8 +680,10 @@ pub fn model_variance_map(
         .map(|y| {
             (0..w)
                 .map(|x| {
-                    pixel_variance(linear, noise, stabiliser, transform, w_weights, has_w, y, x)
-                        .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
+                    pixel_variance(noise, model, transform, w_weights, has_w, y, x, || {
+                        derivative(y, x)
+                    })
+                    .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
                 })
                 .collect()
         })
@@ -648,16 +698,18 @@ pub fn model_variance_map(
     out
 }
 
+/// The variances of [`model_variance_map`] at pixel (y, x); `derivative` gives ∂a_c/∂λ_c there
+/// (asked only where the model is defined).
 #[allow(clippy::too_many_arguments)]
 fn pixel_variance(
-    linear: &ArrayView3<f32>,
     noise: &MergeNoise,
-    stabiliser: &Stabiliser,
+    model: &PixelModel,
     transform: &ColorTransform,
     w_weights: [f64; 3],
     has_w: bool,
     y: usize,
     x: usize,
+    derivative: impl FnOnce() -> [f64; 3],
 ) -> Option<[f64; 3]> {
     let lam = [0, 1, 2, 3].map(|c| noise.flux[[c, y, x]] as f64);
     let n = [0, 1, 2, 3].map(|c| noise.effective_frames[[c, y, x]] as f64);
@@ -669,12 +721,12 @@ fn pixel_variance(
         if c >= channels {
             return 0.0;
         }
-        stabiliser.model().flux_variance(lam[c], n[c])
+        model.flux_variance(lam[c], n[c])
     });
     // ∂out_c/∂λ_k of Eq. 8.
     let jac = combine_rgbw_jacobian(lam, w_weights, has_w);
     // ∂a_c/∂out_c of the stabilisation a = A(n·p(out)).
-    let da = [0, 1, 2].map(|c| stabiliser.derivative(linear[[y, x, c]] as f64));
+    let da = derivative();
     // Rows of the full Jacobian from (λ_R, λ_G, λ_B, λ_W) to the transformed channels.
     let mut var = [0.0; 3];
     for (i, row) in transform.forward.iter().enumerate() {
