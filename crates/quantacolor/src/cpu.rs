@@ -18,3 +18,42 @@ pub fn prefetch<T>(items: &[T]) {
     #[cfg(not(target_arch = "x86_64"))]
     let _ = items;
 }
+
+/// The 8x8 transpose of 32-bit words: lane l of output k is lane k of input l (shuffles only:
+/// the words, f32 bits included, move unchanged). Used by the ChaCha draws of hot-pixel
+/// correction and the transposed tile costs of patch alignment.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+pub unsafe fn transpose8x8(r: &[std::arch::x86_64::__m256i; 8]) -> [std::arch::x86_64::__m256i; 8] {
+    use std::arch::x86_64::*;
+    // Pairs of rows interleaved by word, then by word pair; 128-bit halves then swapped.
+    let t: [__m256i; 8] = std::array::from_fn(|i| {
+        let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
+        if i % 2 == 0 {
+            _mm256_unpacklo_epi32(a, b)
+        } else {
+            _mm256_unpackhi_epi32(a, b)
+        }
+    });
+    // u[k] (k < 4): words k and k + 4 of rows 0..4; u[4 + k]: of rows 4..8.
+    let u: [__m256i; 8] = std::array::from_fn(|i| {
+        let (base, k) = (i / 4 * 4, i % 4);
+        let (a, b) = (t[base + k / 2], t[base + 2 + k / 2]);
+        if k % 2 == 0 {
+            _mm256_unpacklo_epi64(a, b)
+        } else {
+            _mm256_unpackhi_epi64(a, b)
+        }
+    });
+    std::array::from_fn(|k| {
+        if k < 4 {
+            _mm256_permute2x128_si256::<0x20>(u[k], u[4 + k])
+        } else {
+            _mm256_permute2x128_si256::<0x31>(u[k - 4], u[k])
+        }
+    })
+}

@@ -195,7 +195,14 @@ impl HotPixelCorrector {
                     let per_pixel = DRAW_CHUNK / BLOCK_WORDS;
                     let mut blocks = vec![[0u32; BLOCK_WORDS]; per_pixel * g];
                     let mut jobs: Vec<(u64, u64)> = Vec::with_capacity(per_pixel * g);
-                    let mut bits = vec![0u32; DRAW_CHUNK * g];
+                    // With AVX2, every hot pixel having at most eight candidates (its sites
+                    // one vector) and the 4-byte loads of the group's bytes ending inside a
+                    // frame: eight pixels at a time ([`HotSites`]), the group padded to whole
+                    // vectors.
+                    let frame_bytes = frames.height() * row_bytes;
+                    let sites8 = HotSites::new(&sites, &spans, frame_bytes, &span);
+                    let gp = sites8.as_ref().map_or(g, |s| s.padded);
+                    let mut bits = vec![0u32; DRAW_CHUNK * gp];
                     let mut t0 = range.start;
                     while t0 < range.end {
                         let t1 = ((t0 / DRAW_CHUNK + 1) * DRAW_CHUNK).min(range.end);
@@ -207,12 +214,20 @@ impl HotPixelCorrector {
                             jobs.extend((first..first + count).map(|b| (idx as u64, b as u64)));
                         }
                         chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g]);
+                        let offset = t0 - first * BLOCK_WORDS;
+                        if let Some(sites8) = &sites8 {
+                            let blocks = &blocks[..count * g];
+                            sites8.positions(blocks, count, offset, c, &mut bits);
+                            sites8.count(frames, t0..t1, range.end, &span, &bits, &mut counts);
+                            t0 = t1;
+                            continue;
+                        }
                         for (i, (run, &(start, n))) in blocks[..count * g]
                             .chunks_exact(count)
                             .zip(&spans)
                             .enumerate()
                         {
-                            let words = &run.as_flattened()[t0 - first * BLOCK_WORDS..][..c];
+                            let words = &run.as_flattened()[offset..][..c];
                             let sites = &sites[start..];
                             for (f, &r) in words.iter().enumerate() {
                                 bits[f * g + i] = sites[((r as u64 * n) >> 32) as usize];
@@ -266,6 +281,197 @@ impl HotPixelCorrector {
         rng.set_stream(idx as u64);
         rng.set_word_pos(t as u128);
         rng
+    }
+}
+
+/// The candidates of a group of hot pixels (each its bit positions in a frame, at most eight)
+/// as one vector per pixel, for the AVX2 paths of
+/// [`HotPixelCorrector::corrected_block_sum`]: a draw `r` picks lane `(r · n) >> 32` of its
+/// pixel's vector (a lane permutation instead of a load per draw), and a frame's bits of eight
+/// pixels are read by one gather. The same picks and bits as the scalar path.
+#[derive(Debug)]
+struct HotSites {
+    /// Each pixel's candidate positions, padded with its first.
+    tables: Vec<[u32; 8]>,
+    /// Each pixel's candidate count.
+    counts: Vec<u32>,
+    /// Pixels of the group rounded up to whole vectors of eight (the padding repeats the
+    /// last pixel; its counts are dropped).
+    padded: usize,
+}
+
+impl HotSites {
+    /// `None` without AVX2, when a pixel has more than eight candidates, or when the 4-byte
+    /// gathers from the group's bytes (`span`) would reach past a frame of `frame_bytes`.
+    fn new(
+        sites: &[u32],
+        spans: &[(usize, u64)],
+        frame_bytes: usize,
+        span: &Range<usize>,
+    ) -> Option<HotSites> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let fits = std::arch::is_x86_feature_detected!("avx2")
+                && !spans.is_empty()
+                && spans.iter().all(|&(_, n)| (1..=8).contains(&n))
+                && span.end + 3 <= frame_bytes;
+            if !fits {
+                return None;
+            }
+            let tables = spans
+                .iter()
+                .map(|&(start, n)| {
+                    let own = &sites[start..start + n as usize];
+                    std::array::from_fn(|l| own.get(l).copied().unwrap_or(own[0]))
+                })
+                .collect();
+            Some(HotSites {
+                tables,
+                counts: spans.iter().map(|&(_, n)| n as u32).collect(),
+                padded: spans.len().div_ceil(8) * 8,
+            })
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            let _ = (sites, spans, frame_bytes, span);
+            None
+        }
+    }
+
+    /// The scalar path's `bits` (frame-major, `padded` per frame) for the `c` frames from word
+    /// `offset` of each pixel's run of `count` blocks in `blocks`.
+    fn positions(
+        &self,
+        blocks: &[[u32; BLOCK_WORDS]],
+        count: usize,
+        offset: usize,
+        c: usize,
+        bits: &mut [u32],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: `new` checked AVX2.
+            unsafe { self.positions_avx2(blocks, count, offset, c, bits) };
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (blocks, count, offset, c, bits);
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn positions_avx2(
+        &self,
+        blocks: &[[u32; BLOCK_WORDS]],
+        count: usize,
+        offset: usize,
+        c: usize,
+        bits: &mut [u32],
+    ) {
+        use std::arch::x86_64::*;
+        let g = self.tables.len();
+        let words =
+            |i: usize| &blocks[i.min(g - 1) * count..][..count].as_flattened()[offset..][..c];
+        let whole = c / 8 * 8;
+        for p0 in (0..self.padded).step_by(8) {
+            for f0 in (0..whole).step_by(8) {
+                // Row l: the eight draws of pixel p0 + l, turned into its candidates' positions.
+                let rows: [__m256i; 8] = std::array::from_fn(|l| {
+                    let i = (p0 + l).min(g - 1);
+                    let r = _mm256_loadu_si256(words(i)[f0..].as_ptr().cast());
+                    let n = _mm256_set1_epi32(self.counts[i] as i32);
+                    // (r · n) >> 32 per lane: even lanes from one 32x32 -> 64-bit product, odd
+                    // lanes from another.
+                    let even = _mm256_srli_epi64::<32>(_mm256_mul_epu32(r, n));
+                    let odd = _mm256_mul_epu32(_mm256_srli_epi64::<32>(r), n);
+                    let pick = _mm256_blend_epi32::<0b1010_1010>(even, odd);
+                    let table = _mm256_loadu_si256(self.tables[i].as_ptr().cast());
+                    _mm256_permutevar8x32_epi32(table, pick)
+                });
+                for (f, column) in crate::cpu::transpose8x8(&rows).into_iter().enumerate() {
+                    _mm256_storeu_si256(
+                        bits[(f0 + f) * self.padded + p0..][..8].as_mut_ptr().cast(),
+                        column,
+                    );
+                }
+            }
+        }
+        for f in whole..c {
+            for i in 0..self.padded {
+                let j = i.min(g - 1);
+                let r = words(j)[f];
+                let pick = ((r as u64 * self.counts[j] as u64) >> 32) as usize;
+                bits[f * self.padded + i] = self.tables[j][pick];
+            }
+        }
+    }
+
+    /// Adds to `counts` (one per pixel of the group) the bits at `bits` (from
+    /// [`HotSites::positions`]) of frames `chunk`, prefetching `span` of the frame
+    /// [`PREFETCH_FRAMES`] ahead while it lies before `end`.
+    fn count(
+        &self,
+        frames: &BinaryFrames,
+        chunk: Range<usize>,
+        end: usize,
+        span: &Range<usize>,
+        bits: &[u32],
+        counts: &mut [u32],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            // SAFETY: `new` checked AVX2 and that the gathers stay inside a frame.
+            unsafe { self.count_avx2(frames, chunk, end, span, bits, counts) };
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (frames, chunk, end, span, bits, counts);
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2; every position of `bits` must lie in a frame's first
+    /// `frame bytes − 3` bytes.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn count_avx2(
+        &self,
+        frames: &BinaryFrames,
+        chunk: Range<usize>,
+        end: usize,
+        span: &Range<usize>,
+        bits: &[u32],
+        counts: &mut [u32],
+    ) {
+        use std::arch::x86_64::*;
+        const VECTORS: usize = HOT_GROUP / 8;
+        let vectors = self.padded / 8;
+        debug_assert!(vectors <= VECTORS);
+        let (seven, one) = (_mm256_set1_epi32(7), _mm256_set1_epi32(1));
+        let mut sums = [_mm256_setzero_si256(); VECTORS];
+        for (f, t) in chunk.enumerate() {
+            if t + PREFETCH_FRAMES < end {
+                crate::cpu::prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
+            }
+            let frame = frames.raw_frame(t);
+            let positions = &bits[f * self.padded..][..self.padded];
+            for (v, sum) in sums[..vectors].iter_mut().enumerate() {
+                let b = _mm256_loadu_si256(positions[8 * v..].as_ptr().cast());
+                // The four bytes from the candidate's byte (little-endian: that byte lowest),
+                // shifted by the bit's place in it.
+                let word =
+                    _mm256_i32gather_epi32::<1>(frame.as_ptr().cast(), _mm256_srli_epi32::<3>(b));
+                let bit =
+                    _mm256_and_si256(_mm256_srlv_epi32(word, _mm256_and_si256(b, seven)), one);
+                *sum = _mm256_add_epi32(*sum, bit);
+            }
+        }
+        let mut lanes = [0u32; HOT_GROUP];
+        for (v, sum) in sums[..vectors].iter().enumerate() {
+            _mm256_storeu_si256(lanes[8 * v..].as_mut_ptr().cast(), *sum);
+        }
+        for (count, lane) in counts.iter_mut().zip(lanes) {
+            *count += lane;
+        }
     }
 }
 
@@ -404,47 +610,11 @@ unsafe fn chacha8_blocks_avx2(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u
     let words: [__m256i; 16] = std::array::from_fn(|j| _mm256_add_epi32(x[j], init[j]));
     // Vector j holds word j of the eight blocks: transposed, eight words of one block each.
     for (half, rows) in words.chunks_exact(8).enumerate() {
-        let columns = transpose8x8(rows.try_into().expect("eight rows"));
+        let columns = crate::cpu::transpose8x8(rows.try_into().expect("eight rows"));
         for (block, column) in out.iter_mut().zip(columns) {
             _mm256_storeu_si256(block[8 * half..].as_mut_ptr().cast(), column);
         }
     }
-}
-
-/// The 8x8 transpose of 32-bit words: lane l of output k is lane k of input l.
-///
-/// # Safety
-/// The CPU must support AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn transpose8x8(r: &[std::arch::x86_64::__m256i; 8]) -> [std::arch::x86_64::__m256i; 8] {
-    use std::arch::x86_64::*;
-    // Pairs of rows interleaved by word, then by word pair; 128-bit halves then swapped.
-    let t: [__m256i; 8] = std::array::from_fn(|i| {
-        let (a, b) = (r[i / 2 * 2], r[i / 2 * 2 + 1]);
-        if i % 2 == 0 {
-            _mm256_unpacklo_epi32(a, b)
-        } else {
-            _mm256_unpackhi_epi32(a, b)
-        }
-    });
-    // u[k] (k < 4): words k and k + 4 of rows 0..4; u[4 + k]: of rows 4..8.
-    let u: [__m256i; 8] = std::array::from_fn(|i| {
-        let (base, k) = (i / 4 * 4, i % 4);
-        let (a, b) = (t[base + k / 2], t[base + 2 + k / 2]);
-        if k % 2 == 0 {
-            _mm256_unpacklo_epi64(a, b)
-        } else {
-            _mm256_unpackhi_epi64(a, b)
-        }
-    });
-    std::array::from_fn(|k| {
-        if k < 4 {
-            _mm256_permute2x128_si256::<0x20>(u[k], u[4 + k])
-        } else {
-            _mm256_permute2x128_si256::<0x31>(u[k - 4], u[k])
-        }
-    })
 }
 
 /// Dark-count rate of every pixel (counts per second, `(H, W)`) from frames captured in the dark:
@@ -673,19 +843,39 @@ mod tests {
     }
 
     /// The grouped, frame-by-frame draws of `corrected_block_sum` are the per-pixel draws of
-    /// supplement §1.4 as a plain loop makes them (more hot pixels than one group holds).
+    /// supplement §1.4 as a plain loop makes them (more hot pixels than one group holds, a
+    /// last group of fewer than eight times a whole number, chunks of frames not multiples of
+    /// eight): eight candidates and five (the AVX2 paths of [`HotSites`], five not a power of
+    /// two) and twelve (the scalar path).
     #[test]
     fn grouped_correction_matches_per_pixel_draws() {
+        for k in [8, 5, 12] {
+            grouped_correction_matches_per_pixel_draws_with(k);
+        }
+    }
+
+    fn grouped_correction_matches_per_pixel_draws_with(k: usize) {
         let cfa = colorspad_cfa();
         let (h, w) = (cfa.height(), cfa.width());
         let mut rng = ChaCha8Rng::seed_from_u64(5);
-        let mask = Array2::from_shape_fn((h, w), |_| rng.gen_bool(0.02));
-        let t = 37;
+        let mut mask = Array2::from_shape_fn((h, w), |_| rng.gen_bool(0.02));
+        if mask.iter().filter(|&&m| m).count() % 8 == 0 {
+            mask[[h / 2, w / 2]] ^= true;
+        }
+        let t = 157;
         let bits = Array3::from_shape_fn((t, h, w), |_| rng.gen_bool(0.3) as u8);
         let frames = BinaryFrames::from_packed(pack_bits(&bits), w).unwrap();
-        let corrector = HotPixelCorrector::new(&cfa, &mask, 8, 9).unwrap();
+        let corrector = HotPixelCorrector::new(&cfa, &mask, k, 9).unwrap();
         assert!(corrector.hot_count() > 3 * HOT_GROUP);
-        let range = 5..t;
+        assert_ne!(corrector.hot_count() % 8, 0, "a padded last group");
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // The vector path takes groups of up to eight candidates a pixel, not more.
+            let spans = [(0, k.min(corrector.candidates[0].len()) as u64)];
+            let sites: Vec<u32> = (0..k as u32).collect();
+            assert_eq!(HotSites::new(&sites, &spans, 64, &(0..8)).is_some(), k <= 8);
+        }
+        let range = 5..t - 3;
         let got = corrector.corrected_block_sum(&frames, range.clone());
         let mut expected = frames.sum_range(range.clone());
         for (&idx, cands) in corrector.hot.iter().zip(&corrector.candidates) {

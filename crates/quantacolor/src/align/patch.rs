@@ -254,6 +254,23 @@ fn window_costs(
 ) {
     let rows = out.len() / side;
     debug_assert_eq!(rows * side, out.len());
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2")
+            && interior_window_costs(
+                reference,
+                alternate,
+                origin,
+                ts,
+                (dy0, dx0),
+                norm,
+                side,
+                out,
+            )
+        {
+            return;
+        }
+    }
     #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
@@ -293,6 +310,249 @@ fn window_costs(
             norm,
             row,
         );
+    }
+}
+
+/// The offset of the least cost of a search window (`costs`, row-major, `side` offsets a row,
+/// centred on `seed`, ±`radius`), ties going to the smaller displacement (L1 norm) and then to
+/// the first in row-major order; NaN costs never win. When every cost is infinite (or NaN),
+/// the seed unless an offset is strictly closer to zero motion.
+///
+/// The result of a scan that keeps the best so far, starting from (∞, seed), and replaces it
+/// by a cost that is smaller, or equal and strictly closer. Where the least cost is finite that
+/// scan ends at the first closest offset among those of the least cost: found here by the
+/// minimum (eight independent running minima, no branch per offset), then one pass for the
+/// offsets equal to it.
+fn best_offset(costs: &[f32], side: usize, seed: (isize, isize), radius: isize) -> (isize, isize) {
+    let offset = |k: usize| {
+        (
+            seed.0 - radius + (k / side) as isize,
+            seed.1 - radius + (k % side) as isize,
+        )
+    };
+    let norm = |d: (isize, isize)| d.0.abs() + d.1.abs();
+    let mut minima = [f32::INFINITY; 8];
+    let chunks = costs.chunks_exact(8);
+    let rest = chunks.remainder();
+    for chunk in chunks {
+        for (m, &c) in minima.iter_mut().zip(chunk) {
+            *m = m.min(c);
+        }
+    }
+    let least = minima
+        .iter()
+        .chain(rest)
+        .fold(f32::INFINITY, |m, &c| m.min(c));
+    if least < f32::INFINITY {
+        let mut best: Option<(isize, (isize, isize))> = None;
+        for (k, _) in costs.iter().enumerate().filter(|&(_, &c)| c == least) {
+            let d = offset(k);
+            let closer = match best {
+                None => true,
+                Some((n, _)) => norm(d) < n,
+            };
+            if closer {
+                best = Some((norm(d), d));
+            }
+        }
+        return best.expect("the least cost is one of the costs").1;
+    }
+    // No finite cost: only strictly closer offsets replace the seed.
+    let mut best = seed;
+    for (k, &c) in costs.iter().enumerate() {
+        if c == f32::INFINITY && norm(offset(k)) < norm(best) {
+            best = offset(k);
+        }
+    }
+    best
+}
+
+/// [`tile_cost`] of one offset, by [`window_costs`] (a window of one): the same bits, computed
+/// by the transposed AVX2 kernel where the tile and its displaced copy lie inside the images.
+fn offset_cost(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    origin: (usize, usize),
+    ts: usize,
+    d: (isize, isize),
+    norm: Norm,
+) -> f32 {
+    let mut cost = [0.0f32];
+    window_costs(reference, alternate, origin, ts, d, norm, 1, &mut cost);
+    cost[0]
+}
+
+/// Most alternate columns that [`interior_costs_avx2`] holds transposed (the window's side − 1
+/// plus the tile size, in whole vectors of eight).
+#[cfg(target_arch = "x86_64")]
+const STRIP_COLUMNS: usize = 64;
+
+/// [`window_costs`] with AVX2 where no offset of the window clips the tile (the tile and every
+/// displaced copy lie wholly inside the images, so every cost is the full tile's sum over its
+/// area) and the tile is 8 or 16 px: [`interior_costs_avx2`] into `out`, `true`; otherwise
+/// `false` and nothing written.
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+fn interior_window_costs(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    (oy, ox): (usize, usize),
+    ts: usize,
+    (dy0, dx0): (isize, isize),
+    norm: Norm,
+    side: usize,
+    out: &mut [f32],
+) -> bool {
+    let rows = out.len() / side;
+    let (h, w) = reference.dim();
+    if !matches!(ts, 8 | 16) || rows == 0 || alternate.dim() != (h, w) {
+        return false;
+    }
+    let (ay, ax) = (oy as isize + dy0, ox as isize + dx0);
+    let columns = side + ts - 1;
+    let strip = columns.div_ceil(8) * 8;
+    let inside = oy + ts <= h
+        && ox + ts <= w
+        && ay >= 0
+        && ax >= 0
+        && ay as usize + rows + ts - 1 <= h
+        && ax as usize + columns <= w
+        && strip <= STRIP_COLUMNS
+        // The strip's whole-vector loads of its last row end inside the data.
+        && (ay as usize + rows + ts - 2) * w + ax as usize + strip <= h * w;
+    let (Some(rs), Some(as_)) = (reference.as_slice(), alternate.as_slice()) else {
+        return false;
+    };
+    if !inside {
+        return false;
+    }
+    let (ay, ax) = (ay as usize, ax as usize);
+    // The strip held in the smallest array that fits it (a fixed size per kernel: no
+    // allocation, and no more of it cleared than a window of this side needs).
+    let kernel = match (ts, strip) {
+        (8, ..=16) => interior_costs_avx2::<1, 16>,
+        (8, ..=32) => interior_costs_avx2::<1, 32>,
+        (8, _) => interior_costs_avx2::<1, STRIP_COLUMNS>,
+        (_, ..=16) => interior_costs_avx2::<2, 16>,
+        (_, ..=32) => interior_costs_avx2::<2, 32>,
+        (_, _) => interior_costs_avx2::<2, STRIP_COLUMNS>,
+    };
+    // SAFETY: the caller checked AVX2; the loads stay inside both slices (checked above).
+    unsafe { kernel(rs, as_, w, (oy, ox), (ay, ax), norm, side, out) };
+    true
+}
+
+/// Eight rows of `img` (row length `w`) from `(y, x)`, eight columns each, transposed: vector
+/// c holds column x + c, lane l row y + l.
+///
+/// # Safety
+/// The CPU must support AVX2; the eight rows' eight columns must lie inside `img`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn load_transposed(
+    img: &[f32],
+    w: usize,
+    y: usize,
+    x: usize,
+) -> [std::arch::x86_64::__m256; 8] {
+    use std::arch::x86_64::*;
+    debug_assert!((y + 7) * w + x + 8 <= img.len());
+    let rows: [__m256i; 8] = std::array::from_fn(|l| {
+        _mm256_castps_si256(_mm256_loadu_ps(img.as_ptr().add((y + l) * w + x)))
+    });
+    crate::cpu::transpose8x8(&rows).map(|v| _mm256_castsi256_ps(v))
+}
+
+/// The costs of [`interior_window_costs`] for tiles of `8·G` px (the strip at most `S`
+/// columns): lane l of a vector works on
+/// tile row l (of a group of eight rows) instead of on an offset, so no lane idles whatever
+/// the window's side (at level 1 a window row of nine offsets filled 9 of 16 lanes of
+/// [`tile_costs_avx2`]). The reference tile is transposed once (vector c: column c of eight
+/// rows) and each row of offsets' strip of the alternate likewise, so offset `(k, i)` of the
+/// window is, per row, the sum over columns c in order from zero of the term of
+/// `ref[c] − alt[i + c]`: the row sums of [`tile_cost`]. Eight offsets' row sums are then
+/// transposed (lane: offset) and added row by row in order from zero, then divided by the
+/// area: [`tile_cost`]'s operations in its order, so the same bits.
+///
+/// # Safety
+/// The CPU must support AVX2; [`interior_window_costs`] checks the bounds.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn interior_costs_avx2<const G: usize, const S: usize>(
+    rs: &[f32],
+    as_: &[f32],
+    w: usize,
+    (oy, ox): (usize, usize),
+    (ay, ax): (usize, usize),
+    norm: Norm,
+    side: usize,
+    out: &mut [f32],
+) {
+    use std::arch::x86_64::*;
+    let ts = 8 * G;
+    let rows = out.len() / side;
+    let strip_vectors = (side + ts - 1).div_ceil(8);
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let area = _mm256_set1_ps((ts * ts) as f32);
+    // rt[g][c]: column c of reference rows 8g..8g + 8 of the tile.
+    let mut rt = [[_mm256_setzero_ps(); 16]; G];
+    for (g, rt) in rt.iter_mut().enumerate() {
+        for b in 0..G {
+            let v = load_transposed(rs, w, oy + 8 * g, ox + 8 * b);
+            rt[8 * b..8 * b + 8].copy_from_slice(&v);
+        }
+    }
+    // at[g][c]: column ax + c of alternate rows 8g..8g + 8 of the current row of offsets.
+    let mut at = [[_mm256_setzero_ps(); S]; G];
+    // Row sums of up to eight offsets (vector g of offset n: tile rows 8g..8g + 8).
+    let mut pending = [[_mm256_setzero_ps(); 8]; G];
+    let mut filled = 0;
+    let mut written = 0;
+    // Offsets `written..written + filled`: rows added in order from zero, over the area.
+    let flush = |pending: &[[__m256; 8]; G], filled: usize, out: &mut [f32]| {
+        let mut cost = _mm256_setzero_ps();
+        for group in pending {
+            let sums: [__m256i; 8] = std::array::from_fn(|n| _mm256_castps_si256(group[n]));
+            for row in crate::cpu::transpose8x8(&sums) {
+                cost = _mm256_add_ps(cost, _mm256_castsi256_ps(row));
+            }
+        }
+        let mut lanes = [0.0f32; 8];
+        _mm256_storeu_ps(lanes.as_mut_ptr(), _mm256_div_ps(cost, area));
+        out.copy_from_slice(&lanes[..filled]);
+    };
+    for k in 0..rows {
+        for (g, at) in at.iter_mut().enumerate() {
+            for b in 0..strip_vectors {
+                let v = load_transposed(as_, w, ay + k + 8 * g, ax + 8 * b);
+                at[8 * b..8 * b + 8].copy_from_slice(&v);
+            }
+        }
+        for i in 0..side {
+            for ((rt, at), pending) in rt.iter().zip(&at).zip(&mut pending) {
+                let mut sum = _mm256_setzero_ps();
+                for (&r, &a) in rt[..ts].iter().zip(&at[i..i + ts]) {
+                    let diff = _mm256_sub_ps(r, a);
+                    let term = match norm {
+                        Norm::L1 => _mm256_and_ps(diff, abs_mask),
+                        Norm::L2 => _mm256_mul_ps(diff, diff),
+                    };
+                    sum = _mm256_add_ps(sum, term);
+                }
+                pending[filled] = sum;
+            }
+            filled += 1;
+            if filled == 8 {
+                flush(&pending, filled, &mut out[written..written + filled]);
+                written += filled;
+                filled = 0;
+            }
+        }
+    }
+    if filled > 0 {
+        flush(&pending, filled, &mut out[written..written + filled]);
     }
 }
 
@@ -613,7 +873,7 @@ impl ReferenceAligner {
                             &parent_seeds
                         }
                     };
-                    let cost = |d: (isize, isize)| tile_cost(r_img, a_img, origin, ts, d, norm);
+                    let cost = |d: (isize, isize)| offset_cost(r_img, a_img, origin, ts, d, norm);
                     // Each distinct seed's cost once (the parent tiles often agree, and equal
                     // offsets cost the same); the first of equal minima wins (as `min_by`).
                     let mut rounded = [(0isize, 0isize); 4];
@@ -631,7 +891,6 @@ impl ReferenceAligner {
                         .min_by(|a, b| a.0.total_cmp(&b.0))
                         .expect("at least one seed")
                         .1;
-                    let mut best = (f32::INFINITY, seed);
                     let side = (2 * radius + 1) as usize;
                     scratch.window.clear();
                     scratch.window.resize(side * side, 0.0);
@@ -647,18 +906,8 @@ impl ReferenceAligner {
                         side,
                         costs,
                     );
-                    for (dy, row) in (-radius..=radius).zip(costs.chunks_exact(side)) {
-                        for (dx, &c) in (-radius..=radius).zip(row) {
-                            let d = (seed.0 + dy, seed.1 + dx);
-                            // Ties go to the smaller displacement.
-                            let closer =
-                                (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
-                            if c < best.0 || (c == best.0 && closer) {
-                                best = (c, d);
-                            }
-                        }
-                    }
-                    let flow = (best.1 .0 as f32, best.1 .1 as f32);
+                    let best = best_offset(costs, side, seed, radius);
+                    let flow = (best.0 as f32, best.1 as f32);
                     if level == 0 {
                         match self.refine(k, a_img, origin, flow, scratch) {
                             Some(f) => (f.0, f.1, true),
@@ -820,6 +1069,11 @@ unsafe fn lk_gradient_dot_error_avx2(
     let alt_s = alt.as_slice().expect("standard layout");
     let ref_s = reference.as_slice().expect("standard layout");
     let (w_alt, w_ref) = (alt.ncols(), reference.ncols());
+    // The alternate row whose column interpolation `carried` holds (the previous tile row's
+    // bottom tap): where it is this row's top tap (rows one apart, as in the interior) it is
+    // not made again; the same operations on the same values, so the same bits.
+    let mut carried_row = None;
+    let mut carried = [_mm256_setzero_ps(); 4];
     for (j, (y, &(y0, y1, fy))) in ys.zip(&scratch.rows).enumerate() {
         // Bounds: the taps' rows hold columns first..first + width + 1.
         let top = &alt_s[y0 * w_alt + first..][..width + 1];
@@ -828,16 +1082,22 @@ unsafe fn lk_gradient_dot_error_avx2(
         let gy = &grad_y[j * width..][..width];
         let gx = &grad_x[j * width..][..width];
         let (fy_v, one_fy) = (_mm256_set1_ps(fy), _mm256_set1_ps(1.0 - fy));
+        let reuse = carried_row == Some(y0);
         for v in 0..vectors {
             let i = 8 * v;
-            let t = _mm256_add_ps(
-                _mm256_mul_ps(_mm256_loadu_ps(top.as_ptr().add(i)), one_fx[v]),
-                _mm256_mul_ps(_mm256_loadu_ps(top.as_ptr().add(i + 1)), fx[v]),
-            );
+            let t = if reuse {
+                carried[v]
+            } else {
+                _mm256_add_ps(
+                    _mm256_mul_ps(_mm256_loadu_ps(top.as_ptr().add(i)), one_fx[v]),
+                    _mm256_mul_ps(_mm256_loadu_ps(top.as_ptr().add(i + 1)), fx[v]),
+                )
+            };
             let b = _mm256_add_ps(
                 _mm256_mul_ps(_mm256_loadu_ps(bottom.as_ptr().add(i)), one_fx[v]),
                 _mm256_mul_ps(_mm256_loadu_ps(bottom.as_ptr().add(i + 1)), fx[v]),
             );
+            carried[v] = b;
             let e = _mm256_sub_ps(
                 _mm256_add_ps(_mm256_mul_ps(t, one_fy), _mm256_mul_ps(b, fy_v)),
                 _mm256_loadu_ps(r.as_ptr().add(i)),
@@ -845,6 +1105,7 @@ unsafe fn lk_gradient_dot_error_avx2(
             sum_y = _mm256_add_ps(sum_y, _mm256_mul_ps(_mm256_loadu_ps(gy.as_ptr().add(i)), e));
             sum_x = _mm256_add_ps(sum_x, _mm256_mul_ps(_mm256_loadu_ps(gx.as_ptr().add(i)), e));
         }
+        carried_row = Some(y1);
     }
     let (mut ly, mut lx) = ([0.0f32; 8], [0.0f32; 8]);
     _mm256_storeu_ps(ly.as_mut_ptr(), sum_y);
@@ -1116,11 +1377,11 @@ impl ReferenceAligner {
         let ts = grid.tile_size;
         let origin = |i: usize, j: usize| (i * grid.tile_stride, j * grid.tile_stride);
         let cost0 = |i: usize, j: usize, d: (isize, isize)| {
-            tile_cost(ref0, alt0, origin(i, j), ts, d, Norm::L1)
+            offset_cost(ref0, alt0, origin(i, j), ts, d, Norm::L1)
         };
         let cost1 = |i: usize, j: usize, d: (isize, isize)| {
             let (oy, ox) = origin(i, j);
-            tile_cost(ref1, alt1, (oy / f, ox / f), (ts / f).max(2), d, Norm::L1)
+            offset_cost(ref1, alt1, (oy / f, ox / f), (ts / f).max(2), d, Norm::L1)
         };
         let dilate = |tiles: &[(usize, usize)], dist: usize| {
             let mut mask = Array2::from_elem((ty, tx), false);
@@ -1536,6 +1797,111 @@ mod tests {
             }
         }
         assert!(finite > 1000, "{finite}");
+    }
+
+    /// The transposed kernel of windows that no offset clips ([`interior_window_costs`]) gives
+    /// the plain loop's bits for both tile sizes, both norms and window sides of one to the
+    /// largest strip; it declines windows that clip the tile or would read past the image.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn interior_window_costs_equal_the_plain_tile_cost() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let (h, w) = (70usize, 83usize);
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let (mut taken, mut declined) = (0, 0);
+        for norm in [Norm::L1, Norm::L2] {
+            for ts in [8usize, 16] {
+                for side in [1usize, 2, 3, 7, 9, 17, 33, 49] {
+                    for _ in 0..40 {
+                        let rows = rng.gen_range(1..=side.min(9));
+                        let (oy, ox) = (rng.gen_range(0..h - 4), rng.gen_range(0..w - 4));
+                        let dy0 = rng.gen_range(-(oy as isize) - 3..8);
+                        let dx0 = rng.gen_range(-(ox as isize) - 3..8);
+                        let mut costs = vec![f32::NAN; rows * side];
+                        let ok = interior_window_costs(
+                            &reference,
+                            &alternate,
+                            (oy, ox),
+                            ts,
+                            (dy0, dx0),
+                            norm,
+                            side,
+                            &mut costs,
+                        );
+                        let clipped = oy + ts > h
+                            || ox + ts > w
+                            || oy as isize + dy0 < 0
+                            || ox as isize + dx0 < 0
+                            || oy as isize + dy0 + (rows + ts - 1) as isize > h as isize
+                            || ox as isize + dx0 + (side + ts - 1) as isize > w as isize;
+                        if clipped {
+                            assert!(!ok, "{oy} {ox} {dy0} {dx0} {side} {rows}");
+                        }
+                        if !ok {
+                            assert!(costs.iter().all(|c| c.is_nan()), "wrote while declining");
+                            declined += 1;
+                            continue;
+                        }
+                        taken += 1;
+                        for (k, &c) in costs.iter().enumerate() {
+                            let d = (dy0 + (k / side) as isize, dx0 + (k % side) as isize);
+                            let plain =
+                                tile_cost_plain(&reference, &alternate, (oy, ox), ts, d, norm);
+                            assert!(plain.is_finite());
+                            assert_eq!(c.to_bits(), plain.to_bits(), "{oy} {ox} {d:?} {side}");
+                        }
+                    }
+                }
+            }
+        }
+        assert!(taken > 100 && declined > 100, "{taken} {declined}");
+    }
+
+    /// [`best_offset`] is the sequential scan it replaces (keep the best so far from (∞, seed);
+    /// take a smaller cost, or an equal one strictly closer to zero motion): windows with ties
+    /// among few distinct costs, infinite and NaN costs, all infinite, seeds on either side.
+    #[test]
+    fn best_offset_equals_the_sequential_scan() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let values = [0.25f32, 0.5, 0.75, f32::INFINITY, f32::NAN];
+        let mut finite_ties = 0;
+        for case in 0..4000 {
+            let radius = [1isize, 2, 4, 8][case % 4];
+            let side = (2 * radius + 1) as usize;
+            let seed = (rng.gen_range(-5isize..=5), rng.gen_range(-5isize..=5));
+            let all_infinite = case % 7 == 0;
+            let costs: Vec<f32> = (0..side * side)
+                .map(|_| {
+                    if all_infinite {
+                        [f32::INFINITY, f32::NAN][rng.gen_range(0..2)]
+                    } else {
+                        values[rng.gen_range(0..values.len())]
+                    }
+                })
+                .collect();
+            let mut best = (f32::INFINITY, seed);
+            for (dy, row) in (-radius..=radius).zip(costs.chunks_exact(side)) {
+                for (dx, &c) in (-radius..=radius).zip(row) {
+                    let d = (seed.0 + dy, seed.1 + dx);
+                    let closer = (d.0.abs() + d.1.abs()) < (best.1 .0.abs() + best.1 .1.abs());
+                    if c < best.0 || (c == best.0 && closer) {
+                        best = (c, d);
+                    }
+                }
+            }
+            let least = costs.iter().filter(|&&c| c == best.0).count();
+            finite_ties += (best.0.is_finite() && least > 1) as usize;
+            assert_eq!(
+                best_offset(&costs, side, seed, radius),
+                best.1,
+                "case {case}"
+            );
+        }
+        assert!(finite_ties > 1000, "{finite_ties}");
     }
 
     /// [`tile_cost`] as a plain loop: each row summed in column order from zero, the rows
