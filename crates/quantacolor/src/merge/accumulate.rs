@@ -1930,7 +1930,9 @@ fn validate(
         )));
     }
     if config.sparse_bins_per_output_px == 0
-        || config.bins_per_output_px % config.sparse_bins_per_output_px != 0
+        || !config
+            .bins_per_output_px
+            .is_multiple_of(config.sparse_bins_per_output_px)
     {
         return Err(Error::invalid(format!(
             "merge: sparse-channel bins per output pixel {} must divide the bins per output \
@@ -2011,6 +2013,59 @@ fn validate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn coarse_bins_share_each_fine_bin_between_the_nearest_coarse_bins() {
+        // A sparse channel's coarse bins keep every plane's total, put a fine bin on a coarse
+        // bin's centre wholly there and one halfway between two (f = 2) half in each; the
+        // other channels' planes stay 0. R, G and B of the 75 % W pattern are sparse, W is not.
+        use crate::cfa::{generate, Pattern};
+        use crate::merge::kernels::{kernel_field, KernelConfig};
+        let (h, w) = (12usize, 20usize);
+        let reference = Array2::from_elem((h, w), 0.3f32);
+        let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+        let kernels = kernel_field(&reference, &KernelConfig::default()).unwrap();
+        let mut acc = MergeAccumulator::new(
+            &cfa,
+            &kernels,
+            &AccumulateConfig::default(),
+            PixelModel::binary(0.0),
+        )
+        .unwrap();
+        let sparse = acc.sparse_channels();
+        assert_eq!(sparse, [true, true, true, false]);
+        let (stride, fine_w) = (acc.stride, acc.bins_w);
+        let at = |by: usize, plane: usize, bx: usize| (by * SUMS + plane) * stride + bx;
+        // Plane 3 (G's Σ r·counts): a sample on coarse bin (3, 4), one between (3, 5) and
+        // (4, 5) vertically, one between (4, 6), (4, 7), (5, 6) and (5, 7); W's plane too.
+        let plane = 3;
+        acc.bins[at(6, plane, 8)] = 8.0;
+        acc.bins[at(7, plane, 10)] = 4.0;
+        acc.bins[at(9, plane, 13)] = 16.0;
+        acc.bins[at(6, 9, 8)] = 5.0;
+        let coarse = acc.coarse_bins(sparse);
+        let get =
+            |cy: usize, p: usize, cx: usize| coarse.bins[(cy * SUMS + p) * coarse.stride + cx];
+        assert_eq!(get(3, plane, 4), 8.0);
+        assert_eq!((get(3, plane, 5), get(4, plane, 5)), (2.0, 2.0));
+        for (cy, cx) in [(4, 6), (4, 7), (5, 6), (5, 7)] {
+            assert_eq!(get(cy, plane, cx), 4.0);
+        }
+        let total: f32 = (0..coarse.bins_h)
+            .flat_map(|cy| (0..coarse.bins_w).map(move |cx| (cy, cx)))
+            .map(|(cy, cx)| get(cy, plane, cx))
+            .sum();
+        assert_eq!(total, 28.0);
+        assert!(coarse.bins.iter().enumerate().all(|(i, &v)| {
+            let p = (i / coarse.stride) % SUMS;
+            v == 0.0 || p == plane
+        }));
+        assert_eq!(
+            (coarse.bins_h, coarse.bins_w),
+            ((acc.bins_h - 1) / 2 + 1, (fine_w - 1) / 2 + 1)
+        );
+        assert_eq!((coarse.u, coarse.margin), (1.0, acc.margin as f32));
+    }
 
     #[test]
     fn affine_targets_match_the_per_site_positions() {
