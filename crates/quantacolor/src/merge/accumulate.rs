@@ -165,6 +165,14 @@ pub struct AccumulateConfig {
     /// Phase bins per output pixel along each axis: sample positions are rounded to a grid this
     /// much finer than the output before the kernel regression ([`MergeAccumulator`]).
     pub bins_per_output_px: usize, // 2
+    /// Phase bins per output pixel along each axis for the sparse channels: those whose kernel
+    /// scale (area per site to the power `spacing_exponent`) is at least [`SPARSE_SCALE_RATIO`]
+    /// times the densest channel's (R, G and B of a W-rich CFA; none of Bayer). Their kernels
+    /// are at least 1.5 times as wide as the densest channel's, so a
+    /// coarser rounding of their sample positions costs them little, and their regression (most
+    /// of the merge's work: the widest kernels) visits that many times fewer bins per axis. Must divide `bins_per_output_px`; equal to it, every channel takes the
+    /// same bins. This project's speed trade-off ([`MergeAccumulator::finish`]).
+    pub sparse_bins_per_output_px: usize, // 1
 }
 
 impl Default for AccumulateConfig {
@@ -177,6 +185,7 @@ impl Default for AccumulateConfig {
             w_censoring_zeros: 100.0,
             spacing_exponent: 1.0,
             bins_per_output_px: 2,
+            sparse_bins_per_output_px: 1,
         }
     }
 }
@@ -267,6 +276,15 @@ const SUMS: usize = 12;
 /// limit is below this fraction of the widest channel's (this project's heuristic: it changes
 /// only the work, not the result).
 const OWN_ELLIPSE_RATIO: f64 = 0.8;
+
+/// Kernel scale (covariance factor), relative to the densest channel's, from which a channel
+/// counts as sparse and takes the coarser phase bins of
+/// `AccumulateConfig::sparse_bins_per_output_px` (its kernel std is then at least 1.5 times the
+/// densest channel's). On /tmp/cap10k's CFA at spacing exponent 0.5 (the default pipeline with
+/// denoising) G, B and R have 2.4, 3.5 and 3.5 times W's scale; Bayer's R and B have at most
+/// twice G's, and stay on the phase bins: with them on coarser bins (ratio 2) the quality
+/// suite's Bayer capture lost 0.11 dB (burst) and 0.14 dB (true motion).
+const SPARSE_SCALE_RATIO: f32 = 2.25;
 
 /// Relative difference between a channel's kernel factor and a whole multiple of the sparsest
 /// channel's within which the channel takes that multiple ([`snap_scales`]).
@@ -889,65 +907,200 @@ impl<'a> MergeAccumulator<'a> {
     }
 
     /// (Σ g·S0, Σ g·S1, Σ g²·S2) per channel (the sums of supplement Eq. 1–3 over the bins, g the
-    /// kernel weight) of every output pixel, row-major, in parallel by output rows.
+    /// kernel weight) of every output pixel, row-major, in parallel by output rows. The sparse
+    /// channels ([`MergeAccumulator::sparse_channels`]), if any, gather from coarser bins
+    /// ([`MergeAccumulator::coarse_bins`]), the others from the phase bins.
     fn regression(&self) -> Vec<[f32; SUMS]> {
         let (hs, ws) = (
             self.cfa.height() * self.config.scale,
             self.cfa.width() * self.config.scale,
         );
-        self.with_gather(|gather| {
-            let mut sums = vec![[0.0f32; SUMS]; hs * ws];
+        let inv_cov = self.kernels.inv_cov.as_standard_layout();
+        let inv_cov = inv_cov.as_slice().expect("standard layout");
+        let mut sums = vec![[0.0f32; SUMS]; hs * ws];
+        let sparse = self.sparse_channels();
+        if !sparse.contains(&true) {
+            let gather = self.gather(self.fine_grid(), [true; 4], inv_cov);
             sums.par_chunks_mut(ws)
                 .enumerate()
-                .for_each(|(oy, row)| gather_row(gather, oy, row));
-            sums
-        })
+                .for_each(|(oy, row)| gather_row(&gather, oy, row));
+            return sums;
+        }
+        let coarse = self.coarse_bins(sparse);
+        let dense = sparse.map(|s| !s);
+        let fine = self.gather(self.fine_grid(), dense, inv_cov);
+        let coarse = self.gather(coarse.grid(), sparse, inv_cov);
+        sums.par_chunks_mut(ws).enumerate().for_each_init(
+            || vec![[0.0f32; SUMS]; ws],
+            |sparse_row, (oy, row)| {
+                gather_row(&fine, oy, row);
+                gather_row(&coarse, oy, sparse_row);
+                for (out, s) in row.iter_mut().zip(sparse_row.iter()) {
+                    for ch in (0..4).filter(|&ch| sparse[ch]) {
+                        out[ch * 3..ch * 3 + 3].copy_from_slice(&s[ch * 3..ch * 3 + 3]);
+                    }
+                }
+            },
+        );
+        sums
     }
 
-    /// Runs `f` with what the regression reads ([`Gather`]).
+    /// The channels that gather from the coarser bins of `sparse_bins_per_output_px`: those
+    /// present whose kernel scale is at least [`SPARSE_SCALE_RATIO`] times the densest
+    /// channel's (none when the sparse bins are the phase bins).
+    fn sparse_channels(&self) -> [bool; 4] {
+        let densest = self
+            .channel_scale
+            .iter()
+            .copied()
+            .filter(|&s| s > 0.0)
+            .fold(f32::INFINITY, f32::min);
+        let coarser = self.config.sparse_bins_per_output_px < self.config.bins_per_output_px;
+        self.channel_scale
+            .map(|s| coarser && s > 0.0 && s >= SPARSE_SCALE_RATIO * densest)
+    }
+
+    /// The phase bins as the regression reads them.
+    fn fine_grid(&self) -> BinGrid<'_> {
+        BinGrid {
+            bins: &self.bins,
+            stride: self.stride,
+            bins_h: self.bins_h,
+            bins_w: self.bins_w,
+            u: self.bins_per_px as f32,
+            margin: self.margin as f32,
+        }
+    }
+
+    /// The phase bins of the `sparse` channels on a grid f times coarser, f the ratio of
+    /// `bins_per_output_px` to `sparse_bins_per_output_px`, in the same plane layout (the other
+    /// channels' planes stay 0): coarse bin (k, j) sits on fine bin (f·k, f·j) and takes every
+    /// fine bin within f − 1 of it along each axis with the tent weight (1 − |d|/f) per axis
+    /// (all four sums: the fine bin's samples are shared between the nearest coarse bins, as
+    /// when splatting with bilinear weights). Unlike rounding to the coarse grid it moves no
+    /// sample on average: the positions of a static burst (every site on a whole reference
+    /// pixel) stay where they are (rounding pairs of fine bins instead shifted the sparse
+    /// channels by a quarter pixel: −0.17 dB on the quality suite's static capture). The
+    /// splat itself stays one pass over the fine bins.
+    fn coarse_bins(&self, sparse: [bool; 4]) -> CoarseBins {
+        let f = self.config.bins_per_output_px / self.config.sparse_bins_per_output_px;
+        // (bins − 1) is a multiple of the bins per reference px, hence of f.
+        let (bins_h, bins_w) = ((self.bins_h - 1) / f + 1, (self.bins_w - 1) / f + 1);
+        let stride = (bins_w + LANES - 1).next_multiple_of(LANES);
+        let mut bins = vec![0.0f32; bins_h * SUMS * stride];
+        let (fine, fine_stride, fine_w) = (&self.bins, self.stride, self.bins_w);
+        let fine_rows = self.bins_h as isize;
+        let tent = |d: isize| (f as isize - d.abs()) as f32 / f as f32;
+        let reach = f as isize - 1;
+        bins.par_chunks_mut(SUMS * stride)
+            .enumerate()
+            .for_each_init(
+                || vec![0.0f32; fine_w],
+                |rows, (cy, row)| {
+                    let centre = (cy * f) as isize;
+                    for ch in (0..4).filter(|&ch| sparse[ch]) {
+                        for k in 0..3 {
+                            let plane = ch * 3 + k;
+                            // The fine rows around the coarse row, tent-weighted...
+                            rows.fill(0.0);
+                            for by in (centre - reach).max(0)..=(centre + reach).min(fine_rows - 1)
+                            {
+                                let weight = tent(by - centre);
+                                let at = (by as usize * SUMS + plane) * fine_stride;
+                                for (r, &v) in rows.iter_mut().zip(&fine[at..at + fine_w]) {
+                                    *r += weight * v;
+                                }
+                            }
+                            // ...then the fine columns around each coarse column.
+                            let out = &mut row[plane * stride..plane * stride + bins_w];
+                            for (cx, o) in out.iter_mut().enumerate() {
+                                let centre = (cx * f) as isize;
+                                *o = ((centre - reach).max(0)
+                                    ..=(centre + reach).min(fine_w as isize - 1))
+                                    .map(|bx| tent(bx - centre) * rows[bx as usize])
+                                    .sum();
+                            }
+                        }
+                    }
+                },
+            );
+        CoarseBins {
+            bins,
+            stride,
+            bins_h,
+            bins_w,
+            u: (self.bins_per_px / f) as f32,
+            margin: self.margin as f32,
+        }
+    }
+
+    /// Runs `f` with what the regression of every channel over the phase bins reads
+    /// ([`Gather`]).
+    #[cfg(test)]
     fn with_gather<R>(&self, f: impl FnOnce(&Gather) -> R) -> R {
+        let inv_cov = self.kernels.inv_cov.as_standard_layout();
+        let gather = self.gather(
+            self.fine_grid(),
+            [true; 4],
+            inv_cov.as_slice().expect("standard layout"),
+        );
+        f(&gather)
+    }
+
+    /// What the regression of `channels` over the bins of `grid` reads ([`Gather`]), with the
+    /// (H, W, 3) inverse kernel covariances `inv_cov`.
+    fn gather<'g>(&self, grid: BinGrid<'g>, channels: [bool; 4], inv_cov: &'g [f32]) -> Gather<'g> {
         let scale = self.config.scale;
         let (h, w) = (self.cfa.height(), self.cfa.width());
         let inv_scale = self.inv_scale;
         let cutoff = self.config.cutoff;
-        let u = self.bins_per_px as f32;
-        let inv_cov = self.kernels.inv_cov.as_standard_layout();
+        let u = grid.u;
         let inv_s = 1.0 / scale as f32;
         // Every channel skips a bin whose quadratic form times the smallest channel factor is
         // at or above the cutoff (rounding is monotone and the form is then positive), so the
         // gather only visits the bins of each row inside that widest ellipse, widened by a bin
         // on each side against rounding ([`ellipse_span`]).
-        let min_inv_scale = inv_scale.iter().copied().fold(f32::INFINITY, f32::min);
-        let present = self.channel_scale.map(|s| s > 0.0);
+        let min_inv_scale = (0..4)
+            .filter(|&ch| channels[ch])
+            .map(|ch| inv_scale[ch])
+            .fold(f32::INFINITY, f32::min);
+        let present = std::array::from_fn(|ch| channels[ch] && self.channel_scale[ch] > 0.0);
         // The sparsest channel makes its weights with exponentials; a channel whose factor is
         // the same reuses them (R, G and B of most CFAs: the same values, computed once), one
-        // whose factor is k times it takes their k-th power ([`snap_scales`]).
+        // whose factor is k times it takes their k-th power ([`snap_scales`]). Without the
+        // sparsest channel among `channels`, each channel makes its own.
+        let min_present = (0..4)
+            .filter(|&ch| present[ch])
+            .map(|ch| inv_scale[ch])
+            .fold(f32::INFINITY, f32::min);
         let base = (0..4)
-            .find(|&ch| present[ch] && self.multiples[ch] == 0 && inv_scale[ch] == min_inv_scale)
-            .unwrap_or(0);
-        let source = std::array::from_fn(|ch| if self.multiples[ch] == 1 { base } else { ch });
+            .find(|&ch| present[ch] && self.multiples[ch] == 0 && inv_scale[ch] == min_present);
+        let source = std::array::from_fn(|ch| match base {
+            Some(base) if self.multiples[ch] == 1 => base,
+            _ => ch,
+        });
         let power = std::array::from_fn(|ch| match self.multiples[ch] {
-            k if k >= 2 => k,
+            k if k >= 2 && base.is_some() => k,
             _ => 0,
         });
-        let gather = Gather {
-            bins: &self.bins,
-            stride: self.stride,
-            bins_h: self.bins_h as isize,
-            bins_w: self.bins_w as isize,
-            inv_cov: inv_cov.as_slice().expect("standard layout"),
+        Gather {
+            bins: grid.bins,
+            stride: grid.stride,
+            bins_h: grid.bins_h as isize,
+            bins_w: grid.bins_w as isize,
+            inv_cov,
             h,
             w,
             u,
             inv_u: 1.0 / u,
-            margin: self.margin as f32,
+            margin: grid.margin,
             radius: self.radius,
             inv_s,
             offset: 0.5 * inv_s - 0.5,
             cutoff,
             inv_scale,
             present,
-            base,
+            base: base.unwrap_or(0),
             source,
             power,
             ellipse_limit: (min_inv_scale > 0.0).then(|| cutoff as f64 / min_inv_scale as f64),
@@ -956,8 +1109,7 @@ impl<'a> MergeAccumulator<'a> {
                 (min_inv_scale > 0.0 && present[ch] && inv_scale[ch] > min_inv_scale)
                     .then(|| cutoff as f64 / inv_scale[ch] as f64)
             }),
-        };
-        f(&gather)
+        }
     }
 
     /// Kernel regression over the bins (supplement Eq. 1–3), then per-channel mean samples and
@@ -1052,6 +1204,43 @@ impl<'a> MergeAccumulator<'a> {
             bit_rate,
             effective_frames,
             w_fallback,
+        }
+    }
+}
+
+/// A grid of phase bins in [`MergeAccumulator`]'s plane layout: bin (by, bx) sits at reference
+/// position (by/u − margin, bx/u − margin).
+struct BinGrid<'b> {
+    bins: &'b [f32],
+    /// Floats per plane row.
+    stride: usize,
+    bins_h: usize,
+    bins_w: usize,
+    /// Bins per reference px.
+    u: f32,
+    /// Reference px of margin (not whole for coarse bins).
+    margin: f32,
+}
+
+/// The coarser bins of the sparse channels ([`MergeAccumulator::coarse_bins`]).
+struct CoarseBins {
+    bins: Vec<f32>,
+    stride: usize,
+    bins_h: usize,
+    bins_w: usize,
+    u: f32,
+    margin: f32,
+}
+
+impl CoarseBins {
+    fn grid(&self) -> BinGrid<'_> {
+        BinGrid {
+            bins: &self.bins,
+            stride: self.stride,
+            bins_h: self.bins_h,
+            bins_w: self.bins_w,
+            u: self.u,
+            margin: self.margin,
         }
     }
 }
@@ -1740,6 +1929,17 @@ fn validate(
             config.bins_per_output_px
         )));
     }
+    if config.sparse_bins_per_output_px == 0
+        || !config
+            .bins_per_output_px
+            .is_multiple_of(config.sparse_bins_per_output_px)
+    {
+        return Err(Error::invalid(format!(
+            "merge: sparse-channel bins per output pixel {} must divide the bins per output \
+             pixel {}",
+            config.sparse_bins_per_output_px, config.bins_per_output_px
+        )));
+    }
     if !super::warp::positive(config.cutoff) {
         return Err(Error::invalid("merge: the kernel cutoff must be positive"));
     }
@@ -1813,6 +2013,59 @@ fn validate(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn coarse_bins_share_each_fine_bin_between_the_nearest_coarse_bins() {
+        // A sparse channel's coarse bins keep every plane's total, put a fine bin on a coarse
+        // bin's centre wholly there and one halfway between two (f = 2) half in each; the
+        // other channels' planes stay 0. R, G and B of the 75 % W pattern are sparse, W is not.
+        use crate::cfa::{generate, Pattern};
+        use crate::merge::kernels::{kernel_field, KernelConfig};
+        let (h, w) = (12usize, 20usize);
+        let reference = Array2::from_elem((h, w), 0.3f32);
+        let cfa = generate(&Pattern::Rgbw75Regular, h, w, 0).unwrap();
+        let kernels = kernel_field(&reference, &KernelConfig::default()).unwrap();
+        let mut acc = MergeAccumulator::new(
+            &cfa,
+            &kernels,
+            &AccumulateConfig::default(),
+            PixelModel::binary(0.0),
+        )
+        .unwrap();
+        let sparse = acc.sparse_channels();
+        assert_eq!(sparse, [true, true, true, false]);
+        let (stride, fine_w) = (acc.stride, acc.bins_w);
+        let at = |by: usize, plane: usize, bx: usize| (by * SUMS + plane) * stride + bx;
+        // Plane 3 (G's Σ r·counts): a sample on coarse bin (3, 4), one between (3, 5) and
+        // (4, 5) vertically, one between (4, 6), (4, 7), (5, 6) and (5, 7); W's plane too.
+        let plane = 3;
+        acc.bins[at(6, plane, 8)] = 8.0;
+        acc.bins[at(7, plane, 10)] = 4.0;
+        acc.bins[at(9, plane, 13)] = 16.0;
+        acc.bins[at(6, 9, 8)] = 5.0;
+        let coarse = acc.coarse_bins(sparse);
+        let get =
+            |cy: usize, p: usize, cx: usize| coarse.bins[(cy * SUMS + p) * coarse.stride + cx];
+        assert_eq!(get(3, plane, 4), 8.0);
+        assert_eq!((get(3, plane, 5), get(4, plane, 5)), (2.0, 2.0));
+        for (cy, cx) in [(4, 6), (4, 7), (5, 6), (5, 7)] {
+            assert_eq!(get(cy, plane, cx), 4.0);
+        }
+        let total: f32 = (0..coarse.bins_h)
+            .flat_map(|cy| (0..coarse.bins_w).map(move |cx| (cy, cx)))
+            .map(|(cy, cx)| get(cy, plane, cx))
+            .sum();
+        assert_eq!(total, 28.0);
+        assert!(coarse.bins.iter().enumerate().all(|(i, &v)| {
+            let p = (i / coarse.stride) % SUMS;
+            v == 0.0 || p == plane
+        }));
+        assert_eq!(
+            (coarse.bins_h, coarse.bins_w),
+            ((acc.bins_h - 1) / 2 + 1, (fine_w - 1) / 2 + 1)
+        );
+        assert_eq!((coarse.u, coarse.margin), (1.0, acc.margin as f32));
+    }
 
     #[test]
     fn affine_targets_match_the_per_site_positions() {
