@@ -168,10 +168,11 @@ pub struct AccumulateConfig {
     /// Phase bins per output pixel along each axis for the sparse channels: those whose kernel
     /// scale (area per site to the power `spacing_exponent`) is at least [`SPARSE_SCALE_RATIO`]
     /// times the densest channel's (R, G and B of a W-rich CFA; none of Bayer). Their kernels
-    /// are at least 1.5 times as wide as the densest channel's, so a
-    /// coarser rounding of their sample positions costs them little, and their regression (most
-    /// of the merge's work: the widest kernels) visits that many times fewer bins per axis. Must divide `bins_per_output_px`; equal to it, every channel takes the
-    /// same bins. This project's speed trade-off ([`MergeAccumulator::finish`]).
+    /// are at least 1.5 times as wide as the densest channel's, so a coarser rounding of their
+    /// sample positions costs them little, and their regression (most of the merge's work: the
+    /// widest kernels) visits that many times fewer bins per axis. Must divide
+    /// `bins_per_output_px`; equal to it, every channel takes the same bins. This project's
+    /// speed trade-off ([`MergeAccumulator::finish`]).
     pub sparse_bins_per_output_px: usize, // 1
 }
 
@@ -280,7 +281,7 @@ const OWN_ELLIPSE_RATIO: f64 = 0.8;
 /// Kernel scale (covariance factor), relative to the densest channel's, from which a channel
 /// counts as sparse and takes the coarser phase bins of
 /// `AccumulateConfig::sparse_bins_per_output_px` (its kernel std is then at least 1.5 times the
-/// densest channel's). On /tmp/cap10k's CFA at spacing exponent 0.5 (the default pipeline with
+/// densest channel's). On the colour-SPAD CFA at spacing exponent 0.5 (the default pipeline with
 /// denoising) G, B and R have 2.4, 3.5 and 3.5 times W's scale; Bayer's R and B have at most
 /// twice G's, and stay on the phase bins: with them on coarser bins (ratio 2) the quality
 /// suite's Bayer capture lost 0.11 dB (burst) and 0.14 dB (true motion).
