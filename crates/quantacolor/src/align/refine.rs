@@ -557,25 +557,26 @@ impl FrameMotion {
         let (h, w) = alignment.grey[alignment.plan.reference_block].dim();
         let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
         let grid = alignment.grid.clone();
+        // Each block's fit and kept residual depend on that block's tiles only.
+        let per_block: Vec<(AffineMotion, Array3<f32>)> = (0..alignment.plan.len())
+            .into_par_iter()
+            .map(|b| {
+                let tiles = alignment.flow.slice(s![b, .., .., ..]).to_owned();
+                let (camera, residual) =
+                    match affine_fit_field(&tiles, &grid, tolerance_px.max(1.0)) {
+                        Some(fit) => (
+                            affine_from_tiles(&fit, &grid, centre),
+                            unexplained_residual(&tiles, &fit),
+                        ),
+                        None => (AffineMotion::default(), tiles),
+                    };
+                (camera, coherent_residual(&residual, min_local_tiles))
+            })
+            .collect();
         let mut local = alignment.flow.clone();
-        let mut camera = Vec::with_capacity(alignment.plan.len());
-        for b in 0..alignment.plan.len() {
-            let tiles = alignment.flow.slice(s![b, .., .., ..]).to_owned();
-            match affine_fit_field(&tiles, &grid, tolerance_px.max(1.0)) {
-                Some(fit) => {
-                    camera.push(affine_from_tiles(&fit, &grid, centre));
-                    local
-                        .slice_mut(s![b, .., .., ..])
-                        .assign(&unexplained_residual(&tiles, &fit));
-                }
-                None => {
-                    camera.push(AffineMotion::default());
-                }
-            }
-        }
-        for b in 0..alignment.plan.len() {
-            let kept =
-                coherent_residual(&local.slice(s![b, .., .., ..]).to_owned(), min_local_tiles);
+        let mut camera = Vec::with_capacity(per_block.len());
+        for (b, (block_camera, kept)) in per_block.into_iter().enumerate() {
+            camera.push(block_camera);
             local.slice_mut(s![b, .., .., ..]).assign(&kept);
         }
         if local_consistency > 0.0 {
@@ -1090,36 +1091,49 @@ pub(super) fn bin_layout(
         _ => [0.0, 0.0],
     };
     let (by, bx) = (h.div_ceil(bin), w.div_ceil(bin));
-    let mut sites = vec![Vec::new(); by * bx];
+    let bin_of_site = |y: usize, x: usize| {
+        let use_site = match method {
+            GreyMethod::InterpolateW => cfa.channel(y, x) == Channel::W,
+            _ => true,
+        };
+        (use_site && !hot.is_some_and(|m| m[[y, x]])).then(|| (y / bin) * bx + x / bin)
+    };
+    // A counting sort: sites per bin and their coordinate sums in one pass, then each site at
+    // its bin's next slot in a second (row-major order within a bin, as a scan visits them).
+    let mut count = vec![0u32; by * bx];
     let mut sums = vec![[0.0f64; 2]; by * bx];
     for y in 0..h {
         for x in 0..w {
-            let use_site = match method {
-                GreyMethod::InterpolateW => cfa.channel(y, x) == Channel::W,
-                _ => true,
-            };
-            if use_site && !hot.is_some_and(|m| m[[y, x]]) {
-                let k = (y / bin) * bx + x / bin;
-                sites[k].push((y * w + x) as u32);
+            if let Some(k) = bin_of_site(y, x) {
+                count[k] += 1;
                 sums[k][0] += y as f64;
                 sums[k][1] += x as f64;
             }
         }
     }
-    let mut site_index = Vec::new();
+    let mut next_slot = vec![0u32; by * bx];
     let mut site_start = vec![0u32];
     let mut centroid = Vec::new();
-    for (s, m) in sites.iter().zip(&sums) {
-        if s.is_empty() {
+    for (k, (&n, m)) in count.iter().zip(&sums).enumerate() {
+        if n == 0 {
             continue;
         }
-        let n = s.len() as f64;
-        site_index.extend_from_slice(s);
-        site_start.push(site_index.len() as u32);
+        next_slot[k] = *site_start.last().expect("starts at 0");
+        site_start.push(next_slot[k] + n);
+        let n = n as f64;
         centroid.push([
             m[0] / n - offset[0] - centre[0],
             m[1] / n - offset[1] - centre[1],
         ]);
+    }
+    let mut site_index = vec![0u32; *site_start.last().expect("starts at 0") as usize];
+    for y in 0..h {
+        for x in 0..w {
+            if let Some(k) = bin_of_site(y, x) {
+                site_index[next_slot[k] as usize] = (y * w + x) as u32;
+                next_slot[k] += 1;
+            }
+        }
     }
     BinLayout::from_bins(site_index, site_start, centroid)
 }
@@ -1877,7 +1891,7 @@ pub fn refine_camera_motion(
     }
     let layouts: Vec<BinLayout> = config
         .levels
-        .iter()
+        .par_iter()
         .map(|l| {
             bin_layout(
                 &capture.cfa,
@@ -2195,6 +2209,60 @@ mod tests {
             .map(|l| template_level(reference, l.sigma_px))
             .collect();
         (layouts, templates)
+    }
+
+    #[test]
+    fn bin_layout_holds_every_used_site_once_in_its_bin_in_scan_order() {
+        let cfa = Cfa::new(colorspad_cfa().codes().slice(s![..13, ..11]).to_owned()).unwrap();
+        let hot = Array2::from_shape_fn((13, 11), |(y, x)| (3 * y + x) % 7 == 0);
+        for (method, bin) in [
+            (GreyMethod::InterpolateW, 1),
+            (GreyMethod::InterpolateW, 3),
+            (GreyMethod::TileAverage { py: 2, px: 2 }, 2),
+        ] {
+            let layout = bin_layout(&cfa, method, Some(&hot), bin);
+            let used = |y: usize, x: usize| {
+                !hot[[y, x]]
+                    && (cfa.channel(y, x) == Channel::W
+                        || !matches!(method, GreyMethod::InterpolateW))
+            };
+            // The non-empty bins in row-major bin order, each with its sites in scan order.
+            let mut expected: Vec<Vec<u32>> = Vec::new();
+            for bin_y in 0..13usize.div_ceil(bin) {
+                for bin_x in 0..11usize.div_ceil(bin) {
+                    let sites: Vec<u32> = (0..13 * 11)
+                        .filter(|&i| {
+                            let (y, x) = (i / 11, i % 11);
+                            y / bin == bin_y && x / bin == bin_x && used(y, x)
+                        })
+                        .map(|i| i as u32)
+                        .collect();
+                    if !sites.is_empty() {
+                        expected.push(sites);
+                    }
+                }
+            }
+            assert_eq!(layout.len(), expected.len(), "bin {bin}");
+            let offset = match method {
+                GreyMethod::TileAverage { .. } => 0.5,
+                _ => 0.0,
+            };
+            for (b, sites) in expected.iter().enumerate() {
+                assert_eq!(layout.sites(b), &sites[..], "bin {bin}, bin index {b}");
+                let n = sites.len() as f64;
+                let mean_y = sites.iter().map(|&i| (i / 11) as f64).sum::<f64>() / n;
+                let mean_x = sites.iter().map(|&i| (i % 11) as f64).sum::<f64>() / n;
+                let c = layout.centroid[b];
+                assert!(
+                    (c[0] - (mean_y - offset - 6.0)).abs() < 1e-12,
+                    "bin {bin}: {c:?}"
+                );
+                assert!(
+                    (c[1] - (mean_x - offset - 5.0)).abs() < 1e-12,
+                    "bin {bin}: {c:?}"
+                );
+            }
+        }
     }
 
     /// The default fit settings of `config`.

@@ -26,6 +26,7 @@ use crate::error::Result;
 use crate::filters::gaussian_blur;
 use crate::progress::Progress;
 use ndarray::Array2;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Settings of [`track_fast_camera_motion`].
@@ -164,7 +165,7 @@ pub fn track_fast_camera_motion(
     let hot = capture.hot_pixels.as_ref();
     let layouts: Vec<BinLayout> = config
         .levels
-        .iter()
+        .par_iter()
         .map(|l| bin_layout(&capture.cfa, grey_method, hot, l.bin))
         .collect();
     let sites = (0..h)
