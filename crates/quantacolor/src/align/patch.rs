@@ -951,16 +951,22 @@ impl ReferenceAligner {
         let (ys, xs) = (oy..(oy + ts).min(h), ox..(ox + ts).min(w));
         for _ in 0..self.config.lk_iterations {
             // The taps of `bilinear` at (y + u.0, x + u.1) depend on the row or the column
-            // alone: computed once per row and column (the same values).
+            // alone: computed once per row and column (the same values), eight at a time.
             scratch.rows.clear();
-            scratch.rows.extend(
-                ys.clone()
-                    .map(|y| crate::filters::bilinear_taps(y as f32 + u.0, alt.nrows())),
+            crate::filters::bilinear_taps_into(
+                ys.start,
+                ys.len(),
+                u.0,
+                alt.nrows(),
+                &mut scratch.rows,
             );
             scratch.cols.clear();
-            scratch.cols.extend(
-                xs.clone()
-                    .map(|x| crate::filters::bilinear_taps(x as f32 + u.1, alt.ncols())),
+            crate::filters::bilinear_taps_into(
+                xs.start,
+                xs.len(),
+                u.1,
+                alt.ncols(),
+                &mut scratch.cols,
             );
             let (by, bx) = lk_gradient_dot_error(
                 alt,
