@@ -223,6 +223,76 @@ pub fn bilinear_taps(v: f32, n: usize) -> (usize, usize, f32) {
     (v0, (v0 + 1).min(n - 1), v - v0 as f32)
 }
 
+/// [`bilinear_taps`] of the coordinates `start + i + offset` for every `i < len` (`i` converted
+/// to `f32` with the start, then the offset added: the values a caller mapping
+/// `bilinear_taps(p as f32 + offset, n)` over `start..start + len` gets), appended to `out`.
+/// With AVX2, eight coordinates at a time by the same operations (exact integer conversions,
+/// the same clamp, truncation and subtraction), so the same taps bit for bit; where the offset
+/// is not finite or the coordinates exceed `i32`, one at a time.
+pub fn bilinear_taps_into(
+    start: usize,
+    len: usize,
+    offset: f32,
+    n: usize,
+    out: &mut Vec<(usize, usize, f32)>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if offset.is_finite()
+            && start + len <= i32::MAX as usize
+            && n <= i32::MAX as usize
+            && std::arch::is_x86_feature_detected!("avx2")
+        {
+            // SAFETY: AVX2 checked just above.
+            unsafe { bilinear_taps_into_avx2(start, len, offset, n, out) };
+            return;
+        }
+    }
+    out.extend((start..start + len).map(|p| bilinear_taps(p as f32 + offset, n)));
+}
+
+/// [`bilinear_taps_into`] eight coordinates at a time. `f32::clamp` keeps the value when it is
+/// not below the low end nor above the high end (a −0.0 stays −0.0): `max(0, v)` and
+/// `min(n − 1, v)` with `v` second, whose instructions return the second operand of equal
+/// zeros, do the same (`v` is finite: no NaN to order).
+///
+/// # Safety
+/// The CPU must support AVX2; `offset` must be finite, `start + len` and `n` at most
+/// `i32::MAX`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn bilinear_taps_into_avx2(
+    start: usize,
+    len: usize,
+    offset: f32,
+    n: usize,
+    out: &mut Vec<(usize, usize, f32)>,
+) {
+    use std::arch::x86_64::*;
+    let zero = _mm256_setzero_ps();
+    let high = _mm256_set1_ps((n - 1) as f32);
+    let last = _mm256_set1_epi32((n - 1) as i32);
+    let offset_v = _mm256_set1_ps(offset);
+    let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    out.reserve(len);
+    let mut done = 0;
+    while done < len {
+        let p = _mm256_add_epi32(_mm256_set1_epi32((start + done) as i32), lanes);
+        let v = _mm256_add_ps(_mm256_cvtepi32_ps(p), offset_v);
+        let v = _mm256_min_ps(high, _mm256_max_ps(zero, v));
+        let v0 = _mm256_cvttps_epi32(v);
+        let v1 = _mm256_min_epi32(_mm256_add_epi32(v0, _mm256_set1_epi32(1)), last);
+        let frac = _mm256_sub_ps(v, _mm256_cvtepi32_ps(v0));
+        let (mut t0, mut t1, mut f) = ([0i32; 8], [0i32; 8], [0.0f32; 8]);
+        _mm256_storeu_si256(t0.as_mut_ptr().cast(), v0);
+        _mm256_storeu_si256(t1.as_mut_ptr().cast(), v1);
+        _mm256_storeu_ps(f.as_mut_ptr(), frac);
+        let count = (len - done).min(8);
+        out.extend((0..count).map(|l| (t0[l] as usize, t1[l] as usize, f[l])));
+        done += count;
+    }
+}
+
 /// Bilinear sample of `image` at the real position `(y, x)`, clamped to the image edges.
 #[inline]
 pub fn bilinear(image: ArrayView2<f32>, y: f32, x: f32) -> f32 {
@@ -256,6 +326,50 @@ pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The batched taps equal [`bilinear_taps`] one coordinate at a time, bit for bit: offsets
+    /// below, inside and past the axis (clamped at both ends), negative zero, fractions next to
+    /// whole pixels, lengths off the vector width, a one-pixel axis, and non-finite offsets.
+    #[test]
+    fn batched_bilinear_taps_match_one_at_a_time() {
+        let offsets = [
+            0.0f32,
+            -0.0,
+            0.3,
+            -0.7,
+            -1.6,
+            2.45,
+            -1e-8,
+            0.999_999_9,
+            -40.0,
+            40.0,
+            f32::NAN,
+            f32::INFINITY,
+        ];
+        for n in [1usize, 9, 50] {
+            for start in [0usize, 3, 20, 45] {
+                for len in [0usize, 1, 7, 8, 13, 16, 17] {
+                    for &offset in &offsets {
+                        let mut got = vec![(7, 7, 7.0)];
+                        bilinear_taps_into(start, len, offset, n, &mut got);
+                        let expected: Vec<(usize, usize, f32)> = std::iter::once((7, 7, 7.0))
+                            .chain(
+                                (start..start + len).map(|p| bilinear_taps(p as f32 + offset, n)),
+                            )
+                            .collect();
+                        assert_eq!(got.len(), expected.len());
+                        for (g, e) in got.iter().zip(&expected) {
+                            assert_eq!(
+                                (g.0, g.1, g.2.to_bits()),
+                                (e.0, e.1, e.2.to_bits()),
+                                "n {n} start {start} len {len} offset {offset}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
 
     #[test]
     fn serial_and_parallel_separable_agree_bit_for_bit() {

@@ -418,6 +418,7 @@ fn interior_window_costs(
         && ay as usize + rows + ts - 1 <= h
         && ax as usize + columns <= w
         && strip <= STRIP_COLUMNS
+        && rows <= STRIP_COLUMNS
         // The strip's whole-vector loads of its last row end inside the data.
         && (ay as usize + rows + ts - 2) * w + ax as usize + strip <= h * w;
     let (Some(rs), Some(as_)) = (reference.as_slice(), alternate.as_slice()) else {
@@ -427,8 +428,36 @@ fn interior_window_costs(
         return false;
     }
     let (ay, ax) = (ay as usize, ax as usize);
-    // The strip held in the smallest array that fits it (a fixed size per kernel: no
-    // allocation, and no more of it cleared than a window of this side needs).
+    let mut origins = [(0, 0); STRIP_COLUMNS];
+    for (k, o) in origins[..rows].iter_mut().enumerate() {
+        *o = (ay + k, ax);
+    }
+    // SAFETY: the caller checked AVX2; the loads stay inside both slices (checked above; a
+    // window fits the strip, so it has fewer rows than `STRIP_COLUMNS`).
+    unsafe { interior_costs(rs, as_, w, (oy, ox), ts, &origins[..rows], norm, side, out) };
+    true
+}
+
+/// [`interior_costs_avx2`] in the copy whose strip holds `side` offsets of a tile of `ts` px
+/// (the smallest array that fits it, a fixed size per kernel: no allocation, and no more of it
+/// cleared than a window of this side needs).
+///
+/// # Safety
+/// As [`interior_costs_avx2`]; `ts` is 8 or 16 and the strip at most [`STRIP_COLUMNS`].
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn interior_costs(
+    rs: &[f32],
+    as_: &[f32],
+    w: usize,
+    origin: (usize, usize),
+    ts: usize,
+    origins: &[(usize, usize)],
+    norm: Norm,
+    side: usize,
+    out: &mut [f32],
+) {
+    let strip = (side + ts - 1).div_ceil(8) * 8;
     let kernel = match (ts, strip) {
         (8, ..=16) => interior_costs_avx2::<1, 16>,
         (8, ..=32) => interior_costs_avx2::<1, 32>,
@@ -437,9 +466,73 @@ fn interior_window_costs(
         (_, ..=32) => interior_costs_avx2::<2, 32>,
         (_, _) => interior_costs_avx2::<2, STRIP_COLUMNS>,
     };
-    // SAFETY: the caller checked AVX2; the loads stay inside both slices (checked above).
-    unsafe { kernel(rs, as_, w, (oy, ox), (ay, ax), norm, side, out) };
-    true
+    kernel(rs, as_, w, origin, origins, norm, side, out)
+}
+
+/// The costs of the distinct `seeds` (offsets) of the tile at `origin` into `out` (one each,
+/// the numbers of [`offset_cost`]): with AVX2, where the tile and every seed's displaced copy
+/// lie inside the images and the tile is 8 or 16 px, by one [`interior_costs_avx2`] over the
+/// seeds (the reference tile transposed once, the seeds' row sums transposed and added
+/// together); otherwise one [`offset_cost`] each.
+fn seed_costs(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    (oy, ox): (usize, usize),
+    ts: usize,
+    seeds: &[(isize, isize)],
+    norm: Norm,
+    out: &mut [f32],
+) {
+    debug_assert_eq!(seeds.len(), out.len());
+    #[cfg(target_arch = "x86_64")]
+    {
+        let (h, w) = reference.dim();
+        let mut origins = [(0, 0); 8];
+        let fits = |&(dy, dx): &(isize, isize)| {
+            let (ay, ax) = (oy as isize + dy, ox as isize + dx);
+            // The tile's whole-vector loads of its last row end inside the data.
+            (ay >= 0 && ax >= 0 && ay as usize + ts <= h && ax as usize + ts <= w)
+                .then_some((ay as usize, ax as usize))
+        };
+        if std::arch::is_x86_feature_detected!("avx2")
+            && matches!(ts, 8 | 16)
+            && seeds.len() <= origins.len()
+            && oy + ts <= h
+            && ox + ts <= w
+            && alternate.dim() == (h, w)
+        {
+            if let (Some(rs), Some(as_)) = (reference.as_slice(), alternate.as_slice()) {
+                let mut all = true;
+                for (o, d) in origins.iter_mut().zip(seeds) {
+                    match fits(d) {
+                        Some(a) => *o = a,
+                        None => all = false,
+                    }
+                }
+                if all {
+                    // SAFETY: AVX2 checked; every seed's copy lies inside the images (a strip
+                    // of one offset is the tile's width, a whole number of vectors).
+                    unsafe {
+                        interior_costs(
+                            rs,
+                            as_,
+                            w,
+                            (oy, ox),
+                            ts,
+                            &origins[..seeds.len()],
+                            norm,
+                            1,
+                            out,
+                        )
+                    };
+                    return;
+                }
+            }
+        }
+    }
+    for (c, &d) in out.iter_mut().zip(seeds) {
+        *c = offset_cost(reference, alternate, (oy, ox), ts, d, norm);
+    }
 }
 
 /// Eight rows of `img` (row length `w`) from `(y, x)`, eight columns each, transposed: vector
@@ -465,7 +558,9 @@ unsafe fn load_transposed(
 }
 
 /// The costs of [`interior_window_costs`] for tiles of `8·G` px (the strip at most `S`
-/// columns): lane l of a vector works on
+/// columns), for rows of `side` offsets: row k's strip of the alternate starts at
+/// `origins[k]` (a window's rows one below the other, or seeds anywhere, one a row), `out`
+/// row-major. Lane l of a vector works on
 /// tile row l (of a group of eight rows) instead of on an offset, so no lane idles whatever
 /// the window's side (at level 1 a window row of nine offsets filled 9 of 16 lanes of
 /// [`tile_costs_avx2`]). The reference tile is transposed once (vector c: column c of eight
@@ -485,14 +580,14 @@ unsafe fn interior_costs_avx2<const G: usize, const S: usize>(
     as_: &[f32],
     w: usize,
     (oy, ox): (usize, usize),
-    (ay, ax): (usize, usize),
+    origins: &[(usize, usize)],
     norm: Norm,
     side: usize,
     out: &mut [f32],
 ) {
     use std::arch::x86_64::*;
     let ts = 8 * G;
-    let rows = out.len() / side;
+    debug_assert_eq!(origins.len() * side, out.len());
     let strip_vectors = (side + ts - 1).div_ceil(8);
     let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
     let area = _mm256_set1_ps((ts * ts) as f32);
@@ -523,10 +618,10 @@ unsafe fn interior_costs_avx2<const G: usize, const S: usize>(
         _mm256_storeu_ps(lanes.as_mut_ptr(), _mm256_div_ps(cost, area));
         out.copy_from_slice(&lanes[..filled]);
     };
-    for k in 0..rows {
+    for &(ay, ax) in origins {
         for (g, at) in at.iter_mut().enumerate() {
             for b in 0..strip_vectors {
-                let v = load_transposed(as_, w, ay + k + 8 * g, ax + 8 * b);
+                let v = load_transposed(as_, w, ay + 8 * g, ax + 8 * b);
                 at[8 * b..8 * b + 8].copy_from_slice(&v);
             }
         }
@@ -873,7 +968,6 @@ impl ReferenceAligner {
                             &parent_seeds
                         }
                     };
-                    let cost = |d: (isize, isize)| offset_cost(r_img, a_img, origin, ts, d, norm);
                     // Each distinct seed's cost once (the parent tiles often agree, and equal
                     // offsets cost the same); the first of equal minima wins (as `min_by`).
                     let mut rounded = [(0isize, 0isize); 4];
@@ -885,12 +979,23 @@ impl ReferenceAligner {
                             distinct += 1;
                         }
                     }
-                    let seed = rounded[..distinct]
+                    let mut seed_cost = [0.0f32; 4];
+                    seed_costs(
+                        r_img,
+                        a_img,
+                        origin,
+                        ts,
+                        &rounded[..distinct],
+                        norm,
+                        &mut seed_cost[..distinct],
+                    );
+                    let seed = seed_cost[..distinct]
                         .iter()
-                        .map(|&d| (cost(d), d))
-                        .min_by(|a, b| a.0.total_cmp(&b.0))
+                        .zip(&rounded[..distinct])
+                        .min_by(|a, b| a.0.total_cmp(b.0))
                         .expect("at least one seed")
                         .1;
+                    let seed = *seed;
                     let side = (2 * radius + 1) as usize;
                     scratch.window.clear();
                     scratch.window.resize(side * side, 0.0);
@@ -951,16 +1056,22 @@ impl ReferenceAligner {
         let (ys, xs) = (oy..(oy + ts).min(h), ox..(ox + ts).min(w));
         for _ in 0..self.config.lk_iterations {
             // The taps of `bilinear` at (y + u.0, x + u.1) depend on the row or the column
-            // alone: computed once per row and column (the same values).
+            // alone: computed once per row and column (the same values), eight at a time.
             scratch.rows.clear();
-            scratch.rows.extend(
-                ys.clone()
-                    .map(|y| crate::filters::bilinear_taps(y as f32 + u.0, alt.nrows())),
+            crate::filters::bilinear_taps_into(
+                ys.start,
+                ys.len(),
+                u.0,
+                alt.nrows(),
+                &mut scratch.rows,
             );
             scratch.cols.clear();
-            scratch.cols.extend(
-                xs.clone()
-                    .map(|x| crate::filters::bilinear_taps(x as f32 + u.1, alt.ncols())),
+            crate::filters::bilinear_taps_into(
+                xs.start,
+                xs.len(),
+                u.1,
+                alt.ncols(),
+                &mut scratch.cols,
             );
             let (by, bx) = lk_gradient_dot_error(
                 alt,
@@ -1859,6 +1970,45 @@ mod tests {
             }
         }
         assert!(taken > 100 && declined > 100, "{taken} {declined}");
+    }
+
+    /// The seeds' costs ([`seed_costs`], all of a tile's seeds in one kernel where they lie
+    /// inside the images) equal the plain loop bit for bit, for one to four seeds, both tile
+    /// sizes and norms, tiles inside and at the edges, seeds inside and reaching past the image.
+    #[test]
+    fn seed_costs_equal_the_plain_tile_cost() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        let (h, w) = (57usize, 66usize);
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let mut finite = 0;
+        for norm in [Norm::L1, Norm::L2] {
+            for ts in [8usize, 16] {
+                for _ in 0..300 {
+                    let (oy, ox) = (rng.gen_range(0..h - 4), rng.gen_range(0..w - 4));
+                    let n = rng.gen_range(1..=4);
+                    let seeds: Vec<(isize, isize)> = (0..n)
+                        .map(|_| (rng.gen_range(-12isize..=12), rng.gen_range(-12isize..=12)))
+                        .collect();
+                    let mut costs = vec![f32::NAN; n];
+                    seed_costs(
+                        &reference,
+                        &alternate,
+                        (oy, ox),
+                        ts,
+                        &seeds,
+                        norm,
+                        &mut costs,
+                    );
+                    for (&c, &d) in costs.iter().zip(&seeds) {
+                        let plain = tile_cost_plain(&reference, &alternate, (oy, ox), ts, d, norm);
+                        assert_eq!(c.to_bits(), plain.to_bits(), "{oy} {ox} {d:?} {ts}");
+                        finite += c.is_finite() as usize;
+                    }
+                }
+            }
+        }
+        assert!(finite > 1000, "{finite}");
     }
 
     /// [`best_offset`] is the sequential scan it replaces (keep the best so far from (∞, seed);
