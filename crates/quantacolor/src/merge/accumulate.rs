@@ -1395,32 +1395,18 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     let source = g.source;
     // Groups of eight bins of a bin row: at most the bins within the radius, plus one.
     let max_groups = ((2.0 * radius * u) as usize + 2).div_ceil(LANES) + 1;
-    let group_floats = max_groups * LANES;
-    // The channels whose weights are exponentials of the forms of the main span's bins (those
-    // without an ellipse of their own: W of the fine pass, the base of the coarse one): their
-    // exponentials are taken over the bins of all rows of a pixel packed end to end, so that
-    // the lanes past each row's last bin (up to seven per row) cost none.
-    let packed: [bool; 4] = std::array::from_fn(|ch| {
-        g.present[ch] && source[ch] == ch && g.power[ch] == 0 && own[ch].is_none()
-    });
-    // quads[row·group_floats + group·8 + lane]: the forms of every row of a pixel, row by row.
-    let mut quads = vec![0.0f32; rows * group_floats];
-    // The same forms packed ([`pack_row`]), and the weights made from them per packed channel.
-    let mut packed_quads = vec![f32::INFINITY; rows * group_floats + LANES];
-    let mut packed_weights: [Vec<f32>; 4] =
-        std::array::from_fn(|ch| vec![0.0f32; if packed[ch] { packed_quads.len() } else { 0 }]);
-    // weights[ch][group·8 + lane] of the channels that make their own weights, for one row.
+    // weights[ch][group·8 + lane] of the channels that make their own weights.
+    let mut quads = vec![0.0f32; max_groups * LANES];
     let mut weights: [Vec<f32>; 4] = std::array::from_fn(|ch| {
         vec![
             0.0f32;
             if g.present[ch] && g.source[ch] == ch {
-                group_floats
+                max_groups * LANES
             } else {
                 0
             }
         ]
     });
-    let mut plans: Vec<RowPlan> = Vec::with_capacity(rows);
     for (ox, out) in row.iter_mut().enumerate() {
         let px = ox as f32 * g.inv_s + g.offset;
         let ix = (px.round().max(0.0) as usize).min(g.w - 1);
@@ -1436,21 +1422,20 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 ellipse_spans(a, b2, c, &dys, limit, spans);
             }
         }
-        // The bins of each row inside an ellipse's dx interval, widened by a bin each side.
-        let cols = BinSpan {
-            bx0,
-            bx1,
-            inv_u: inv_u as f64,
-            centre: (margin + px) as f64,
-            u: u as f64,
-        };
-        // First every row's bins and their quadratic forms...
-        plans.clear();
-        let mut packed_len = 0;
+        // acc[channel][sum][lane]
+        let mut acc = [[[0.0f32; LANES]; 3]; 4];
         for (row, by) in (by0..=by1).enumerate() {
             let dy = dys[row];
             let ady2 = a * dy * dy;
             let bdy = b2 * dy;
+            // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
+            let cols = BinSpan {
+                bx0,
+                bx1,
+                inv_u: inv_u as f64,
+                centre: (margin + px) as f64,
+                u: u as f64,
+            };
             let (lo, hi) = match g.ellipse_limit {
                 Some(_) => cols.of(main_span[row]),
                 None => (bx0, bx1),
@@ -1476,55 +1461,6 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                     None => {}
                 }
             }
-            // The quadratic form of every bin of the groups (32-bit bin indices, exact in f32
-            // as the 64-bit ones are: converted eight at a time).
-            let plan = RowPlan {
-                by,
-                lo,
-                hi,
-                groups,
-                span,
-                quads: plans.len() * group_floats,
-                packed: packed_len,
-            };
-            let row_quads = &mut quads[plan.quads..plan.quads + groups * LANES];
-            let lo32 = lo as i32;
-            for (group, quads) in row_quads.chunks_exact_mut(LANES).enumerate() {
-                let first = lo32 + (group * LANES) as i32;
-                let mut lanes = [0.0f32; LANES];
-                for (i, quad) in lanes.iter_mut().enumerate() {
-                    let dx = (first + i as i32) as f32 * inv_u - margin - px;
-                    *quad = ady2 + dx * (bdy + c * dx);
-                }
-                quads.copy_from_slice(&lanes);
-            }
-            // Lanes past the row segment: a form no factor brings below the cutoff (weight 0).
-            row_quads[(hi - lo) as usize + 1..].fill(f32::INFINITY);
-            if packed.contains(&true) {
-                pack_row(&mut packed_quads, packed_len, row_quads);
-            }
-            packed_len += (hi - lo) as usize + 1;
-            plans.push(plan);
-        }
-        // ...then the weights of the packed channels, eight packed bins at a time...
-        let packed_groups = packed_len.div_ceil(LANES);
-        packed_quads[packed_len..packed_groups * LANES].fill(f32::INFINITY);
-        for (ch, weights) in packed_weights.iter_mut().enumerate() {
-            if packed[ch] {
-                exp_weights(
-                    g,
-                    ch,
-                    &packed_quads[..packed_groups * LANES],
-                    &mut weights[..packed_groups * LANES],
-                );
-            }
-        }
-        // ...and the sums, row by row.
-        // acc[channel][sum][lane]
-        let mut acc = [[[0.0f32; LANES]; 3]; 4];
-        for plan in &plans {
-            let (lo, groups, span) = (plan.lo, plan.groups, plan.span);
-            let row_quads = &quads[plan.quads..plan.quads + groups * LANES];
             // The groups of a channel: those overlapping its span.
             let group_range = |ch: usize| -> (usize, usize) {
                 let (l, h) = span[ch];
@@ -1543,25 +1479,38 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 };
                 (first, end)
             };
-            // The weights of every group, per channel that makes its own: the packed ones'
-            // unpacked (0 past the row's last bin, as the form there gives), the others' made.
-            let len = (plan.hi - lo) as usize + 1;
+            // The quadratic form of every bin of the groups (32-bit bin indices, exact in f32
+            // as the 64-bit ones are: converted eight at a time), then the weights of every
+            // group, per channel that makes its own.
+            let lo32 = lo as i32;
+            for (group, quads) in quads[..groups * LANES].chunks_exact_mut(LANES).enumerate() {
+                let first = lo32 + (group * LANES) as i32;
+                let mut lanes = [0.0f32; LANES];
+                for (i, quad) in lanes.iter_mut().enumerate() {
+                    let dx = (first + i as i32) as f32 * inv_u - margin - px;
+                    *quad = ady2 + dx * (bdy + c * dx);
+                }
+                quads.copy_from_slice(&lanes);
+            }
+            // Lanes past the row segment: a form no factor brings below the cutoff (weight 0).
+            quads[(hi - lo) as usize + 1..groups * LANES].fill(f32::INFINITY);
             for (ch, weights) in weights.iter_mut().enumerate() {
                 if !g.present[ch] || g.source[ch] != ch || g.power[ch] != 0 {
                     continue;
                 }
-                if packed[ch] {
-                    unpack_row(
-                        &packed_weights[ch][plan.packed..],
-                        len,
-                        &mut weights[..groups * LANES],
-                    );
-                    continue;
-                }
                 let (first, end) = group_range(ch);
-                if first < end {
-                    let at = first * LANES..end * LANES;
-                    exp_weights(g, ch, &row_quads[at.clone()], &mut weights[at]);
+                let factor = g.inv_scale[ch];
+                for group in first..end {
+                    let at = group * LANES;
+                    // Local lanes, so that the compiler sees eight independent values.
+                    let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
+                    let mut lanes = [0.0f32; LANES];
+                    for i in 0..LANES {
+                        let q = quad[i] * factor;
+                        let e = fastmath::exp(-0.5 * q);
+                        lanes[i] = if q < g.cutoff { e } else { 0.0 };
+                    }
+                    weights[at..at + LANES].copy_from_slice(&lanes);
                 }
             }
             // The channels whose factor is a multiple of the base's: powers of its weights,
@@ -1576,14 +1525,14 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 let base = &weights[g.base];
                 for group in first..end {
                     let at = group * LANES;
-                    let quad: [f32; LANES] = row_quads[at..at + LANES].try_into().expect("lanes");
+                    let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
                     let w: [f32; LANES] = base[at..at + LANES].try_into().expect("lanes");
                     let lanes = power_weights(g, ch, &quad, w, k);
                     own[at..at + LANES].copy_from_slice(&lanes);
                 }
                 weights[ch] = own;
             }
-            let row_start = plan.by as usize * SUMS * stride;
+            let row_start = by as usize * SUMS * stride;
             // The channels that share weights and groups (R, G and B of most CFAs) run over
             // the groups together: one pass with all their partial sums in registers (more
             // independent additions in flight), each partial sum receiving the same products
@@ -1628,71 +1577,6 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 out[ch * 3 + sum] = lane_sum(lanes);
             }
         }
-    }
-}
-
-/// One bin row of an output pixel's regression ([`gather_row_generic`]).
-struct RowPlan {
-    /// The bin row.
-    by: isize,
-    /// Its first and last bin inside the widest ellipse, and the groups of eight bins from
-    /// `lo` that cover them.
-    lo: isize,
-    hi: isize,
-    groups: usize,
-    /// Each channel's bins (its own ellipse's, or `lo`..=`hi`).
-    span: [(isize, isize); 4],
-    /// Where the row's forms start in the rows' forms, and in the packed forms.
-    quads: usize,
-    packed: usize,
-}
-
-/// Appends a row's forms `row_quads` (whole groups of eight) to `packed` at `at`: whole
-/// groups are written (fixed-length copies); the lanes past the row's last bin are
-/// overwritten by the next row's forms, or by the padding after the last row.
-#[inline(always)]
-fn pack_row(packed: &mut [f32], at: usize, row_quads: &[f32]) {
-    for (group, lanes) in row_quads.chunks_exact(LANES).enumerate() {
-        let to = at + group * LANES;
-        let lanes: &[f32; LANES] = lanes.try_into().expect("lanes");
-        let dst: &mut [f32; LANES] = (&mut packed[to..to + LANES]).try_into().expect("lanes");
-        *dst = *lanes;
-    }
-}
-
-/// The first `len` packed weights of a row (`packed`, from its first) into its groups of
-/// eight `weights`, the lanes after them 0 (whole groups: fixed-length copies and a lane mask).
-#[inline(always)]
-fn unpack_row(packed: &[f32], len: usize, weights: &mut [f32]) {
-    for (group, out) in weights.chunks_exact_mut(LANES).enumerate() {
-        let at = group * LANES;
-        let from: &[f32; LANES] = packed[at..at + LANES].try_into().expect("lanes");
-        let mut lanes = [0.0f32; LANES];
-        for i in 0..LANES {
-            lanes[i] = if at + i < len { from[i] } else { 0.0 };
-        }
-        out.copy_from_slice(&lanes);
-    }
-}
-
-/// The kernel weights exp(−½·q·f) of channel `ch` (factor f) of the forms `quads` (whole
-/// groups of eight) into `weights`: 0 where q·f is at or above the cutoff.
-#[inline(always)]
-fn exp_weights(g: &Gather, ch: usize, quads: &[f32], weights: &mut [f32]) {
-    let factor = g.inv_scale[ch];
-    for (quad, out) in quads
-        .chunks_exact(LANES)
-        .zip(weights.chunks_exact_mut(LANES))
-    {
-        // Local lanes, so that the compiler sees eight independent values.
-        let quad: &[f32; LANES] = quad.try_into().expect("lanes");
-        let mut lanes = [0.0f32; LANES];
-        for i in 0..LANES {
-            let q = quad[i] * factor;
-            let e = fastmath::exp(-0.5 * q);
-            lanes[i] = if q < g.cutoff { e } else { 0.0 };
-        }
-        out.copy_from_slice(&lanes);
     }
 }
 
