@@ -466,6 +466,18 @@ fn reference_positions(flow: &[f32], h: usize, w: usize, y: f32, x0: f32) -> [[f
     p
 }
 
+/// The range (lowest, highest) of the target bins of a row of sites, `(u32::MAX, 0)` when no
+/// site of the row lands in the bins: [`MergeAccumulator::add`]'s bands skip the rows that
+/// cannot reach them. Made while the row is still in cache from its targets.
+#[inline(always)]
+fn row_span(row: &[(u32, f32)]) -> (u32, u32) {
+    row.iter()
+        .filter(|&&(bin, _)| bin != u32::MAX)
+        .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
+            (lo.min(bin), hi.max(bin))
+        })
+}
+
 /// What [`MergeAccumulator::add`] needs to find the target bin of every site.
 struct TargetGrid<'s> {
     h: usize,
@@ -487,24 +499,34 @@ impl TargetGrid<'_> {
     /// Target bin (the index of its first sum in the bins, (by·12)·stride + bx) and robustness
     /// weight of every site (row-major), `(u32::MAX, 0)` for sites left out (excluded, zero
     /// weight, outside the bins); `position` maps a site to its reference-grid position. In
-    /// parallel by rows.
-    fn fill(&self, targets: &mut [(u32, f32)], position: impl Fn([f32; 2]) -> [f32; 2] + Sync) {
+    /// parallel by rows; the range of target bins of every row into `spans` ([`row_span`]).
+    fn fill(
+        &self,
+        targets: &mut [(u32, f32)],
+        spans: &mut [(u32, u32)],
+        position: impl Fn([f32; 2]) -> [f32; 2] + Sync,
+    ) {
         let w = self.w;
-        targets.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (x, target) in row.iter_mut().enumerate() {
-                *target = if self.excluded.is_some_and(|e| e[y * w + x]) {
-                    (u32::MAX, 0.0)
-                } else {
-                    let p = position([y as f32, x as f32]);
-                    let rounded = [round_half_away(p[0]), round_half_away(p[1])];
-                    let bin = [
-                        round_half_away((p[0] + self.margin) * self.u),
-                        round_half_away((p[1] + self.margin) * self.u),
-                    ];
-                    self.target(rounded, bin)
-                };
-            }
-        });
+        targets
+            .par_chunks_mut(w)
+            .zip(spans.par_iter_mut())
+            .enumerate()
+            .for_each(|(y, (row, span))| {
+                for (x, target) in row.iter_mut().enumerate() {
+                    *target = if self.excluded.is_some_and(|e| e[y * w + x]) {
+                        (u32::MAX, 0.0)
+                    } else {
+                        let p = position([y as f32, x as f32]);
+                        let rounded = [round_half_away(p[0]), round_half_away(p[1])];
+                        let bin = [
+                            round_half_away((p[0] + self.margin) * self.u),
+                            round_half_away((p[1] + self.margin) * self.u),
+                        ];
+                        self.target(rounded, bin)
+                    };
+                }
+                *span = row_span(row);
+            });
     }
 
     /// The target of a site whose reference position p rounds to `rounded` and whose bin
@@ -536,22 +558,27 @@ impl TargetGrid<'_> {
     fn fill_affine(
         &self,
         targets: &mut [(u32, f32)],
+        spans: &mut [(u32, u32)],
         matrix: &[[f64; 2]; 2],
         offset: &[f64; 2],
         local: Option<(&[bool], &[f32])>,
     ) {
         targets
             .par_chunks_mut(self.w)
+            .zip(spans.par_iter_mut())
             .enumerate()
-            .for_each(|(y, row)| {
+            .for_each(|(y, (row, span))| {
                 #[cfg(target_arch = "x86_64")]
                 {
                     if std::arch::is_x86_feature_detected!("avx2") {
                         // SAFETY: the CPU supports AVX2 (checked just above).
-                        return unsafe { self.affine_row_avx2(y, row, matrix, offset, local) };
+                        unsafe { self.affine_row_avx2(y, row, matrix, offset, local) };
+                        *span = row_span(row);
+                        return;
                     }
                 }
-                self.affine_row(y, row, matrix, offset, local)
+                self.affine_row(y, row, matrix, offset, local);
+                *span = row_span(row);
             });
     }
 
@@ -602,9 +629,17 @@ impl TargetGrid<'_> {
                     bin[a][i] = round_half_away_trunc((q[a] + margin) * u);
                 }
             }
+            // Excluded sites are left out lane-wise, as sites outside the bins are.
+            let mut skip = [false; LANES];
+            if let Some(e) = excluded {
+                // Element by element: a fixed-length loop, no call to `memcpy`.
+                for (s, &e) in skip.iter_mut().zip(&e[x0..x0 + out.len()]) {
+                    *s = e;
+                }
+            }
             let mut lanes = match self.robust {
-                Some(m) => self.lane_targets(&rounded, &bin, |i| m[i]),
-                None => self.lane_targets(&rounded, &bin, |_| 1.0),
+                Some(m) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
+                None => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
             };
             if let Some((mask, flow)) = local {
                 // Sites whose affine position is outside the image or on a marked pixel take
@@ -629,8 +664,8 @@ impl TargetGrid<'_> {
                         }
                     }
                     let moved = match self.robust {
-                        Some(m) => self.lane_targets(&rounded, &bin, |i| m[i]),
-                        None => self.lane_targets(&rounded, &bin, |_| 1.0),
+                        Some(m) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
+                        None => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
                     };
                     for i in 0..LANES {
                         if dense[i] {
@@ -639,23 +674,21 @@ impl TargetGrid<'_> {
                     }
                 }
             }
-            for (i, target) in out.iter_mut().enumerate() {
-                *target = if excluded.is_some_and(|e| e[x0 + i]) {
-                    (u32::MAX, 0.0)
-                } else {
-                    lanes[i]
-                };
+            for (target, &lane) in out.iter_mut().zip(&lanes) {
+                *target = lane;
             }
         }
     }
 
-    /// [`TargetGrid::target`] of eight sites at once, without branches: `robust(i)` reads the
-    /// robustness map at row-major index i (inside the image).
+    /// [`TargetGrid::target`] of eight sites at once, without branches, lanes marked in `skip`
+    /// (excluded sites) left out: `robust(i)` reads the robustness map at row-major index i
+    /// (inside the image).
     #[inline(always)]
     fn lane_targets(
         &self,
         rounded: &[[f32; LANES]; 2],
         bin: &[[f32; LANES]; 2],
+        skip: &[bool; LANES],
         robust: impl Fn(usize) -> f32,
     ) -> [(u32, f32); LANES] {
         // 32-bit integers throughout (vector conversions); the clamps are taken on the
@@ -683,7 +716,7 @@ impl TargetGrid<'_> {
         let mut out = [(u32::MAX, 0.0f32); LANES];
         for i in 0..LANES {
             let r = robust(at[i] as usize);
-            if !(outside[i] | (r <= 0.0)) {
+            if !(outside[i] | skip[i] | (r <= 0.0)) {
                 out[i] = (index[i] as u32, r);
             }
         }
@@ -808,6 +841,9 @@ impl<'a> MergeAccumulator<'a> {
         for group in sub_blocks.chunks(SPLAT_GROUP) {
             for (k, sub) in group.iter().enumerate() {
                 let targets = &mut targets[k * h * w..(k + 1) * h * w];
+                // The range of target bins of every row of sites, made with the targets, so
+                // that a band skips the rows that cannot reach it.
+                let spans = &mut row_bins[k * h..(k + 1) * h];
                 let own = match &sub.robustness {
                     SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
                     _ => None,
@@ -830,7 +866,7 @@ impl<'a> MergeAccumulator<'a> {
                 };
                 match &sub.flow {
                     SubBlockMotion::Affine { matrix, offset } => {
-                        grid.fill_affine(targets, matrix, offset, None)
+                        grid.fill_affine(targets, spans, matrix, offset, None)
                     }
                     SubBlockMotion::CameraAndLocal {
                         matrix,
@@ -842,27 +878,16 @@ impl<'a> MergeAccumulator<'a> {
                         let flow = flow.as_slice().expect("standard layout");
                         let mask = local.as_standard_layout();
                         let mask = mask.as_slice().expect("standard layout");
-                        grid.fill_affine(targets, matrix, offset, Some((mask, flow)))
+                        grid.fill_affine(targets, spans, matrix, offset, Some((mask, flow)))
                     }
                     SubBlockMotion::Dense(flow) => {
                         let flow = flow.as_standard_layout();
                         let flow = flow.as_slice().expect("standard layout");
-                        grid.fill(targets, |q: [f32; 2]| reference_position(flow, h, w, q))
+                        grid.fill(targets, spans, |q: [f32; 2]| {
+                            reference_position(flow, h, w, q)
+                        })
                     }
                 }
-                // The range of target bins of every row of sites, so that a band skips the
-                // rows that cannot reach it.
-                targets
-                    .par_chunks(w)
-                    .zip(row_bins[k * h..(k + 1) * h].par_iter_mut())
-                    .for_each(|(row, span)| {
-                        *span = row
-                            .iter()
-                            .filter(|&&(bin, _)| bin != u32::MAX)
-                            .fold((u32::MAX, 0), |(lo, hi), &(bin, _)| {
-                                (lo.min(bin), hi.max(bin))
-                            });
-                    });
             }
             let counts: Vec<_> = group
                 .iter()
@@ -1972,11 +1997,12 @@ fn validate(
         }
         let most = b.frames as f64 * max_sample;
         // A count exceeds `most` exactly when it exceeds its floor (counts are integers): a
-        // quick scan first, the position only for the message.
+        // quick scan first (the largest count: a fold without an early exit, which the
+        // compiler vectorises, unlike `any`), the position only for the message.
         let exceeds = match b.counts.as_slice() {
             Some(counts) if most < u32::MAX as f64 => {
                 let floor = most.max(0.0).floor() as u32;
-                counts.iter().any(|&c| c > floor)
+                counts.iter().fold(0, |m: u32, &c| m.max(c)) > floor
             }
             _ => true,
         };
@@ -2100,13 +2126,46 @@ mod tests {
         ] {
             let mut fast = vec![(0u32, 0.0f32); h * w];
             let mut plain = vec![(1u32, 1.0f32); h * w];
-            grid.fill_affine(&mut fast, &matrix, &offset, None);
-            grid.fill(&mut plain, |q| affine_position(&matrix, &offset, q));
+            let mut fast_spans = vec![(0u32, 0u32); h];
+            let mut plain_spans = vec![(1u32, 1u32); h];
+            // Every row's span is its lowest and highest target bin of a site kept.
+            let spans_of = |targets: &[(u32, f32)]| -> Vec<(u32, u32)> {
+                targets
+                    .chunks(w)
+                    .map(|row| {
+                        let kept: Vec<u32> = row
+                            .iter()
+                            .map(|&(bin, _)| bin)
+                            .filter(|&bin| bin != u32::MAX)
+                            .collect();
+                        match (kept.iter().min(), kept.iter().max()) {
+                            (Some(&lo), Some(&hi)) => (lo, hi),
+                            _ => (u32::MAX, 0),
+                        }
+                    })
+                    .collect()
+            };
+            grid.fill_affine(&mut fast, &mut fast_spans, &matrix, &offset, None);
+            grid.fill(&mut plain, &mut plain_spans, |q| {
+                affine_position(&matrix, &offset, q)
+            });
             assert_eq!(fast, plain, "affine {matrix:?} {offset:?}");
+            assert!(excluded
+                .iter()
+                .zip(&fast)
+                .all(|(&e, &(bin, _))| !e || bin == u32::MAX));
+            assert_eq!(fast_spans, spans_of(&fast));
+            assert_eq!(plain_spans, spans_of(&plain));
 
             let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
-            grid.fill_affine(&mut fast, &matrix, &offset, Some((&mask, &flow)));
-            grid.fill(&mut plain, |q| {
+            grid.fill_affine(
+                &mut fast,
+                &mut fast_spans,
+                &matrix,
+                &offset,
+                Some((&mask, &flow)),
+            );
+            grid.fill(&mut plain, &mut plain_spans, |q| {
                 let p = affine_position(&matrix, &offset, q);
                 let inside = p[0] >= 0.0 && p[1] >= 0.0 && p[0] <= hf && p[1] <= wf;
                 if inside
@@ -2118,6 +2177,12 @@ mod tests {
                 }
             });
             assert_eq!(fast, plain, "camera and local {matrix:?} {offset:?}");
+            assert!(excluded
+                .iter()
+                .zip(&fast)
+                .all(|(&e, &(bin, _))| !e || bin == u32::MAX));
+            assert_eq!(fast_spans, spans_of(&fast));
+            assert_eq!(plain_spans, spans_of(&plain));
         }
     }
 
