@@ -923,6 +923,8 @@ struct RunGroups {
     x2: Vec<[f32; GROUP_LANES]>,
     /// Centroid row of every group's runs (0 for an empty lane).
     row: Vec<[f32; GROUP_LANES]>,
+    /// Group of every run.
+    group_of_run: Vec<usize>,
 }
 
 impl RunGroups {
@@ -934,6 +936,7 @@ impl RunGroups {
         order.sort_by_key(|&r| std::cmp::Reverse(runs[r].len()));
         let mut groups = RunGroups {
             slot_start: vec![0],
+            group_of_run: vec![0; runs.len()],
             ..RunGroups::default()
         };
         for group in order.chunks(GROUP_LANES) {
@@ -954,6 +957,9 @@ impl RunGroups {
                 groups.bin.push(bins);
                 groups.x.push(xs);
                 groups.x2.push(x2s);
+            }
+            for &r in group {
+                groups.group_of_run[r] = groups.runs.len();
             }
             groups.runs.push(members);
             groups
@@ -1254,6 +1260,8 @@ pub(super) struct FitSettings {
     pub fine_iterations: usize,
     /// Share of its Fisher information the finest level keeps ([`most_informative_bins`]).
     pub fine_information: f64,
+    /// Fit the finest level's iterations but the last on every second run group only.
+    pub fine_subsample: bool,
 }
 
 /// The factor a Gauss–Newton `step` is scaled by after `previous` (parameters weighted by
@@ -1386,12 +1394,19 @@ fn fit_sub_block_generic(
         } else {
             layout
         };
-        let (observed, trials) = bin_observations(layout, counts, frames);
-        // The AVX2 sums read the observations laid out as the run groups' slots, the scalar
-        // ones bin by bin.
+        // The AVX2 sums read the observations laid out as the run groups' slots (made straight
+        // from the counts), the scalar ones bin by bin.
         let by_groups = avx2 && group_lanes_fit(template);
-        let interleaved =
-            by_groups.then(|| layout.groups.observations(|b| (observed[b], trials[b])));
+        let (observed, trials) = if by_groups {
+            (Vec::new(), Vec::new())
+        } else {
+            bin_observations(layout, counts, frames)
+        };
+        let interleaved = by_groups.then(|| {
+            layout
+                .groups
+                .observations(bin_observer(layout, counts, frames))
+        });
         let mut group_sums = vec![[0.0f64; 13]; layout.runs.len()];
         let mut previous: Option<[f64; 6]> = None;
         let iterations = if level == last {
@@ -1401,7 +1416,18 @@ fn fit_sub_block_generic(
         };
         // Parameters in px at the image's far edges, for the alternation test.
         let scale = [1.0, 1.0, centre[0], centre[1], centre[0], centre[1]];
+        let mut converging = false;
         for iteration in 0..iterations {
+            let group_step = if level == last
+                && settings.fine_subsample
+                && iteration + 1 < iterations
+                && !converging
+            {
+                2
+            } else {
+                1
+            };
+            stats::count(level == last, group_step);
             let motion = AffineMotion::from_params(params);
             let mut normal = [[0.0f64; 6]; 6];
             let mut rhs = [0.0f64; 6];
@@ -1417,11 +1443,15 @@ fn fit_sub_block_generic(
                         &layout.groups,
                         observed,
                         trials,
+                        group_step,
                         &mut group_sums,
                     )
                 };
             }
             for (r, run) in layout.runs.iter().enumerate() {
+                if layout.groups.group_of_run[r] % group_step != 0 {
+                    continue;
+                }
                 // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
                 // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
                 // [9 + g + 2·p].
@@ -1484,7 +1514,10 @@ fn fit_sub_block_generic(
             let shift = (step[0].powi(2) + step[1].powi(2)).sqrt()
                 + centre[0].max(centre[1]) * step[2..].iter().map(|v| v.abs()).sum::<f64>();
             if shift < 0.002 && iteration > 0 {
-                break;
+                if group_step == 1 {
+                    break;
+                }
+                converging = true;
             }
         }
     }
@@ -1497,30 +1530,72 @@ fn fit_sub_block_generic(
 /// (1 px bins) a count is at most `frames`, so the means are looked up in a table of the
 /// `frames + 1` possible quotients (the same numbers, without a division per bin).
 fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f32>, Vec<f32>) {
+    (0..layout.len())
+        .map(bin_observer(layout, counts, frames))
+        .unzip()
+}
+
+/// The (mean bit rate, trials) of bin b of [`bin_observations`], as a function of b (for
+/// [`RunGroups::observations`], without the bin-ordered vectors in between).
+fn bin_observer<'a>(
+    layout: &'a BinLayout,
+    counts: &'a [u32],
+    frames: usize,
+) -> impl Fn(usize) -> (f32, f32) + 'a {
     let mean = |sum: f64, trials: f64| (sum / trials.max(1.0)) as f32;
-    if layout.site_index.len() == layout.len() {
-        // One site per bin (1 px bins): the bins' sites in order.
-        let trials = frames as f64;
-        let table: Vec<f32> = (0..=frames).map(|c| mean(c as f64, trials)).collect();
-        let observed = (layout.site_index.iter())
-            .map(|&i| {
-                let c = counts[i as usize];
-                match table.get(c as usize) {
-                    Some(&m) => m,
-                    None => mean(c as f64, trials),
-                }
-            })
-            .collect();
-        (observed, vec![trials as f32; layout.len()])
+    // One site per bin (1 px bins): a count is looked up in the table of quotients.
+    let single = layout.site_index.len() == layout.len();
+    let trials = frames as f64;
+    let table: Vec<f32> = if single {
+        (0..=frames).map(|c| mean(c as f64, trials)).collect()
     } else {
-        (0..layout.len())
-            .map(|b| {
-                let sites = layout.sites(b);
-                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
-                let trials = sites.len() as f64 * frames as f64;
-                (mean(sum as f64, trials), trials as f32)
-            })
-            .unzip()
+        Vec::new()
+    };
+    move |b| {
+        if single {
+            let c = counts[layout.site_index[b] as usize];
+            let m = match table.get(c as usize) {
+                Some(&m) => m,
+                None => mean(c as f64, trials),
+            };
+            (m, trials as f32)
+        } else {
+            let sites = layout.sites(b);
+            let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+            let trials = sites.len() as f64 * frames as f64;
+            (mean(sum as f64, trials), trials as f32)
+        }
+    }
+}
+
+/// Temporary counters (session 16 experiment).
+pub(super) mod stats {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    pub static COUNTS: [AtomicUsize; 4] = [
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+    ];
+    pub static PASS: AtomicUsize = AtomicUsize::new(0);
+    pub fn count(fine: bool, step: usize) {
+        let k = if fine { 1 + (step > 1) as usize } else { 0 };
+        COUNTS[k].fetch_add(1, Ordering::Relaxed);
+    }
+    pub fn fit() {
+        COUNTS[3].fetch_add(1, Ordering::Relaxed);
+    }
+    pub fn print() {
+        if std::env::var_os("QC_R16_STATS").is_some() {
+            eprintln!(
+                "r16 stats: coarse it {} fine full {} fine half {} fits {} passes {}",
+                COUNTS[0].load(Ordering::Relaxed),
+                COUNTS[1].load(Ordering::Relaxed),
+                COUNTS[2].load(Ordering::Relaxed),
+                COUNTS[3].load(Ordering::Relaxed),
+                PASS.load(Ordering::Relaxed)
+            );
+        }
     }
 }
 
@@ -1643,6 +1718,7 @@ unsafe fn run_sums_group_avx2(
     groups: &RunGroups,
     observed: &[[f32; GROUP_LANES]],
     trials: &[[f32; GROUP_LANES]],
+    group_step: usize,
     out: &mut [[f64; 13]],
 ) {
     use std::arch::x86_64::*;
@@ -1682,7 +1758,7 @@ unsafe fn run_sums_group_avx2(
         _mm256_setr_epi32(3, 3, 3, 3, 7, 7, 7, 7),
     ];
     let row_stride = 4 * w;
-    for (g, members) in groups.runs.iter().enumerate() {
+    for (g, members) in groups.runs.iter().enumerate().step_by(group_step.max(1)) {
         let frames = groups.row[g].map(|r| run_frame(motion, centre, r).0);
         let row_y = _mm256_loadu_ps(frames.map(|f| f[0]).as_ptr());
         let base_y = _mm256_loadu_ps(frames.map(|f| f[1]).as_ptr());
@@ -1887,7 +1963,9 @@ pub fn refine_camera_motion(
             )
         })
         .collect();
-    for _ in 0..config.passes.max(1) {
+    stats::PASS.store(0, std::sync::atomic::Ordering::Relaxed);
+    for pass in 0..config.passes.max(1) {
+        stats::PASS.store(pass, std::sync::atomic::Ordering::Relaxed);
         let before = motion.camera.clone();
         let information = refine_pass(
             &capture.frames,
@@ -1927,6 +2005,7 @@ pub fn refine_camera_motion(
             break;
         }
     }
+    stats::print();
     Ok(())
 }
 
@@ -2061,9 +2140,17 @@ fn refine_pass(
         .map(|(i, l)| (i < last || n_blocks == 1).then(|| template_level(&all, l.sigma_px)))
         .collect();
     let settings = FitSettings {
-        iterations: config.iterations,
         fine_iterations: config.fine_iterations,
         fine_information: config.fine_information,
+        fine_subsample: std::env::var_os("QC_R16_SUB").is_some(),
+        iterations: if stats::PASS.load(std::sync::atomic::Ordering::Relaxed) > 0 {
+            std::env::var("QC_R16_COARSE2")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(config.iterations)
+        } else {
+            config.iterations
+        },
     };
     progress.start("motion refinement", motion.sub_blocks.len() as u64);
     let mut fitted: Vec<Option<(AffineMotion, Information)>> = vec![None; motion.sub_blocks.len()];
@@ -2119,6 +2206,7 @@ fn refine_pass(
                 let range = motion.sub_blocks[k].clone();
                 let start = motion.camera[k];
                 let counts = frames.shared_sum(range.clone());
+                stats::fit();
                 let result = start.inverse().and_then(|inverse_start| {
                     fit_sub_block_with_information(
                         &counts,
@@ -2203,6 +2291,7 @@ mod tests {
             iterations: config.iterations,
             fine_iterations: config.fine_iterations,
             fine_information: config.fine_information,
+            fine_subsample: false,
         }
     }
 
@@ -2544,6 +2633,7 @@ mod tests {
                         &groups,
                         &lanes_observed,
                         &lanes_trials,
+                        1,
                         &mut simd,
                     )
                 };
@@ -2677,6 +2767,7 @@ mod tests {
                     centre,
                     FitSettings {
                         fine_information: keep,
+                        fine_subsample: false,
                         ..settings(&config)
                     },
                 )
@@ -2782,6 +2873,7 @@ mod tests {
             centre,
             FitSettings {
                 fine_information: share,
+                fine_subsample: false,
                 ..settings(&config)
             },
         )
@@ -2954,6 +3046,7 @@ mod diagnose {
                             iterations: 5,
                             fine_iterations: 5,
                             fine_information: 1.0,
+                            fine_subsample: false,
                         },
                     )
                     .unwrap();
