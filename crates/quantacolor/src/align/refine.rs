@@ -925,6 +925,9 @@ struct RunGroups {
     row: Vec<[f32; GROUP_LANES]>,
     /// Group of every run.
     group_of_run: Vec<usize>,
+    /// Site of every slot and lane where every bin holds one site (`u32::MAX`: padding);
+    /// empty otherwise.
+    site: Vec<[u32; GROUP_LANES]>,
 }
 
 impl RunGroups {
@@ -1144,7 +1147,12 @@ impl BinLayout {
         let x: Vec<f32> = centroid.iter().map(|c| c[1] as f32).collect();
         let x2: Vec<f32> = centroid.iter().map(|c| (c[1] * c[1]) as f32).collect();
         let rows: Vec<f32> = runs.iter().map(|r| centroid[r.start][0] as f32).collect();
-        let groups = RunGroups::new(&runs, &rows, &x, &x2);
+        let mut groups = RunGroups::new(&runs, &rows, &x, &x2);
+        if site_index.len() == centroid.len() {
+            groups.site = (groups.bin.iter())
+                .map(|bins| bins.map(|b| site_index.get(b as usize).copied().unwrap_or(u32::MAX)))
+                .collect();
+        }
         BinLayout {
             site_index,
             site_start,
@@ -1402,11 +1410,7 @@ fn fit_sub_block_generic(
         } else {
             bin_observations(layout, counts, frames)
         };
-        let interleaved = by_groups.then(|| {
-            layout
-                .groups
-                .observations(bin_observer(layout, counts, frames))
-        });
+        let interleaved = by_groups.then(|| slot_observations(layout, counts, frames));
         let mut group_sums = vec![[0.0f64; 13]; layout.runs.len()];
         let mut previous: Option<[f64; 6]> = None;
         let iterations = if level == last {
@@ -1530,41 +1534,78 @@ fn fit_sub_block_generic(
 /// (1 px bins) a count is at most `frames`, so the means are looked up in a table of the
 /// `frames + 1` possible quotients (the same numbers, without a division per bin).
 fn bin_observations(layout: &BinLayout, counts: &[u32], frames: usize) -> (Vec<f32>, Vec<f32>) {
-    (0..layout.len())
-        .map(bin_observer(layout, counts, frames))
-        .unzip()
+    if layout.site_index.len() == layout.len() {
+        // One site per bin (1 px bins): the bins' sites in order.
+        let table = mean_table(frames);
+        let observed = (layout.site_index.iter())
+            .map(|&i| single_site_mean(&table, counts[i as usize], frames))
+            .collect();
+        (observed, vec![frames as f32; layout.len()])
+    } else {
+        (0..layout.len())
+            .map(|b| {
+                let sites = layout.sites(b);
+                let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
+                let trials = sites.len() as f64 * frames as f64;
+                (bin_mean(sum as f64, trials), trials as f32)
+            })
+            .unzip()
+    }
 }
 
-/// The (mean bit rate, trials) of bin b of [`bin_observations`], as a function of b (for
-/// [`RunGroups::observations`], without the bin-ordered vectors in between).
-fn bin_observer<'a>(
-    layout: &'a BinLayout,
-    counts: &'a [u32],
+/// The observations of [`bin_observations`] laid out as the run groups' slots
+/// ([`RunGroups::observations`]); a layout of one site per bin is read straight from the
+/// counts through [`RunGroups::site`] (the same numbers without the bin-ordered vectors in
+/// between).
+#[allow(clippy::type_complexity)]
+fn slot_observations(
+    layout: &BinLayout,
+    counts: &[u32],
     frames: usize,
-) -> impl Fn(usize) -> (f32, f32) + 'a {
-    let mean = |sum: f64, trials: f64| (sum / trials.max(1.0)) as f32;
-    // One site per bin (1 px bins): a count is looked up in the table of quotients.
-    let single = layout.site_index.len() == layout.len();
-    let trials = frames as f64;
-    let table: Vec<f32> = if single {
-        (0..=frames).map(|c| mean(c as f64, trials)).collect()
-    } else {
-        Vec::new()
-    };
-    move |b| {
-        if single {
-            let c = counts[layout.site_index[b] as usize];
-            let m = match table.get(c as usize) {
-                Some(&m) => m,
-                None => mean(c as f64, trials),
-            };
-            (m, trials as f32)
-        } else {
-            let sites = layout.sites(b);
-            let sum: u64 = sites.iter().map(|&i| counts[i as usize] as u64).sum();
-            let trials = sites.len() as f64 * frames as f64;
-            (mean(sum as f64, trials), trials as f32)
+) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
+    let groups = &layout.groups;
+    if groups.site.len() != groups.bin.len() {
+        let (observed, trials) = bin_observations(layout, counts, frames);
+        return groups.observations(|b| (observed[b], trials[b]));
+    }
+    let table = mean_table(frames);
+    let mut observed = Vec::with_capacity(groups.site.len());
+    let mut trials = Vec::with_capacity(groups.site.len());
+    for sites in &groups.site {
+        let (mut o, mut t) = ([0.0; GROUP_LANES], [0.0; GROUP_LANES]);
+        for (lane, &i) in sites.iter().enumerate() {
+            if i != u32::MAX {
+                o[lane] = single_site_mean(&table, counts[i as usize], frames);
+                t[lane] = frames as f32;
+            }
         }
+        observed.push(o);
+        trials.push(t);
+    }
+    (observed, trials)
+}
+
+/// A bin's mean bit rate: its photon count `sum` over `trials` (sites x frames) divided in
+/// double precision and rounded once to single precision.
+#[inline(always)]
+fn bin_mean(sum: f64, trials: f64) -> f32 {
+    (sum / trials.max(1.0)) as f32
+}
+
+/// The `frames + 1` possible means of a single site over `frames` frames ([`bin_mean`]).
+fn mean_table(frames: usize) -> Vec<f32> {
+    (0..=frames)
+        .map(|c| bin_mean(c as f64, frames as f64))
+        .collect()
+}
+
+/// [`bin_mean`] of a single site's `count` over `frames` frames, looked up in `table`
+/// ([`mean_table`]) where it holds it.
+#[inline(always)]
+fn single_site_mean(table: &[f32], count: u32, frames: usize) -> f32 {
+    match table.get(count as usize) {
+        Some(&m) => m,
+        None => bin_mean(count as f64, frames as f64),
     }
 }
 
