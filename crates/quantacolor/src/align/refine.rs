@@ -1427,7 +1427,11 @@ fn fit_sub_block_generic(
                 && iteration + 1 < iterations
                 && !converging
             {
-                2
+                let halvings = std::env::var("QC_R16_SUB")
+                    .ok()
+                    .and_then(|v| v.parse::<usize>().ok())
+                    .unwrap_or(1);
+                1 << halvings.min(iterations - 1 - iteration)
             } else {
                 1
             };
