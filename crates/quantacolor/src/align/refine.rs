@@ -1736,6 +1736,7 @@ fn run_sums(
 /// The CPU must support AVX2.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
 unsafe fn run_sums_group_avx2(
     template: &TemplateLevel,
     motion: &AffineMotion,
