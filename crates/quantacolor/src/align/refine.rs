@@ -1468,7 +1468,7 @@ fn fit_sub_block_generic(
                 };
             }
             for (r, run) in layout.runs.iter().enumerate() {
-                if layout.groups.group_of_run[r] % group_step != 0 {
+                if !layout.groups.group_of_run[r].is_multiple_of(group_step) {
                     continue;
                 }
                 // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
@@ -2655,7 +2655,7 @@ mod tests {
                         )
                     };
                     for (r, run) in runs.iter().enumerate() {
-                        if groups.group_of_run[r] % group_step != 0 {
+                        if !groups.group_of_run[r].is_multiple_of(group_step) {
                             assert!(simd[r].iter().all(|v| v.is_nan()), "{n_runs} {shift} {r}");
                             continue;
                         }
