@@ -234,6 +234,7 @@ pub fn track_fast_camera_motion(
                             iterations: config.iterations,
                             fine_iterations: config.iterations,
                             fine_information: 1.0,
+                            fine_thinning: 0,
                         },
                     )
                 })
