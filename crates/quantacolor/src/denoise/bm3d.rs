@@ -1583,25 +1583,16 @@ fn filter_group<const AVX2: bool, const WIENER: bool>(
     tmp: &mut [f32],
 ) -> f32 {
     if let Ok(profile) = <&[f32; 64]>::try_from(profile) {
-        let basic_rows = if WIENER { m * 64 } else { 0 };
-        let mut lanes = |m: usize| {
-            filter_group_lanes::<WIENER>(
-                &mut group[..m * 64],
-                &basic[..basic_rows],
-                m,
-                profile,
-                param,
-                &mut tmp[..m * 64],
-            )
-        };
-        // Sizes known to the compiler, as in `haar_lanes`.
+        // Sizes known to the compiler, as in `haar_lanes` (called directly: a closure here was
+        // compiled on its own, without AVX2 and out of line).
+        let (g, b, q, t) = (&mut *group, &*basic, profile, &mut *tmp);
         match m {
-            1 => return lanes(1),
-            2 => return lanes(2),
-            4 => return lanes(4),
-            8 => return lanes(8),
-            16 => return lanes(16),
-            32 => return lanes(32),
+            1 => return filter_group_sized::<WIENER, 1>(g, b, q, param, t),
+            2 => return filter_group_sized::<WIENER, 2>(g, b, q, param, t),
+            4 => return filter_group_sized::<WIENER, 4>(g, b, q, param, t),
+            8 => return filter_group_sized::<WIENER, 8>(g, b, q, param, t),
+            16 => return filter_group_sized::<WIENER, 16>(g, b, q, param, t),
+            32 => return filter_group_sized::<WIENER, 32>(g, b, q, param, t),
             _ => {}
         }
     }
@@ -1615,6 +1606,26 @@ fn filter_group<const AVX2: bool, const WIENER: bool>(
     };
     haar_inverse(group, m, n2, tmp);
     total
+}
+
+/// [`filter_group_lanes`] of `M` blocks.
+#[inline(always)]
+fn filter_group_sized<const WIENER: bool, const M: usize>(
+    group: &mut [f32],
+    basic: &[f32],
+    profile: &[f32; 64],
+    param: f32,
+    terms: &mut [f32],
+) -> f32 {
+    let basic_rows = if WIENER { M * 64 } else { 0 };
+    filter_group_lanes::<WIENER>(
+        &mut group[..M * 64],
+        &basic[..basic_rows],
+        M,
+        profile,
+        param,
+        &mut terms[..M * 64],
+    )
 }
 
 /// [`filter_group`] of `m` ≤ [`MAX_LANE_GROUP`] blocks of 64 coefficients, eight
