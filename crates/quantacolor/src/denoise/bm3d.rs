@@ -778,7 +778,24 @@ fn bessel_i0(x: f64) -> f64 {
 struct BlockCoeffs {
     n2: usize,
     pw: usize,
+    /// Where the coefficients start in `data`: its first 64-byte boundary ([`line_start`]), so
+    /// that an 8 × 8 block's 256 bytes are four whole cache lines. From the allocation's own
+    /// 16-byte alignment every block spanned five, and matching, which loads a block for every
+    /// candidate that passes its first check, waited for a fifth of the lines more (the
+    /// prefetch of a block's four lines left its last one out).
+    start: usize,
+    /// `start` + the coefficients + [`LINE_FLOATS`] of room.
     data: Vec<f32>,
+}
+
+/// f32 values per 64-byte cache line.
+const LINE_FLOATS: usize = 16;
+
+/// The index of the first 64-byte boundary in `data` (f32 allocations are 4-byte aligned, so it
+/// is below [`LINE_FLOATS`]).
+fn line_start(data: &[f32]) -> usize {
+    let misalignment = data.as_ptr() as usize % 64;
+    (64 - misalignment) % 64 / std::mem::size_of::<f32>()
 }
 
 impl BlockCoeffs {
@@ -791,8 +808,11 @@ impl BlockCoeffs {
     /// overwritten).
     fn compute_in(buffer: Vec<f32>, plane: &[f32], geo: &Geometry, tr: &Transforms) -> Self {
         let (n, n2, pw, w) = (geo.n, geo.n * geo.n, geo.pw, geo.w);
-        let mut data = recycled(buffer, geo.ph * pw * n2, false);
-        data.par_chunks_mut(pw * n2)
+        let len = geo.ph * pw * n2;
+        let mut data = recycled(buffer, len + LINE_FLOATS, false);
+        let start = line_start(&data);
+        data[start..start + len]
+            .par_chunks_mut(pw * n2)
             .enumerate()
             .for_each(|(y, row)| {
                 #[cfg(target_arch = "x86_64")]
@@ -804,7 +824,12 @@ impl BlockCoeffs {
                 }
                 Self::row(plane, y, n, w, tr, row)
             });
-        BlockCoeffs { n2, pw, data }
+        BlockCoeffs {
+            n2,
+            pw,
+            start,
+            data,
+        }
     }
 
     /// The coefficients of the blocks of position row `y` into `row`.
@@ -864,21 +889,30 @@ impl BlockCoeffs {
 
     /// A copy with every coefficient of magnitude ≤ `t` set to zero (Step 1 matching, σ > 40).
     fn hard_thresholded(&self, t: f32) -> Self {
-        let data = self
-            .data
-            .par_iter()
-            .map(|&v| if v.abs() > t { v } else { 0.0 })
-            .collect();
+        let mut data = vec![0.0f32; self.data.len()];
+        let start = line_start(&data);
+        let coefficients = self.coefficients();
+        data[start..start + coefficients.len()]
+            .par_iter_mut()
+            .zip(coefficients.par_iter())
+            .for_each(|(dst, &v)| *dst = if v.abs() > t { v } else { 0.0 });
         BlockCoeffs {
             n2: self.n2,
             pw: self.pw,
+            start,
             data,
         }
     }
 
+    /// Every position's coefficients.
+    fn coefficients(&self) -> &[f32] {
+        &self.data[self.start..self.start + self.data.len() - LINE_FLOATS]
+    }
+
     #[inline]
     fn block(&self, pos: usize) -> &[f32] {
-        &self.data[pos * self.n2..(pos + 1) * self.n2]
+        let at = self.start + pos * self.n2;
+        &self.data[at..at + self.n2]
     }
 }
 
@@ -1047,7 +1081,7 @@ fn low_planes_in(buffer: Vec<f32>, coeffs: &BlockCoeffs, geo: &Geometry) -> Opti
     let mut planes = recycled(buffer, geo.ph * LOW_COEFFS * stride, false);
     planes
         .par_chunks_mut(LOW_COEFFS * stride)
-        .zip(coeffs.data.par_chunks(pw * 64))
+        .zip(coeffs.coefficients().par_chunks(pw * 64))
         .for_each(|(rows, blocks)| {
             for (x, block) in blocks.chunks_exact(64).enumerate() {
                 for (k, &v) in block[..LOW_COEFFS].iter().enumerate() {
@@ -1227,6 +1261,11 @@ struct Scratch {
     previous_group: Vec<usize>,
     /// Distances of `previous_group`'s members to the current reference.
     warm: Vec<f32>,
+    /// The positions (and two-row partial distances) that passed [`find_group`]'s first check
+    /// in the window row checked last, whose blocks are being prefetched, and in the row
+    /// being checked now.
+    pending: Vec<(u32, f32)>,
+    checked: Vec<(u32, f32)>,
     noisy_group: Vec<f32>,
     basic_group: Vec<f32>,
     haar_tmp: Vec<f32>,
@@ -1241,6 +1280,8 @@ impl Scratch {
             group: Vec::with_capacity(max_group),
             previous_group: Vec::with_capacity(max_group),
             warm: Vec::with_capacity(max_group),
+            pending: Vec::new(),
+            checked: Vec::new(),
             noisy_group: vec![0.0; max_group * n2],
             basic_group: vec![0.0; max_group * n2],
             haar_tmp: vec![0.0; max_group * n2],
@@ -1447,15 +1488,22 @@ fn process_reference<const AVX2: bool>(
             );
         }
         let group = &mut s.noisy_group[..m * n2];
-        haar_forward(group, m, n2, &mut s.haar_tmp);
+        let profile = &p.profiles[c];
         let weight = match p.basic {
             None => {
                 // Step 1: hard thresholding of the 3D spectrum (TIP 2007 §III-A, Eq. 5) and
                 // weight 1/(σ²·N_har) (Eq. 10).
                 // With correlated noise each 2D coefficient k has its own σ·profile[k], and
                 // N_har becomes the retained coefficients' summed relative variance.
-                let retained =
-                    hard_threshold_dispatch::<AVX2>(group, &p.profiles[c], p.lambda_3d * sigma);
+                let threshold = p.lambda_3d * sigma;
+                let retained = filter_group::<AVX2, false>(
+                    group,
+                    &mut [],
+                    m,
+                    profile,
+                    threshold,
+                    &mut s.haar_tmp,
+                );
                 if retained > 0.0 {
                     1.0 / (sigma * sigma * retained)
                 } else {
@@ -1475,9 +1523,9 @@ fn process_reference<const AVX2: bool>(
                     );
                 }
                 let bgroup = &mut s.basic_group[..m * n2];
-                haar_forward(bgroup, m, n2, &mut s.haar_tmp);
                 let s2 = sigma * sigma;
-                let w_norm = wiener_shrink_dispatch::<AVX2>(group, bgroup, &p.profiles[c], s2);
+                let w_norm =
+                    filter_group::<AVX2, true>(group, bgroup, m, profile, s2, &mut s.haar_tmp);
                 if w_norm > 0.0 {
                     1.0 / (s2 * w_norm)
                 } else {
@@ -1485,7 +1533,6 @@ fn process_reference<const AVX2: bool>(
                 }
             }
         };
-        haar_inverse(group, m, n2, &mut s.haar_tmp);
 
         // Aggregation with the Kaiser window (§III-A.3 / §III-B.3; Table I, β = 2).
         let len = strip.rows * w;
@@ -1512,6 +1559,134 @@ fn process_reference<const AVX2: bool>(
             }
         }
     }
+}
+
+/// The collaborative filtering of a group in its blocks' 2D spectra (`m` stacked blocks of
+/// `profile.len()` coefficients): the 1D Haar transform along the group, the shrinkage of the
+/// 3D spectrum, hard thresholding at `param`·q ([`hard_threshold`]) or, when `WIENER`, the
+/// empirical Wiener shrinkage with noise variance `param` and the basic estimate's group
+/// `basic` in the same 2D spectra ([`wiener_shrink`]; `basic` is overwritten), and the inverse
+/// Haar transform. Returns the shrinkage's sum (N_har or ‖W‖²). `tmp`: scratch of the group's
+/// size.
+///
+/// For 8 × 8 blocks in groups of up to [`MAX_LANE_GROUP`] (the defaults) all three run on
+/// eight coefficients of every member at a time ([`filter_group_lanes`]) instead of three
+/// passes over the group: the same operations on the same values, and the shrinkage's terms
+/// summed in the same order, so the same bits.
+#[inline(always)]
+fn filter_group<const AVX2: bool, const WIENER: bool>(
+    group: &mut [f32],
+    basic: &mut [f32],
+    m: usize,
+    profile: &[f32],
+    param: f32,
+    tmp: &mut [f32],
+) -> f32 {
+    if let Ok(profile) = <&[f32; 64]>::try_from(profile) {
+        // Sizes known to the compiler, as in `haar_lanes` (called directly: a closure here was
+        // compiled on its own, without AVX2 and out of line).
+        let (g, b, q, t) = (&mut *group, &*basic, profile, &mut *tmp);
+        match m {
+            1 => return filter_group_sized::<WIENER, 1>(g, b, q, param, t),
+            2 => return filter_group_sized::<WIENER, 2>(g, b, q, param, t),
+            4 => return filter_group_sized::<WIENER, 4>(g, b, q, param, t),
+            8 => return filter_group_sized::<WIENER, 8>(g, b, q, param, t),
+            16 => return filter_group_sized::<WIENER, 16>(g, b, q, param, t),
+            32 => return filter_group_sized::<WIENER, 32>(g, b, q, param, t),
+            _ => {}
+        }
+    }
+    let n2 = profile.len();
+    haar_forward(group, m, n2, tmp);
+    let total = if WIENER {
+        haar_forward(basic, m, n2, tmp);
+        wiener_shrink_dispatch::<AVX2>(group, basic, profile, param)
+    } else {
+        hard_threshold_dispatch::<AVX2>(group, profile, param)
+    };
+    haar_inverse(group, m, n2, tmp);
+    total
+}
+
+/// [`filter_group_lanes`] of `M` blocks.
+#[inline(always)]
+fn filter_group_sized<const WIENER: bool, const M: usize>(
+    group: &mut [f32],
+    basic: &[f32],
+    profile: &[f32; 64],
+    param: f32,
+    terms: &mut [f32],
+) -> f32 {
+    let basic_rows = if WIENER { M * 64 } else { 0 };
+    filter_group_lanes::<WIENER>(
+        &mut group[..M * 64],
+        &basic[..basic_rows],
+        M,
+        profile,
+        param,
+        &mut terms[..M * 64],
+    )
+}
+
+/// [`filter_group`] of `m` ≤ [`MAX_LANE_GROUP`] blocks of 64 coefficients, eight
+/// coefficients of every member at a time (as [`haar_lanes`]): their Haar transform, their
+/// shrinkage (the formulas of [`hard_threshold`] / [`wiener_shrink`], lane by lane), and the
+/// inverse transform, held in stack arrays between the three. Each coefficient's term of the
+/// shrinkage's sum goes to `terms` (`m·64`, the group's layout), which is summed afterwards
+/// in the order of the separate pass (member by member, lane `l` taking coefficients `l`
+/// mod 8), so the sum has the same bits too.
+#[inline(always)]
+fn filter_group_lanes<const WIENER: bool>(
+    group: &mut [f32],
+    basic: &[f32],
+    m: usize,
+    profile: &[f32; 64],
+    param: f32,
+    terms: &mut [f32],
+) -> f32 {
+    let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    let (mut bx, mut by) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
+    let mut work = [[[0.0f32; 8]; MAX_LANE_GROUP]; 2];
+    for chunk in 0..8 {
+        let lanes = chunk * 8..chunk * 8 + 8;
+        for (x, row) in x[..m].iter_mut().zip(group.chunks_exact(64)) {
+            *x = row[lanes.clone()].try_into().expect("eight lanes");
+        }
+        haar_forward_lanes(&mut x, &mut y, &mut work[0], m);
+        if WIENER {
+            for (x, row) in bx[..m].iter_mut().zip(basic.chunks_exact(64)) {
+                *x = row[lanes.clone()].try_into().expect("eight lanes");
+            }
+            haar_forward_lanes(&mut bx, &mut by, &mut work[0], m);
+        }
+        let q: &[f32; 8] = profile[lanes.clone()].try_into().expect("eight lanes");
+        for ((v, b), row) in y[..m].iter_mut().zip(&by).zip(terms.chunks_exact_mut(64)) {
+            let term: &mut [f32; 8] = (&mut row[lanes.clone()]).try_into().expect("eight lanes");
+            for l in 0..8 {
+                if WIENER {
+                    let (b2, q2) = (b[l] * b[l], q[l] * q[l]);
+                    let wc = b2 / (b2 + param * q2);
+                    v[l] *= wc;
+                    term[l] = wc * wc * q2;
+                } else {
+                    let keep = v[l].abs() > param * q[l];
+                    v[l] = if keep { v[l] } else { 0.0 };
+                    term[l] = if keep { q[l] * q[l] } else { 0.0 };
+                }
+            }
+        }
+        haar_inverse_lanes(&mut y, &mut x, &mut work, m);
+        for (x, row) in x[..m].iter().zip(group.chunks_exact_mut(64)) {
+            row[lanes.clone()].copy_from_slice(x);
+        }
+    }
+    let mut sum = [0.0f32; SHRINK_LANES];
+    for term in terms.chunks_exact(SHRINK_LANES) {
+        for l in 0..SHRINK_LANES {
+            sum[l] += term[l];
+        }
+    }
+    lane_total(sum)
 }
 
 /// Lanes of the sums in [`hard_threshold`] and [`wiener_shrink`]: coefficient i of a group row
@@ -1812,15 +1987,22 @@ fn find_group<const AVX2: bool>(
         };
     // Rows from the reference's out: its best matches usually lie near it, so the bound falls
     // early and fewer candidates are summed in full (any order gives the same group).
-    for y in centre_out(yr, y0, y1) {
-        match p.low {
-            Some(low) => {
+    match p.low {
+        Some(low) => {
+            // Each row's first check runs before the candidates of the row checked before it
+            // are summed, so that their blocks' prefetches have a row's work to arrive (summed
+            // right after their own row's check, the first load of each stalled: about 10 % of
+            // the step's time, perf). The check then uses an older bound, which lets more
+            // lanes pass, but `consider` compares every one's two-row partial with the
+            // current bound first: the same candidates join in the same order.
+            s.pending.clear();
+            for y in centre_out(yr, y0, y1) {
+                s.checked.clear();
                 // Eight positions at a time through the first check (the tail's extra lanes
                 // read the next positions or the padding and are not used).
                 let mut x = x0;
                 while x <= x1 {
-                    // Lanes that pass the check, as bits (the bound of the chunk's start: a
-                    // lower one found meanwhile only saves work, `consider` applies it).
+                    // Lanes that pass the check, as bits.
                     let (mut pass, partial) = low_check::<AVX2>(low, reference, y, x, bound);
                     pass &= (1u32 << (x1 + 1 - x).min(LANES8)) - 1;
                     if AVX2 {
@@ -1832,14 +2014,22 @@ fn find_group<const AVX2: bool>(
                         pass &= pass - 1;
                         if pos != ref_pos {
                             // The lane's partial is the candidate's sum after two rows.
-                            let two_rows = Some(partial[lane]);
-                            consider(pos, two_rows, &mut bound, &mut s.candidates);
+                            s.checked.push((pos as u32, partial[lane]));
                         }
                     }
                     x += LANES8;
                 }
+                for &(pos, two_rows) in &s.pending {
+                    consider(pos as usize, Some(two_rows), &mut bound, &mut s.candidates);
+                }
+                std::mem::swap(&mut s.pending, &mut s.checked);
             }
-            None => {
+            for &(pos, two_rows) in &s.pending {
+                consider(pos as usize, Some(two_rows), &mut bound, &mut s.candidates);
+            }
+        }
+        None => {
+            for y in centre_out(yr, y0, y1) {
                 for x in x0..=x1 {
                     let pos = y * pw + x;
                     if pos != ref_pos {
@@ -2074,23 +2264,44 @@ type Lanes = [[f32; 8]; MAX_LANE_GROUP];
 /// took 8 % of the denoiser's time (perf); called directly it is inlined into the AVX2 build.
 /// The work arrays are made once per call, not once per eight coefficients (every row a
 /// transform reads was written by it first, so their contents never matter).
+///
+/// For 8 × 8 blocks (`n2` = 64) and every group size up to [`MAX_LANE_GROUP`], the sizes are
+/// passed as constants to [`haar_lanes_sized`] (inlined), so that the compiler unrolls the
+/// levels and drops the bounds checks of the copies in and out (they took about half of the
+/// transform's time, perf); the same operations, so the same bits.
 #[inline(always)]
 fn haar_lanes<const FORWARD: bool>(g: &mut [f32], m: usize, n2: usize) {
+    if n2 == 64 {
+        match m {
+            1 => return haar_lanes_sized::<FORWARD>(&mut g[..64], 1, 64),
+            2 => return haar_lanes_sized::<FORWARD>(&mut g[..2 * 64], 2, 64),
+            4 => return haar_lanes_sized::<FORWARD>(&mut g[..4 * 64], 4, 64),
+            8 => return haar_lanes_sized::<FORWARD>(&mut g[..8 * 64], 8, 64),
+            16 => return haar_lanes_sized::<FORWARD>(&mut g[..16 * 64], 16, 64),
+            32 => return haar_lanes_sized::<FORWARD>(&mut g[..32 * 64], 32, 64),
+            _ => {}
+        }
+    }
+    haar_lanes_sized::<FORWARD>(g, m, n2);
+}
+
+/// The body of [`haar_lanes`], for `m` blocks of `n2` coefficients.
+#[inline(always)]
+fn haar_lanes_sized<const FORWARD: bool>(g: &mut [f32], m: usize, n2: usize) {
     let (mut x, mut y) = ([[0.0f32; 8]; MAX_LANE_GROUP], [[0.0f32; 8]; MAX_LANE_GROUP]);
     let mut work = [[[0.0f32; 8]; MAX_LANE_GROUP]; 2];
-    for k0 in (0..n2).step_by(8) {
-        for (b, lanes) in x[..m].iter_mut().enumerate() {
-            *lanes = g[b * n2 + k0..b * n2 + k0 + 8]
-                .try_into()
-                .expect("eight lanes");
+    for chunk in 0..n2 / 8 {
+        let lanes = chunk * 8..chunk * 8 + 8;
+        for (x, row) in x[..m].iter_mut().zip(g.chunks_exact(n2)) {
+            *x = row[lanes.clone()].try_into().expect("eight lanes");
         }
         if FORWARD {
             haar_forward_lanes(&mut x, &mut y, &mut work[0], m);
         } else {
             haar_inverse_lanes(&mut x, &mut y, &mut work, m);
         }
-        for (b, lanes) in y[..m].iter().enumerate() {
-            g[b * n2 + k0..b * n2 + k0 + 8].copy_from_slice(lanes);
+        for (y, row) in y[..m].iter().zip(g.chunks_exact_mut(n2)) {
+            row[lanes.clone()].copy_from_slice(y);
         }
     }
 }
@@ -2368,10 +2579,29 @@ mod tests {
             let geo = Geometry::new(h, w, n, &config);
             let tr = Transforms::new(n, 2.0);
             let coeffs = BlockCoeffs::compute(&plane, &geo, &tr);
+            // And computed in a given buffer, and hard-thresholded (a copy): other allocations.
+            let t = 0.3;
+            let recycled = BlockCoeffs::compute_in(vec![1.0; 5], &plane, &geo, &tr);
+            let thresholded = coeffs.hard_thresholded(t);
+            assert_eq!(coeffs.coefficients().len(), geo.ph * geo.pw * n * n);
             let (mut block, mut tmp, mut expected) =
                 (vec![0.0; n * n], vec![0.0; n * n], vec![0.0; n * n]);
             for y in 0..geo.ph {
                 for x in 0..geo.pw {
+                    let pos = y * geo.pw + x;
+                    for stored in [&coeffs, &recycled, &thresholded] {
+                        // Whole cache lines from the first block on.
+                        assert_eq!(
+                            stored.block(pos).as_ptr() as usize % 64,
+                            (pos * n * n * 4) % 64
+                        );
+                    }
+                    let kept = coeffs
+                        .block(pos)
+                        .iter()
+                        .map(|&v| if v.abs() > t { v } else { 0.0 });
+                    assert!(kept.eq(thresholded.block(pos).iter().copied()));
+                    assert_eq!(coeffs.block(pos), recycled.block(pos));
                     for i in 0..n {
                         block[i * n..(i + 1) * n]
                             .copy_from_slice(&plane[(y + i) * w + x..(y + i) * w + x + n]);
@@ -2436,6 +2666,62 @@ mod tests {
                 haar_inverse(&mut fast, m, n2, &mut tmp);
                 haar_inverse_general(&mut general, m, n2, &mut tmp);
                 assert_eq!(fast, general, "inverse, m {m}, n2 {n2}");
+            }
+        }
+    }
+
+    /// The filtering of 8 × 8 groups in eight-coefficient lanes gives the bits of the three
+    /// separate passes (Haar, shrinkage, inverse Haar), group and sum, for every group size,
+    /// both shrinkages, white and correlated noise, with and without the AVX2 kernels.
+    #[test]
+    fn group_filtering_in_lanes_matches_the_separate_passes() {
+        let profiles = [vec![1.0f32; 64], coefficient_profile(8, 0.8)];
+        for m in [1usize, 2, 4, 8, 16, 32] {
+            for (p, profile) in profiles.iter().enumerate() {
+                let seed = (m * 10 + p) as u64;
+                let group: Vec<f32> = random(m * 64, seed).iter().map(|v| 40.0 * v).collect();
+                let basic: Vec<f32> = random(m * 64, seed + 1).iter().map(|v| 40.0 * v).collect();
+                for wiener in [false, true] {
+                    // Thresholds that keep about half of the coefficients.
+                    let param = if wiener { 300.0 } else { 10.0 };
+                    let mut tmp = vec![0.0; m * 64];
+                    let mut expected = group.clone();
+                    let mut b = basic.clone();
+                    haar_forward(&mut expected, m, 64, &mut tmp);
+                    let total = if wiener {
+                        haar_forward(&mut b, m, 64, &mut tmp);
+                        wiener_shrink(&mut expected, &b, profile, param)
+                    } else {
+                        hard_threshold(&mut expected, profile, param)
+                    };
+                    haar_inverse(&mut expected, m, 64, &mut tmp);
+                    let mut runs = vec![false];
+                    #[cfg(target_arch = "x86_64")]
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        runs.push(true);
+                    }
+                    for avx2 in runs {
+                        let (mut g, mut b) = (group.clone(), basic.clone());
+                        let got = match (avx2, wiener) {
+                            (false, false) => filter_group::<false, false>(
+                                &mut g, &mut b, m, profile, param, &mut tmp,
+                            ),
+                            (false, true) => filter_group::<false, true>(
+                                &mut g, &mut b, m, profile, param, &mut tmp,
+                            ),
+                            (true, false) => filter_group::<true, false>(
+                                &mut g, &mut b, m, profile, param, &mut tmp,
+                            ),
+                            (true, true) => filter_group::<true, true>(
+                                &mut g, &mut b, m, profile, param, &mut tmp,
+                            ),
+                        };
+                        let what = format!("m {m}, profile {p}, wiener {wiener}, avx2 {avx2}");
+                        assert_eq!(got.to_bits(), total.to_bits(), "{what}");
+                        assert_eq!(g, expected, "{what}");
+                        assert!(total > 0.0 && total < (m * 64) as f32, "{what}: {total}");
+                    }
+                }
             }
         }
     }
