@@ -996,20 +996,30 @@ impl RunGroups {
         &self,
         observation: impl Fn(usize) -> (f32, f32),
     ) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
-        let mut observed = Vec::with_capacity(self.bin.len());
-        let mut trials = Vec::with_capacity(self.bin.len());
-        for bins in &self.bin {
-            let (mut o, mut t) = ([0.0; GROUP_LANES], [0.0; GROUP_LANES]);
-            for (lane, &b) in bins.iter().enumerate() {
-                if b != u32::MAX {
-                    (o[lane], t[lane]) = observation(b as usize);
-                }
-            }
-            observed.push(o);
-            trials.push(t);
-        }
-        (observed, trials)
+        lane_observations(&self.bin, observation)
     }
+}
+
+/// `observation(i)` of every lane's index `i` of `slots` (0 for padding, `u32::MAX`: no
+/// trials, so weight zero in the fit).
+#[allow(clippy::type_complexity)]
+fn lane_observations(
+    slots: &[[u32; GROUP_LANES]],
+    observation: impl Fn(usize) -> (f32, f32),
+) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
+    let mut observed = Vec::with_capacity(slots.len());
+    let mut trials = Vec::with_capacity(slots.len());
+    for indices in slots {
+        let (mut o, mut t) = ([0.0; GROUP_LANES], [0.0; GROUP_LANES]);
+        for (lane, &i) in indices.iter().enumerate() {
+            if i != u32::MAX {
+                (o[lane], t[lane]) = observation(i as usize);
+            }
+        }
+        observed.push(o);
+        trials.push(t);
+    }
+    (observed, trials)
 }
 
 impl BinLayout {
@@ -1598,20 +1608,9 @@ fn slot_observations(
         return groups.observations(|b| (observed[b], trials[b]));
     }
     let table = mean_table(frames);
-    let mut observed = Vec::with_capacity(groups.site.len());
-    let mut trials = Vec::with_capacity(groups.site.len());
-    for sites in &groups.site {
-        let (mut o, mut t) = ([0.0; GROUP_LANES], [0.0; GROUP_LANES]);
-        for (lane, &i) in sites.iter().enumerate() {
-            if i != u32::MAX {
-                o[lane] = single_site_mean(&table, counts[i as usize], frames);
-                t[lane] = frames as f32;
-            }
-        }
-        observed.push(o);
-        trials.push(t);
-    }
-    (observed, trials)
+    lane_observations(&groups.site, |i| {
+        (single_site_mean(&table, counts[i], frames), frames as f32)
+    })
 }
 
 /// A bin's mean bit rate: its photon count `sum` over `trials` (sites x frames) divided in

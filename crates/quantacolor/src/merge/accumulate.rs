@@ -2145,17 +2145,25 @@ mod tests {
                     })
                     .collect()
             };
+            // Both fills agree, excluded sites have no target, and the spans are the targets'.
+            let check = |fast: &[(u32, f32)],
+                         fast_spans: &[(u32, u32)],
+                         plain: &[(u32, f32)],
+                         plain_spans: &[(u32, u32)],
+                         case: &str| {
+                assert_eq!(fast, plain, "{case} {matrix:?} {offset:?}");
+                assert!(excluded
+                    .iter()
+                    .zip(fast)
+                    .all(|(&e, &(bin, _))| !e || bin == u32::MAX));
+                assert_eq!(fast_spans, spans_of(fast));
+                assert_eq!(plain_spans, spans_of(plain));
+            };
             grid.fill_affine(&mut fast, &mut fast_spans, &matrix, &offset, None);
             grid.fill(&mut plain, &mut plain_spans, |q| {
                 affine_position(&matrix, &offset, q)
             });
-            assert_eq!(fast, plain, "affine {matrix:?} {offset:?}");
-            assert!(excluded
-                .iter()
-                .zip(&fast)
-                .all(|(&e, &(bin, _))| !e || bin == u32::MAX));
-            assert_eq!(fast_spans, spans_of(&fast));
-            assert_eq!(plain_spans, spans_of(&plain));
+            check(&fast, &fast_spans, &plain, &plain_spans, "affine");
 
             let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
             grid.fill_affine(
@@ -2176,13 +2184,7 @@ mod tests {
                     reference_position(&flow, h, w, q)
                 }
             });
-            assert_eq!(fast, plain, "camera and local {matrix:?} {offset:?}");
-            assert!(excluded
-                .iter()
-                .zip(&fast)
-                .all(|(&e, &(bin, _))| !e || bin == u32::MAX));
-            assert_eq!(fast_spans, spans_of(&fast));
-            assert_eq!(plain_spans, spans_of(&plain));
+            check(&fast, &fast_spans, &plain, &plain_spans, "camera and local");
         }
     }
 
