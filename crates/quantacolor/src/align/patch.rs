@@ -1869,14 +1869,21 @@ mod tests {
         (total(sum_y), total(sum_x))
     }
 
+    /// A reference and an alternate image of uniform random values in [0, 1), drawn in that
+    /// order from `rng`.
+    fn random_image_pair(rng: &mut ChaCha8Rng, h: usize, w: usize) -> (Array2<f32>, Array2<f32>) {
+        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        (reference, alternate)
+    }
+
     /// Every cost of a window row equals [`tile_cost`] bit for bit: interior tiles, tiles at
     /// every border, offsets reaching past the image, both norms.
     #[test]
     fn window_row_costs_equal_tile_cost() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let (h, w) = (29usize, 41usize);
-        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
-        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let (reference, alternate) = random_image_pair(&mut rng, h, w);
         let mut finite = 0;
         for norm in [Norm::L1, Norm::L2] {
             for ts in [8usize, 16] {
@@ -1921,8 +1928,7 @@ mod tests {
         }
         let mut rng = ChaCha8Rng::seed_from_u64(11);
         let (h, w) = (70usize, 83usize);
-        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
-        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let (reference, alternate) = random_image_pair(&mut rng, h, w);
         let (mut taken, mut declined) = (0, 0);
         for norm in [Norm::L1, Norm::L2] {
             for ts in [8usize, 16] {
@@ -1979,8 +1985,7 @@ mod tests {
     fn seed_costs_equal_the_plain_tile_cost() {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
         let (h, w) = (57usize, 66usize);
-        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
-        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let (reference, alternate) = random_image_pair(&mut rng, h, w);
         let mut finite = 0;
         for norm in [Norm::L1, Norm::L2] {
             for ts in [8usize, 16] {
@@ -2095,8 +2100,7 @@ mod tests {
     fn window_costs_equal_the_plain_tile_cost() {
         let mut rng = ChaCha8Rng::seed_from_u64(7);
         let (h, w) = (31usize, 45usize);
-        let reference = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
-        let alternate = Array2::from_shape_fn((h, w), |_| rng.gen_range(0.0f32..1.0));
+        let (reference, alternate) = random_image_pair(&mut rng, h, w);
         let mut finite = 0;
         for norm in [Norm::L1, Norm::L2] {
             for ts in [4usize, 8, 16] {
