@@ -192,22 +192,10 @@ impl HotPixelCorrector {
                     };
                     // With AVX2, every hot pixel having at most eight candidates (its sites
                     // one vector) and the 4-byte loads of the group's bytes ending inside a
-                    // frame: the draws and reads fused, two pixels at a time ([`HotSites`]).
+                    // frame: the draws and reads fused, eight pixels at a time ([`HotSites`]).
                     let frame_bytes = frames.height() * row_bytes;
                     if let Some(sites8) = HotSites::new(&sites, &spans, hot, frame_bytes, &span) {
-                        let mut t0 = range.start;
-                        while t0 < range.end {
-                            let t1 = ((t0 / DRAW_CHUNK + 1) * DRAW_CHUNK).min(range.end);
-                            sites8.count_drawn(
-                                &self.key,
-                                frames,
-                                t0..t1,
-                                range.end,
-                                &span,
-                                &mut counts,
-                            );
-                            t0 = t1;
-                        }
+                        sites8.count_drawn(&self.key, frames, range.clone(), &span, &mut counts);
                         return counts;
                     }
                     // Per pixel, the DRAW_CHUNK / 16 blocks from the one holding the chunk's first
@@ -291,29 +279,28 @@ impl HotPixelCorrector {
 }
 
 /// The candidates of a group of hot pixels (each its bit positions in a frame, at most eight)
-/// as one vector per pixel, for the AVX2 path of [`HotPixelCorrector::corrected_block_sum`]:
-/// the draws of two pixels are made side by side (four consecutive ChaCha blocks of each, one
-/// per 32-bit lane), a draw `r` picks lane `(r · n) >> 32` of its pixel's vector (a lane
-/// permutation instead of a load per draw), and the bits of a vector's eight draws (eight
-/// frames) are read by one gather. The generator's words are used where they are made (no
-/// transposes, no stores of draws or positions), and the same picks and bits as the scalar
-/// path, so the same counts (integer sums, in any order).
+/// for the AVX2 path of [`HotPixelCorrector::corrected_block_sum`]: the draws of eight pixels
+/// are made side by side (the same ChaCha block of each pixel's stream, one per 32-bit lane),
+/// so that each of the block's sixteen words is one frame's draws of the eight pixels, used
+/// where it is made (no transposes, no stores of draws or positions): a draw `r` picks
+/// candidate `(r · n) >> 32` of its pixel's table (one gather of eight table entries), and the
+/// frame's bits at those positions are read by another gather. The same picks and bits as the
+/// scalar path, so the same counts (integer sums).
 #[derive(Debug)]
 struct HotSites {
-    /// Each pixel's candidate positions, padded with its first.
-    tables: Vec<[u32; 8]>,
-    /// Each pixel's candidate count.
+    /// Each pixel's eight candidate positions (padded with its first), end to end; the group
+    /// padded to whole vectors of eight pixels by repeating its last pixel (whose counts are
+    /// dropped).
+    tables: Vec<u32>,
+    /// Each (padded) pixel's candidate count.
     counts: Vec<u32>,
-    /// Each pixel's ChaCha stream (its flat index).
+    /// Each (padded) pixel's ChaCha stream (its flat index).
     streams: Vec<u64>,
-    /// Bytes of one frame.
-    frame_bytes: usize,
 }
 
 impl HotSites {
-    /// `None` without AVX2, when a pixel has more than eight candidates, when the 4-byte
-    /// gathers from the group's bytes (`span`) would reach past a frame of `frame_bytes`, or
-    /// when the byte offsets of a chunk of [`DRAW_CHUNK`] frames do not fit a 32-bit lane.
+    /// `None` without AVX2, when a pixel has more than eight candidates, or when the 4-byte
+    /// gathers from the group's bytes (`span`) would reach past a frame of `frame_bytes`.
     fn new(
         sites: &[u32],
         spans: &[(usize, u64)],
@@ -328,22 +315,23 @@ impl HotSites {
                 && spans.len() == hot.len()
                 && spans.iter().all(|&(_, n)| (1..=8).contains(&n))
                 && span.end + 3 <= frame_bytes
-                && DRAW_CHUNK * frame_bytes <= i32::MAX as usize;
+                && frame_bytes <= i32::MAX as usize;
             if !fits {
                 return None;
             }
-            let tables = spans
-                .iter()
-                .map(|&(start, n)| {
+            let padded = spans.len().div_ceil(8) * 8;
+            let pixel = |i: usize| i.min(spans.len() - 1);
+            let tables = (0..padded)
+                .flat_map(|i| {
+                    let (start, n) = spans[pixel(i)];
                     let own = &sites[start..start + n as usize];
-                    std::array::from_fn(|l| own.get(l).copied().unwrap_or(own[0]))
+                    (0..8).map(|l| own.get(l).copied().unwrap_or(own[0]))
                 })
                 .collect();
             Some(HotSites {
                 tables,
-                counts: spans.iter().map(|&(_, n)| n as u32).collect(),
-                streams: hot.iter().map(|&idx| idx as u64).collect(),
-                frame_bytes,
+                counts: (0..padded).map(|i| spans[pixel(i)].1 as u32).collect(),
+                streams: (0..padded).map(|i| hot[pixel(i)] as u64).collect(),
             })
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -354,117 +342,98 @@ impl HotSites {
     }
 
     /// Adds to `counts` (one per pixel of the group) the bit of each pixel's drawn candidate
-    /// in every frame of `chunk` (frames inside one multiple of [`DRAW_CHUNK`]), and prefetches
-    /// the group's bytes (`span`) of the next chunk's frames before `end`.
+    /// in every frame of `range`, prefetching the group's bytes (`span`) of the next ChaCha
+    /// block's frames.
     fn count_drawn(
         &self,
         key: &[u32; 8],
         frames: &BinaryFrames,
-        chunk: Range<usize>,
-        end: usize,
+        range: Range<usize>,
         span: &Range<usize>,
         counts: &mut [u32],
     ) {
         #[cfg(target_arch = "x86_64")]
         {
-            // SAFETY: `new` checked AVX2, that the gathers stay inside a frame and that a
-            // chunk's offsets fit 32 bits.
-            unsafe { self.count_drawn_avx2(key, frames, chunk, end, span, counts) };
+            // SAFETY: `new` checked AVX2 and that the gathers stay inside a frame.
+            unsafe { self.count_drawn_avx2(key, frames, range, span, counts) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = (key, frames, chunk, end, span, counts);
+        let _ = (key, frames, range, span, counts);
     }
 
     /// # Safety
     /// The CPU must support AVX2; every position of the tables must lie in a frame's first
-    /// `frame bytes − 3` bytes; [`DRAW_CHUNK`] frames' bytes must fit an `i32`.
+    /// `frame bytes − 3` bytes.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
     unsafe fn count_drawn_avx2(
         &self,
         key: &[u32; 8],
         frames: &BinaryFrames,
-        chunk: Range<usize>,
-        end: usize,
+        range: Range<usize>,
         span: &Range<usize>,
         counts: &mut [u32],
     ) {
         use std::arch::x86_64::*;
-        const PER_PIXEL: usize = DRAW_CHUNK / BLOCK_WORDS;
-        const { assert!(PER_PIXEL == 4, "two pixels' blocks fill eight lanes") };
-        let (t0, t1) = (chunk.start, chunk.end);
-        let first = t0 / BLOCK_WORDS;
-        let base = first * BLOCK_WORDS;
-        debug_assert!(t0 < t1 && t1 - base <= DRAW_CHUNK);
-        // The frames from the first block's; lanes outside `chunk` are masked, never read.
-        let view = frames.raw_frames(base..t1);
-        let fb = self.frame_bytes as i32;
-        // Lane l: block first + l mod 4 of the pair's pixel l / 4; word w of it is frame
-        // base + 16 (l mod 4) + w (`rel`, relative to base), at byte offset rel · fb.
-        let rel0 = _mm256_setr_epi32(0, 16, 32, 48, 0, 16, 32, 48);
-        let off0 = _mm256_mullo_epi32(rel0, _mm256_set1_epi32(fb));
-        let lo = _mm256_set1_epi32((t0 - base) as i32 - 1);
-        let hi = _mm256_set1_epi32((t1 - base) as i32);
-        let (seven, one, step) = (
-            _mm256_set1_epi32(7),
-            _mm256_set1_epi32(1),
-            _mm256_set1_epi32(fb),
-        );
-        let g = self.tables.len();
-        let pairs = g.div_ceil(2);
-        // The next chunk's frames, prefetched a few per pair.
-        let next = t1..(t1 + DRAW_CHUNK).min(end);
-        let per_pair = next.len().div_ceil(pairs);
-        for p in 0..pairs {
-            let ahead = (next.start + p * per_pair).min(next.end);
-            for t in ahead..(ahead + per_pair).min(next.end) {
-                crate::cpu::prefetch(&frames.raw_frame(t)[span.clone()]);
+        const VECTORS: usize = HOT_GROUP / 8;
+        let vectors = self.streams.len() / 8;
+        debug_assert!(vectors <= VECTORS && counts.len() <= 8 * vectors);
+        let (seven, one) = (_mm256_set1_epi32(7), _mm256_set1_epi32(1));
+        // Lane l's table starts at entry 8·l of its vector's tables.
+        let lane_tables = _mm256_setr_epi32(0, 8, 16, 24, 32, 40, 48, 56);
+        let mut sums = [_mm256_setzero_si256(); VECTORS];
+        if range.is_empty() {
+            return;
+        }
+        for block in range.start / BLOCK_WORDS..=(range.end - 1) / BLOCK_WORDS {
+            let t0 = block * BLOCK_WORDS;
+            // The block's words that are frames of `range`.
+            let words = range.start.max(t0) - t0..range.end.min(t0 + BLOCK_WORDS) - t0;
+            // The next block's frames, prefetched a few per vector of pixels.
+            let next = (t0 + BLOCK_WORDS).min(range.end)..(t0 + 2 * BLOCK_WORDS).min(range.end);
+            let per_vector = next.len().div_ceil(vectors);
+            for (v, sum) in sums[..vectors].iter_mut().enumerate() {
+                let ahead = (next.start + v * per_vector).min(next.end);
+                for t in ahead..(ahead + per_vector).min(next.end) {
+                    crate::cpu::prefetch(&frames.raw_frame(t)[span.clone()]);
+                }
+                let jobs: [(u64, u64); 8] =
+                    std::array::from_fn(|l| (self.streams[8 * v + l], block as u64));
+                let draws = chacha8_words_avx2(key, &jobs);
+                let n = _mm256_loadu_si256(self.counts[8 * v..].as_ptr().cast());
+                let tables = self.tables[64 * v..][..64].as_ptr();
+                for w in words.clone() {
+                    let r = draws[w];
+                    // (r · n) >> 32 per lane: even lanes from one 32x32 -> 64-bit product, odd
+                    // lanes from another.
+                    let even = _mm256_srli_epi64::<32>(_mm256_mul_epu32(r, n));
+                    let odd = _mm256_mul_epu32(_mm256_srli_epi64::<32>(r), n);
+                    let pick = _mm256_blend_epi32::<0b1010_1010>(even, odd);
+                    let position = _mm256_i32gather_epi32::<4>(
+                        tables.cast(),
+                        _mm256_add_epi32(lane_tables, pick),
+                    );
+                    // The four bytes from the candidate's byte (little-endian: that byte
+                    // lowest), shifted by the bit's place in it.
+                    let frame = frames.raw_frame(t0 + w);
+                    let word = _mm256_i32gather_epi32::<1>(
+                        frame.as_ptr().cast(),
+                        _mm256_srli_epi32::<3>(position),
+                    );
+                    let bit = _mm256_and_si256(
+                        _mm256_srlv_epi32(word, _mm256_and_si256(position, seven)),
+                        one,
+                    );
+                    *sum = _mm256_add_epi32(*sum, bit);
+                }
             }
-            let (a, b) = (2 * p, (2 * p + 1).min(g - 1));
-            let jobs: [(u64, u64); 8] = std::array::from_fn(|l| {
-                let pixel = if l < PER_PIXEL { a } else { b };
-                (self.streams[pixel], (first + l % PER_PIXEL) as u64)
-            });
-            let words = chacha8_words_avx2(key, &jobs);
-            let (na, nb) = (self.counts[a] as i32, self.counts[b] as i32);
-            let n = _mm256_setr_epi32(na, na, na, na, nb, nb, nb, nb);
-            let table_a = _mm256_loadu_si256(self.tables[a].as_ptr().cast());
-            let table_b = _mm256_loadu_si256(self.tables[b].as_ptr().cast());
-            let (mut rel, mut off, mut sum) = (rel0, off0, _mm256_setzero_si256());
-            for r in words {
-                let inside =
-                    _mm256_and_si256(_mm256_cmpgt_epi32(rel, lo), _mm256_cmpgt_epi32(hi, rel));
-                // (r · n) >> 32 per lane: even lanes from one 32x32 -> 64-bit product, odd
-                // lanes from another.
-                let even = _mm256_srli_epi64::<32>(_mm256_mul_epu32(r, n));
-                let odd = _mm256_mul_epu32(_mm256_srli_epi64::<32>(r), n);
-                let pick = _mm256_blend_epi32::<0b1010_1010>(even, odd);
-                let position = _mm256_blend_epi32::<0b1111_0000>(
-                    _mm256_permutevar8x32_epi32(table_a, pick),
-                    _mm256_permutevar8x32_epi32(table_b, pick),
-                );
-                // The four bytes from the candidate's byte (little-endian: that byte lowest),
-                // shifted by the bit's place in it.
-                let word = _mm256_mask_i32gather_epi32::<1>(
-                    _mm256_setzero_si256(),
-                    view.as_ptr().cast(),
-                    _mm256_add_epi32(off, _mm256_srli_epi32::<3>(position)),
-                    inside,
-                );
-                let bit = _mm256_and_si256(
-                    _mm256_srlv_epi32(word, _mm256_and_si256(position, seven)),
-                    one,
-                );
-                sum = _mm256_add_epi32(sum, bit);
-                rel = _mm256_add_epi32(rel, one);
-                off = _mm256_add_epi32(off, step);
-            }
-            let mut lanes = [0u32; 8];
-            _mm256_storeu_si256(lanes.as_mut_ptr().cast(), sum);
-            counts[a] += lanes[..PER_PIXEL].iter().sum::<u32>();
-            if 2 * p + 1 < g {
-                counts[b] += lanes[PER_PIXEL..].iter().sum::<u32>();
-            }
+        }
+        let mut lanes = [0u32; HOT_GROUP];
+        for (v, sum) in sums[..vectors].iter().enumerate() {
+            _mm256_storeu_si256(lanes[8 * v..].as_mut_ptr().cast(), *sum);
+        }
+        for (count, lane) in counts.iter_mut().zip(lanes) {
+            *count += lane;
         }
     }
 }
