@@ -54,7 +54,7 @@ const DRAW_CHUNK: usize = 64;
 /// 32-bit words of one ChaCha block.
 const BLOCK_WORDS: usize = 16;
 
-/// Frames ahead of the one being read whose candidate bytes
+/// Frames ahead of the one being read whose candidate bytes the scalar path of
 /// [`HotPixelCorrector::corrected_block_sum`] asks the cache for (frames lie a frame's size
 /// apart, a stride the hardware prefetchers do not follow).
 const PREFETCH_FRAMES: usize = 8;
@@ -190,19 +190,20 @@ impl HotPixelCorrector {
                         (Some(&lo), Some(&hi)) => (lo >> 3) as usize..(hi >> 3) as usize + 1,
                         _ => 0..0,
                     };
+                    // With AVX2, every hot pixel having at most eight candidates (its sites
+                    // one vector) and the 4-byte loads of the group's bytes ending inside a
+                    // frame: the draws and reads fused, eight pixels at a time ([`HotSites`]).
+                    let frame_bytes = frames.height() * row_bytes;
+                    if let Some(sites8) = HotSites::new(&sites, &spans, hot, frame_bytes, &span) {
+                        sites8.count_drawn(&self.key, frames, range.clone(), &span, &mut counts);
+                        return counts;
+                    }
                     // Per pixel, the DRAW_CHUNK / 16 blocks from the one holding the chunk's first
                     // frame: pixel i's draw of frame t is word t − 16·(t0 / 16) of its run.
                     let per_pixel = DRAW_CHUNK / BLOCK_WORDS;
                     let mut blocks = vec![[0u32; BLOCK_WORDS]; per_pixel * g];
                     let mut jobs: Vec<(u64, u64)> = Vec::with_capacity(per_pixel * g);
-                    // With AVX2, every hot pixel having at most eight candidates (its sites
-                    // one vector) and the 4-byte loads of the group's bytes ending inside a
-                    // frame: eight pixels at a time ([`HotSites`]), the group padded to whole
-                    // vectors.
-                    let frame_bytes = frames.height() * row_bytes;
-                    let sites8 = HotSites::new(&sites, &spans, frame_bytes, &span);
-                    let gp = sites8.as_ref().map_or(g, |s| s.padded);
-                    let mut bits = vec![0u32; DRAW_CHUNK * gp];
+                    let mut bits = vec![0u32; DRAW_CHUNK * g];
                     let mut t0 = range.start;
                     while t0 < range.end {
                         let t1 = ((t0 / DRAW_CHUNK + 1) * DRAW_CHUNK).min(range.end);
@@ -215,13 +216,6 @@ impl HotPixelCorrector {
                         }
                         chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g]);
                         let offset = t0 - first * BLOCK_WORDS;
-                        if let Some(sites8) = &sites8 {
-                            let blocks = &blocks[..count * g];
-                            sites8.positions(blocks, count, offset, c, &mut bits);
-                            sites8.count(frames, t0..t1, range.end, &span, &bits, &mut counts);
-                            t0 = t1;
-                            continue;
-                        }
                         for (i, (run, &(start, n))) in blocks[..count * g]
                             .chunks_exact(count)
                             .zip(&spans)
@@ -285,19 +279,23 @@ impl HotPixelCorrector {
 }
 
 /// The candidates of a group of hot pixels (each its bit positions in a frame, at most eight)
-/// as one vector per pixel, for the AVX2 paths of
-/// [`HotPixelCorrector::corrected_block_sum`]: a draw `r` picks lane `(r · n) >> 32` of its
-/// pixel's vector (a lane permutation instead of a load per draw), and a frame's bits of eight
-/// pixels are read by one gather. The same picks and bits as the scalar path.
+/// for the AVX2 path of [`HotPixelCorrector::corrected_block_sum`]: the draws of eight pixels
+/// are made side by side (the same ChaCha block of each pixel's stream, one per 32-bit lane),
+/// so that each of the block's sixteen words is one frame's draws of the eight pixels, used
+/// where it is made (no transposes, no stores of draws or positions): a draw `r` picks
+/// candidate `(r · n) >> 32` of its pixel's table (one gather of eight table entries), and the
+/// frame's bits at those positions are read by another gather. The same picks and bits as the
+/// scalar path, so the same counts (integer sums).
 #[derive(Debug)]
 struct HotSites {
-    /// Each pixel's candidate positions, padded with its first.
-    tables: Vec<[u32; 8]>,
-    /// Each pixel's candidate count.
+    /// Each pixel's eight candidate positions (padded with its first), end to end; the group
+    /// padded to whole vectors of eight pixels by repeating its last pixel (whose counts are
+    /// dropped).
+    tables: Vec<u32>,
+    /// Each (padded) pixel's candidate count.
     counts: Vec<u32>,
-    /// Pixels of the group rounded up to whole vectors of eight (the padding repeats the
-    /// last pixel; its counts are dropped).
-    padded: usize,
+    /// Each (padded) pixel's ChaCha stream (its flat index).
+    streams: Vec<u64>,
 }
 
 impl HotSites {
@@ -306,6 +304,7 @@ impl HotSites {
     fn new(
         sites: &[u32],
         spans: &[(usize, u64)],
+        hot: &[usize],
         frame_bytes: usize,
         span: &Range<usize>,
     ) -> Option<HotSites> {
@@ -313,156 +312,120 @@ impl HotSites {
         {
             let fits = std::arch::is_x86_feature_detected!("avx2")
                 && !spans.is_empty()
+                && spans.len() == hot.len()
                 && spans.iter().all(|&(_, n)| (1..=8).contains(&n))
-                && span.end + 3 <= frame_bytes;
+                && span.end + 3 <= frame_bytes
+                && frame_bytes <= i32::MAX as usize;
             if !fits {
                 return None;
             }
-            let tables = spans
-                .iter()
-                .map(|&(start, n)| {
+            let padded = spans.len().div_ceil(8) * 8;
+            let pixel = |i: usize| i.min(spans.len() - 1);
+            let tables = (0..padded)
+                .flat_map(|i| {
+                    let (start, n) = spans[pixel(i)];
                     let own = &sites[start..start + n as usize];
-                    std::array::from_fn(|l| own.get(l).copied().unwrap_or(own[0]))
+                    (0..8).map(|l| own.get(l).copied().unwrap_or(own[0]))
                 })
                 .collect();
             Some(HotSites {
                 tables,
-                counts: spans.iter().map(|&(_, n)| n as u32).collect(),
-                padded: spans.len().div_ceil(8) * 8,
+                counts: (0..padded).map(|i| spans[pixel(i)].1 as u32).collect(),
+                streams: (0..padded).map(|i| hot[pixel(i)] as u64).collect(),
             })
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = (sites, spans, frame_bytes, span);
+            let _ = (sites, spans, hot, frame_bytes, span);
             None
         }
     }
 
-    /// The scalar path's `bits` (frame-major, `padded` per frame) for the `c` frames from word
-    /// `offset` of each pixel's run of `count` blocks in `blocks`.
-    fn positions(
+    /// Adds to `counts` (one per pixel of the group) the bit of each pixel's drawn candidate
+    /// in every frame of `range`, prefetching the group's bytes (`span`) of the next ChaCha
+    /// block's frames.
+    fn count_drawn(
         &self,
-        blocks: &[[u32; BLOCK_WORDS]],
-        count: usize,
-        offset: usize,
-        c: usize,
-        bits: &mut [u32],
-    ) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            // SAFETY: `new` checked AVX2.
-            unsafe { self.positions_avx2(blocks, count, offset, c, bits) };
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = (blocks, count, offset, c, bits);
-    }
-
-    /// # Safety
-    /// The CPU must support AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn positions_avx2(
-        &self,
-        blocks: &[[u32; BLOCK_WORDS]],
-        count: usize,
-        offset: usize,
-        c: usize,
-        bits: &mut [u32],
-    ) {
-        use std::arch::x86_64::*;
-        let g = self.tables.len();
-        let words =
-            |i: usize| &blocks[i.min(g - 1) * count..][..count].as_flattened()[offset..][..c];
-        let whole = c / 8 * 8;
-        for p0 in (0..self.padded).step_by(8) {
-            for f0 in (0..whole).step_by(8) {
-                // Row l: the eight draws of pixel p0 + l, turned into its candidates' positions.
-                let rows: [__m256i; 8] = std::array::from_fn(|l| {
-                    let i = (p0 + l).min(g - 1);
-                    let r = _mm256_loadu_si256(words(i)[f0..].as_ptr().cast());
-                    let n = _mm256_set1_epi32(self.counts[i] as i32);
-                    // (r · n) >> 32 per lane: even lanes from one 32x32 -> 64-bit product, odd
-                    // lanes from another.
-                    let even = _mm256_srli_epi64::<32>(_mm256_mul_epu32(r, n));
-                    let odd = _mm256_mul_epu32(_mm256_srli_epi64::<32>(r), n);
-                    let pick = _mm256_blend_epi32::<0b1010_1010>(even, odd);
-                    let table = _mm256_loadu_si256(self.tables[i].as_ptr().cast());
-                    _mm256_permutevar8x32_epi32(table, pick)
-                });
-                for (f, column) in crate::cpu::transpose8x8(&rows).into_iter().enumerate() {
-                    _mm256_storeu_si256(
-                        bits[(f0 + f) * self.padded + p0..][..8].as_mut_ptr().cast(),
-                        column,
-                    );
-                }
-            }
-        }
-        for f in whole..c {
-            for i in 0..self.padded {
-                let j = i.min(g - 1);
-                let r = words(j)[f];
-                let pick = ((r as u64 * self.counts[j] as u64) >> 32) as usize;
-                bits[f * self.padded + i] = self.tables[j][pick];
-            }
-        }
-    }
-
-    /// Adds to `counts` (one per pixel of the group) the bits at `bits` (from
-    /// [`HotSites::positions`]) of frames `chunk`, prefetching `span` of the frame
-    /// [`PREFETCH_FRAMES`] ahead while it lies before `end`.
-    fn count(
-        &self,
+        key: &[u32; 8],
         frames: &BinaryFrames,
-        chunk: Range<usize>,
-        end: usize,
+        range: Range<usize>,
         span: &Range<usize>,
-        bits: &[u32],
         counts: &mut [u32],
     ) {
         #[cfg(target_arch = "x86_64")]
         {
             // SAFETY: `new` checked AVX2 and that the gathers stay inside a frame.
-            unsafe { self.count_avx2(frames, chunk, end, span, bits, counts) };
+            unsafe { self.count_drawn_avx2(key, frames, range, span, counts) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        let _ = (frames, chunk, end, span, bits, counts);
+        let _ = (key, frames, range, span, counts);
     }
 
     /// # Safety
-    /// The CPU must support AVX2; every position of `bits` must lie in a frame's first
+    /// The CPU must support AVX2; every position of the tables must lie in a frame's first
     /// `frame bytes − 3` bytes.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    unsafe fn count_avx2(
+    unsafe fn count_drawn_avx2(
         &self,
+        key: &[u32; 8],
         frames: &BinaryFrames,
-        chunk: Range<usize>,
-        end: usize,
+        range: Range<usize>,
         span: &Range<usize>,
-        bits: &[u32],
         counts: &mut [u32],
     ) {
         use std::arch::x86_64::*;
         const VECTORS: usize = HOT_GROUP / 8;
-        let vectors = self.padded / 8;
-        debug_assert!(vectors <= VECTORS);
+        let vectors = self.streams.len() / 8;
+        debug_assert!(vectors <= VECTORS && counts.len() <= 8 * vectors);
         let (seven, one) = (_mm256_set1_epi32(7), _mm256_set1_epi32(1));
+        // Lane l's table starts at entry 8·l of its vector's tables.
+        let lane_tables = _mm256_setr_epi32(0, 8, 16, 24, 32, 40, 48, 56);
         let mut sums = [_mm256_setzero_si256(); VECTORS];
-        for (f, t) in chunk.enumerate() {
-            if t + PREFETCH_FRAMES < end {
-                crate::cpu::prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
-            }
-            let frame = frames.raw_frame(t);
-            let positions = &bits[f * self.padded..][..self.padded];
+        if range.is_empty() {
+            return;
+        }
+        for block in range.start / BLOCK_WORDS..=(range.end - 1) / BLOCK_WORDS {
+            let t0 = block * BLOCK_WORDS;
+            // The block's words that are frames of `range`.
+            let words = range.start.max(t0) - t0..range.end.min(t0 + BLOCK_WORDS) - t0;
+            // The next block's frames, prefetched a few per vector of pixels.
+            let next = (t0 + BLOCK_WORDS).min(range.end)..(t0 + 2 * BLOCK_WORDS).min(range.end);
+            let per_vector = next.len().div_ceil(vectors);
             for (v, sum) in sums[..vectors].iter_mut().enumerate() {
-                let b = _mm256_loadu_si256(positions[8 * v..].as_ptr().cast());
-                // The four bytes from the candidate's byte (little-endian: that byte lowest),
-                // shifted by the bit's place in it.
-                let word =
-                    _mm256_i32gather_epi32::<1>(frame.as_ptr().cast(), _mm256_srli_epi32::<3>(b));
-                let bit =
-                    _mm256_and_si256(_mm256_srlv_epi32(word, _mm256_and_si256(b, seven)), one);
-                *sum = _mm256_add_epi32(*sum, bit);
+                let ahead = (next.start + v * per_vector).min(next.end);
+                for t in ahead..(ahead + per_vector).min(next.end) {
+                    crate::cpu::prefetch(&frames.raw_frame(t)[span.clone()]);
+                }
+                let jobs: [(u64, u64); 8] =
+                    std::array::from_fn(|l| (self.streams[8 * v + l], block as u64));
+                let draws = chacha8_words_avx2(key, &jobs);
+                let n = _mm256_loadu_si256(self.counts[8 * v..].as_ptr().cast());
+                let tables = self.tables[64 * v..][..64].as_ptr();
+                for w in words.clone() {
+                    let r = draws[w];
+                    // (r · n) >> 32 per lane: even lanes from one 32x32 -> 64-bit product, odd
+                    // lanes from another.
+                    let even = _mm256_srli_epi64::<32>(_mm256_mul_epu32(r, n));
+                    let odd = _mm256_mul_epu32(_mm256_srli_epi64::<32>(r), n);
+                    let pick = _mm256_blend_epi32::<0b1010_1010>(even, odd);
+                    let position = _mm256_i32gather_epi32::<4>(
+                        tables.cast(),
+                        _mm256_add_epi32(lane_tables, pick),
+                    );
+                    // The four bytes from the candidate's byte (little-endian: that byte
+                    // lowest), shifted by the bit's place in it.
+                    let frame = frames.raw_frame(t0 + w);
+                    let word = _mm256_i32gather_epi32::<1>(
+                        frame.as_ptr().cast(),
+                        _mm256_srli_epi32::<3>(position),
+                    );
+                    let bit = _mm256_and_si256(
+                        _mm256_srlv_epi32(word, _mm256_and_si256(position, seven)),
+                        one,
+                    );
+                    *sum = _mm256_add_epi32(*sum, bit);
+                }
             }
         }
         let mut lanes = [0u32; HOT_GROUP];
@@ -558,6 +521,30 @@ const CHACHA_DIAGONALS: [(usize, usize, usize, usize); 4] =
 unsafe fn chacha8_blocks_avx2(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u32; BLOCK_WORDS]]) {
     use std::arch::x86_64::*;
     debug_assert!(jobs.len() == 8 && out.len() == 8);
+    let words = chacha8_words_avx2(key, jobs);
+    // Vector j holds word j of the eight blocks: transposed, eight words of one block each.
+    for (half, rows) in words.chunks_exact(8).enumerate() {
+        let columns = crate::cpu::transpose8x8(rows.try_into().expect("eight rows"));
+        for (block, column) in out.iter_mut().zip(columns) {
+            _mm256_storeu_si256(block[8 * half..].as_mut_ptr().cast(), column);
+        }
+    }
+}
+
+/// The sixteen words of the ChaCha8 blocks of eight jobs `(stream, block)`: vector j holds
+/// word j of every job's block, job l in lane l (the words of [`chacha8_block`]).
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn chacha8_words_avx2(
+    key: &[u32; 8],
+    jobs: &[(u64, u64)],
+) -> [std::arch::x86_64::__m256i; BLOCK_WORDS] {
+    use std::arch::x86_64::*;
+    debug_assert!(jobs.len() == 8);
     let lanes = |word: fn(u64, u64) -> u32| {
         let w: [u32; 8] = std::array::from_fn(|l| word(jobs[l].0, jobs[l].1));
         _mm256_loadu_si256(w.as_ptr().cast())
@@ -607,14 +594,7 @@ unsafe fn chacha8_blocks_avx2(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u
         quarter!(2, 7, 8, 13);
         quarter!(3, 4, 9, 14);
     }
-    let words: [__m256i; 16] = std::array::from_fn(|j| _mm256_add_epi32(x[j], init[j]));
-    // Vector j holds word j of the eight blocks: transposed, eight words of one block each.
-    for (half, rows) in words.chunks_exact(8).enumerate() {
-        let columns = crate::cpu::transpose8x8(rows.try_into().expect("eight rows"));
-        for (block, column) in out.iter_mut().zip(columns) {
-            _mm256_storeu_si256(block[8 * half..].as_mut_ptr().cast(), column);
-        }
-    }
+    std::array::from_fn(|j| _mm256_add_epi32(x[j], init[j]))
 }
 
 /// Dark-count rate of every pixel (counts per second, `(H, W)`) from frames captured in the dark:
@@ -873,7 +853,10 @@ mod tests {
             // The vector path takes groups of up to eight candidates a pixel, not more.
             let spans = [(0, k.min(corrector.candidates[0].len()) as u64)];
             let sites: Vec<u32> = (0..k as u32).collect();
-            assert_eq!(HotSites::new(&sites, &spans, 64, &(0..8)).is_some(), k <= 8);
+            assert_eq!(
+                HotSites::new(&sites, &spans, &[0], 64, &(0..8)).is_some(),
+                k <= 8
+            );
         }
         let range = 5..t - 3;
         let got = corrector.corrected_block_sum(&frames, range.clone());
