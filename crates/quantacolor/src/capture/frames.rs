@@ -302,12 +302,6 @@ impl BinaryFrames {
         &self.data()[t * frame_bytes..(t + 1) * frame_bytes]
     }
 
-    /// The stored bytes of frames `frames`, end to end ([`Self::raw_frame`] of each in turn).
-    pub fn raw_frames(&self, frames: Range<usize>) -> &[u8] {
-        let frame_bytes = self.height * self.row_bytes();
-        &self.data()[frames.start * frame_bytes..frames.end * frame_bytes]
-    }
-
     /// The bit of pixel `(y, x)` in frame `t` (for multi-bit frames: whether the sample is
     /// nonzero).
     pub fn bit(&self, t: usize, y: usize, x: usize) -> bool {
