@@ -668,11 +668,8 @@ impl TargetGrid<'_> {
                         Some(m) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
                         None => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
                     };
-                    for i in 0..LANES {
-                        if dense[i] {
-                            lanes[i] = moved[i];
-                        }
-                    }
+                    // A lane-wise select (no conditional stores of single lanes).
+                    lanes = std::array::from_fn(|i| if dense[i] { moved[i] } else { lanes[i] });
                 }
             }
             for (target, &lane) in out.iter_mut().zip(&lanes) {
@@ -714,14 +711,19 @@ impl TargetGrid<'_> {
                 .wrapping_mul(row_floats)
                 .wrapping_add(index_in(bx, bins_w));
         }
-        let mut out = [(u32::MAX, 0.0f32); LANES];
+        // Selected lane-wise into two arrays, then interleaved: no conditional stores of
+        // single lanes (which the vector reads of `out` then waited for: store forwarding
+        // fails on a wide read of narrow writes). The same values as storing the kept lanes
+        // into an array of `(u32::MAX, 0.0)`.
+        let mut bins = [u32::MAX; LANES];
+        let mut weights = [0.0f32; LANES];
         for i in 0..LANES {
             let r = robust(at[i] as usize);
-            if !(outside[i] | skip[i] | (r <= 0.0)) {
-                out[i] = (index[i] as u32, r);
-            }
+            let keep = !(outside[i] | skip[i] | (r <= 0.0));
+            bins[i] = if keep { index[i] as u32 } else { u32::MAX };
+            weights[i] = if keep { r } else { 0.0 };
         }
-        out
+        std::array::from_fn(|i| (bins[i], weights[i]))
     }
 }
 
@@ -900,6 +902,8 @@ impl<'a> MergeAccumulator<'a> {
                 .par_chunks_mut(band_floats)
                 .enumerate()
                 .for_each(|(band, cells)| {
+                    // A local copy: read once, not after every store into the bins.
+                    let stride = stride;
                     let first = band * band_floats;
                     let end = first + cells.len();
                     for (k, sub) in group.iter().enumerate() {
@@ -920,10 +924,14 @@ impl<'a> MergeAccumulator<'a> {
                                 if bin < first || bin >= end {
                                     continue;
                                 }
+                                // The three sums of the site's channel in one sub-slice (one
+                                // bounds check instead of three): the bins of a band are whole
+                                // bin rows of SUMS planes, so the slice is inside the band.
                                 let slot = bin - first + (code as usize & 3) * 3 * stride;
-                                cells[slot] += r * count as f32;
-                                cells[slot + stride] += r * frames;
-                                cells[slot + 2 * stride] += r * r * frames;
+                                let cell = &mut cells[slot..slot + 2 * stride + 1];
+                                cell[0] += r * count as f32;
+                                cell[stride] += r * frames;
+                                cell[2 * stride] += r * r * frames;
                             }
                         }
                     }
