@@ -2332,6 +2332,83 @@ mod tests {
     }
 
     #[test]
+    fn lane_targets_avx2_match_the_scalar_lanes() {
+        // `lane_targets_avx2` against `lane_targets` (the scalar path, which an AVX2 CPU
+        // otherwise never runs) on lanes inside and outside the image and the bins, at their
+        // edges, NaN and infinite, with and without a robustness map, skipped or not.
+        #[cfg(target_arch = "x86_64")]
+        {
+            use rand::{Rng, SeedableRng};
+            if !std::arch::is_x86_feature_detected!("avx2") {
+                return;
+            }
+            let (h, w) = (11usize, 13usize);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+            let robust: Vec<f32> = (0..h * w)
+                .map(|i| match i % 9 {
+                    0 => 0.0,
+                    1 => f32::NAN,
+                    _ => rng.gen_range(-0.3..1.0),
+                })
+                .collect();
+            let (bins_h, bins_w) = (27usize, 31usize);
+            let specials = [
+                f32::NAN,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                -0.0,
+                -1.0,
+                0.0,
+                (h - 1) as f32,
+                (w - 1) as f32,
+                bins_h as f32,
+                bins_w as f32,
+                (bins_h - 1) as f32,
+                1e10,
+            ];
+            let value = |rng: &mut rand_chacha::ChaCha8Rng, hi: f32| -> f32 {
+                if rng.gen_bool(0.3) {
+                    specials[rng.gen_range(0..specials.len())]
+                } else {
+                    rng.gen_range(-3.0..hi + 3.0f32).round()
+                }
+            };
+            for map in [Some(&robust[..]), None] {
+                let grid = TargetGrid {
+                    h,
+                    w,
+                    u: 2.0,
+                    margin: 1.0,
+                    bins_h,
+                    bins_w,
+                    stride: (bins_w + LANES - 1).next_multiple_of(LANES),
+                    excluded: None,
+                    robust: map,
+                };
+                for _ in 0..2000 {
+                    let rounded: [[f32; LANES]; 2] = [
+                        std::array::from_fn(|_| value(&mut rng, h as f32)),
+                        std::array::from_fn(|_| value(&mut rng, w as f32)),
+                    ];
+                    let bin: [[f32; LANES]; 2] = [
+                        std::array::from_fn(|_| value(&mut rng, bins_h as f32)),
+                        std::array::from_fn(|_| value(&mut rng, bins_w as f32)),
+                    ];
+                    let skip: [bool; LANES] = std::array::from_fn(|_| rng.gen_bool(0.2));
+                    let plain = match map {
+                        Some(m) => grid.lane_targets(&rounded, &bin, &skip, |i| m[i]),
+                        None => grid.lane_targets(&rounded, &bin, &skip, |_| 1.0),
+                    };
+                    // SAFETY: AVX2 is supported (checked above); the map holds H·W values.
+                    let fast = unsafe { grid.lane_targets_avx2(&rounded, &bin, &skip) };
+                    let bits = |t: [(u32, f32); LANES]| t.map(|(b, r)| (b, r.to_bits()));
+                    assert_eq!(bits(fast), bits(plain), "{rounded:?} {bin:?} {skip:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn gather_row_matches_the_group_by_group_reference() {
         // The regression with its weights made a bin row at a time against the form where the
         // channels took turns per group of eight bins: bit for bit, with random bins and
