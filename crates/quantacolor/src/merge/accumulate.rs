@@ -1018,7 +1018,9 @@ impl<'a> MergeAccumulator<'a> {
                 .par_chunks_mut(band_floats)
                 .enumerate()
                 .for_each(|(band, cells)| {
-                    // A local copy: read once, not after every store into the bins.
+                    // A local copy: read once, not after every store into the bins (the
+                    // closure otherwise reads the captured reference).
+                    #[allow(clippy::redundant_locals)]
                     let stride = stride;
                     let first = band * band_floats;
                     let end = first + cells.len();
