@@ -578,7 +578,7 @@ impl TargetGrid<'_> {
                         return;
                     }
                 }
-                self.affine_row(y, row, matrix, offset, local);
+                self.affine_row::<false>(y, row, matrix, offset, local);
                 *span = row_span(row);
             });
     }
@@ -597,14 +597,16 @@ impl TargetGrid<'_> {
         offset: &[f64; 2],
         local: Option<(&[bool], &[f32])>,
     ) {
-        self.affine_row(y, row, matrix, offset, local)
+        self.affine_row::<true>(y, row, matrix, offset, local)
     }
 
     /// Targets of the sites of row `y` ([`TargetGrid::fill_affine`]): lane-wise and without
     /// branches for the affine positions (whatever their robustness and whether they land in
     /// the bins), then the few sites that need more (local motion, excluded) one by one.
+    /// `AVX2` (only from [`TargetGrid::affine_row_avx2`]): the affine lanes' targets by
+    /// [`TargetGrid::lane_targets_avx2`], the same values as [`TargetGrid::lane_targets`].
     #[inline(always)]
-    fn affine_row(
+    fn affine_row<const AVX2: bool>(
         &self,
         y: usize,
         row: &mut [(u32, f32)],
@@ -615,6 +617,11 @@ impl TargetGrid<'_> {
         let (h, w, u, margin) = (self.h, self.w, self.u, self.margin);
         let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
         let excluded = self.excluded.map(|e| &e[y * w..(y + 1) * w]);
+        // The vector reads of the robustness map stay inside it ([`TargetGrid::
+        // lane_targets_avx2`]); a shorter map takes the checked reads (and their panic).
+        let robust_covers = self.robust.is_none_or(|m| m.len() >= h * w);
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = robust_covers;
         for (chunk, out) in row.chunks_mut(LANES).enumerate() {
             let x0 = chunk * LANES;
             // Lane-wise: positions, their roundings and bin coordinates.
@@ -639,6 +646,13 @@ impl TargetGrid<'_> {
                 }
             }
             let mut lanes = match self.robust {
+                #[cfg(target_arch = "x86_64")]
+                _ if AVX2 && robust_covers => {
+                    // SAFETY: `AVX2` is set only by `affine_row_avx2`, whose caller checked
+                    // that the CPU supports AVX2; the robustness map (if any) holds the H·W
+                    // pixels (`robust_covers`).
+                    unsafe { self.lane_targets_avx2(&rounded, &bin, &skip) }
+                }
                 Some(m) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
                 None => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
             };
@@ -668,11 +682,8 @@ impl TargetGrid<'_> {
                         Some(m) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
                         None => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
                     };
-                    for i in 0..LANES {
-                        if dense[i] {
-                            lanes[i] = moved[i];
-                        }
-                    }
+                    // A lane-wise select (no conditional stores of single lanes).
+                    lanes = std::array::from_fn(|i| if dense[i] { moved[i] } else { lanes[i] });
                 }
             }
             for (target, &lane) in out.iter_mut().zip(&lanes) {
@@ -714,12 +725,119 @@ impl TargetGrid<'_> {
                 .wrapping_mul(row_floats)
                 .wrapping_add(index_in(bx, bins_w));
         }
-        let mut out = [(u32::MAX, 0.0f32); LANES];
+        // Selected lane-wise into two arrays, then interleaved: no conditional stores of
+        // single lanes (which the vector reads of `out` then waited for: store forwarding
+        // fails on a wide read of narrow writes). The same values as storing the kept lanes
+        // into an array of `(u32::MAX, 0.0)`.
+        let mut bins = [u32::MAX; LANES];
+        let mut weights = [0.0f32; LANES];
         for i in 0..LANES {
             let r = robust(at[i] as usize);
-            if !(outside[i] | skip[i] | (r <= 0.0)) {
-                out[i] = (index[i] as u32, r);
+            let keep = !(outside[i] | skip[i] | (r <= 0.0));
+            bins[i] = if keep { index[i] as u32 } else { u32::MAX };
+            weights[i] = if keep { r } else { 0.0 };
+        }
+        std::array::from_fn(|i| (bins[i], weights[i]))
+    }
+
+    /// [`TargetGrid::lane_targets`] with AVX2 instructions, the robustness (if any) read
+    /// from `self.robust`: the same operations lane by lane, so the same targets. The
+    /// clamped truncations of [`index_in`] are `max` with 0 second (NaN gives 0, as there),
+    /// `min` with the bound and a truncating conversion; the comparisons are ordered (false
+    /// for NaN, as Rust's); the index arithmetic wraps as there; the robustness is one
+    /// gather; the kept lanes are selected with blends and the (bin, weight) pairs
+    /// interleaved in registers and written with two full-width stores (no single-lane
+    /// stores that a wide read of the result would wait for).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2, and `self.robust`, if any, must hold at least H·W values
+    /// (every index read is a clamped pixel of the H×W image).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn lane_targets_avx2(
+        &self,
+        rounded: &[[f32; LANES]; 2],
+        bin: &[[f32; LANES]; 2],
+        skip: &[bool; LANES],
+    ) -> [(u32, f32); LANES] {
+        use std::arch::x86_64::*;
+        let (hf, wf) = ((self.h - 1) as f32, (self.w - 1) as f32);
+        let (bins_h, bins_w) = (self.bins_h as f32, self.bins_w as f32);
+        let row_floats = (SUMS * self.stride) as i32;
+        let zero = _mm256_setzero_ps();
+        // `index_in` lane-wise: max(v, 0) returns its second operand 0 for NaN.
+        let index = |v: __m256, hi: f32| {
+            _mm256_cvttps_epi32(_mm256_min_ps(_mm256_max_ps(v, zero), _mm256_set1_ps(hi)))
+        };
+        // SAFETY: `rounded` and `bin` are arrays of eight f32 each (unaligned loads).
+        let (ry, rx, by, bx) = unsafe {
+            (
+                _mm256_loadu_ps(rounded[0].as_ptr()),
+                _mm256_loadu_ps(rounded[1].as_ptr()),
+                _mm256_loadu_ps(bin[0].as_ptr()),
+                _mm256_loadu_ps(bin[1].as_ptr()),
+            )
+        };
+        let outside = _mm256_or_ps(
+            _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_LT_OQ>(by, zero),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(bx, zero),
+            ),
+            _mm256_or_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(by, _mm256_set1_ps(bins_h)),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(bx, _mm256_set1_ps(bins_w)),
+            ),
+        );
+        let target = _mm256_add_epi32(
+            _mm256_mullo_epi32(index(by, bins_h), _mm256_set1_epi32(row_floats)),
+            index(bx, bins_w),
+        );
+        let r = match self.robust {
+            Some(m) => {
+                let at = _mm256_add_epi32(
+                    _mm256_mullo_epi32(index(ry, hf), _mm256_set1_epi32(self.w as i32)),
+                    index(rx, wf),
+                );
+                // SAFETY: every lane of `at` is ry·W + rx with ry ≤ H − 1 and rx ≤ W − 1
+                // (clamped above), below H·W ≤ m.len() (the caller's contract).
+                unsafe { _mm256_i32gather_ps::<4>(m.as_ptr(), at) }
             }
+            None => _mm256_set1_ps(1.0),
+        };
+        // The skipped lanes: bools are 0 or 1, widened to 32-bit lanes.
+        let skipped = {
+            let bytes = u64::from_le_bytes(std::array::from_fn(|i| skip[i] as u8));
+            let wide = _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(bytes as i64));
+            _mm256_castsi256_ps(_mm256_cmpgt_epi32(wide, _mm256_setzero_si256()))
+        };
+        let drop = _mm256_or_ps(
+            _mm256_or_ps(outside, skipped),
+            _mm256_cmp_ps::<_CMP_LE_OQ>(r, zero),
+        );
+        let bins = _mm256_blendv_ps(
+            _mm256_castsi256_ps(target),
+            _mm256_castsi256_ps(_mm256_set1_epi32(-1)),
+            drop,
+        );
+        let weights = _mm256_blendv_ps(r, zero, drop);
+        // (bin, weight) pairs in lane order: lanes 0, 1, 4, 5 and 2, 3, 6, 7, then halves.
+        let (lo, hi) = (
+            _mm256_unpacklo_ps(bins, weights),
+            _mm256_unpackhi_ps(bins, weights),
+        );
+        // A tuple's layout is not guaranteed: the stores below need this one.
+        const _: () = assert!(
+            std::mem::size_of::<(u32, f32)>() == 8
+                && std::mem::offset_of!((u32, f32), 0) == 0
+                && std::mem::offset_of!((u32, f32), 1) == 4
+        );
+        let mut out = [(u32::MAX, 0.0f32); LANES];
+        let at = out.as_mut_ptr() as *mut f32;
+        // SAFETY: `out` is 64 bytes of eight (u32, f32) pairs, the u32 at offset 0 and the
+        // f32 at offset 4 of each (asserted above); two unaligned 32-byte stores fill it.
+        unsafe {
+            _mm256_storeu_ps(at, _mm256_permute2f128_ps::<0x20>(lo, hi));
+            _mm256_storeu_ps(at.add(LANES), _mm256_permute2f128_ps::<0x31>(lo, hi));
         }
         out
     }
@@ -900,6 +1018,10 @@ impl<'a> MergeAccumulator<'a> {
                 .par_chunks_mut(band_floats)
                 .enumerate()
                 .for_each(|(band, cells)| {
+                    // A local copy: read once, not after every store into the bins (the
+                    // closure otherwise reads the captured reference).
+                    #[allow(clippy::redundant_locals)]
+                    let stride = stride;
                     let first = band * band_floats;
                     let end = first + cells.len();
                     for (k, sub) in group.iter().enumerate() {
@@ -920,10 +1042,14 @@ impl<'a> MergeAccumulator<'a> {
                                 if bin < first || bin >= end {
                                     continue;
                                 }
+                                // The three sums of the site's channel in one sub-slice (one
+                                // bounds check instead of three): the bins of a band are whole
+                                // bin rows of SUMS planes, so the slice is inside the band.
                                 let slot = bin - first + (code as usize & 3) * 3 * stride;
-                                cells[slot] += r * count as f32;
-                                cells[slot + stride] += r * frames;
-                                cells[slot + 2 * stride] += r * r * frames;
+                                let cell = &mut cells[slot..slot + 2 * stride + 1];
+                                cell[0] += r * count as f32;
+                                cell[stride] += r * frames;
+                                cell[2 * stride] += r * r * frames;
                             }
                         }
                     }
@@ -2204,6 +2330,83 @@ mod tests {
                 }
             });
             check(&fast, &fast_spans, &plain, &plain_spans, "camera and local");
+        }
+    }
+
+    #[test]
+    fn lane_targets_avx2_match_the_scalar_lanes() {
+        // `lane_targets_avx2` against `lane_targets` (the scalar path, which an AVX2 CPU
+        // otherwise never runs) on lanes inside and outside the image and the bins, at their
+        // edges, NaN and infinite, with and without a robustness map, skipped or not.
+        #[cfg(target_arch = "x86_64")]
+        {
+            use rand::{Rng, SeedableRng};
+            if !std::arch::is_x86_feature_detected!("avx2") {
+                return;
+            }
+            let (h, w) = (11usize, 13usize);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+            let robust: Vec<f32> = (0..h * w)
+                .map(|i| match i % 9 {
+                    0 => 0.0,
+                    1 => f32::NAN,
+                    _ => rng.gen_range(-0.3..1.0),
+                })
+                .collect();
+            let (bins_h, bins_w) = (27usize, 31usize);
+            let specials = [
+                f32::NAN,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                -0.0,
+                -1.0,
+                0.0,
+                (h - 1) as f32,
+                (w - 1) as f32,
+                bins_h as f32,
+                bins_w as f32,
+                (bins_h - 1) as f32,
+                1e10,
+            ];
+            let value = |rng: &mut rand_chacha::ChaCha8Rng, hi: f32| -> f32 {
+                if rng.gen_bool(0.3) {
+                    specials[rng.gen_range(0..specials.len())]
+                } else {
+                    rng.gen_range(-3.0..hi + 3.0f32).round()
+                }
+            };
+            for map in [Some(&robust[..]), None] {
+                let grid = TargetGrid {
+                    h,
+                    w,
+                    u: 2.0,
+                    margin: 1.0,
+                    bins_h,
+                    bins_w,
+                    stride: (bins_w + LANES - 1).next_multiple_of(LANES),
+                    excluded: None,
+                    robust: map,
+                };
+                for _ in 0..2000 {
+                    let rounded: [[f32; LANES]; 2] = [
+                        std::array::from_fn(|_| value(&mut rng, h as f32)),
+                        std::array::from_fn(|_| value(&mut rng, w as f32)),
+                    ];
+                    let bin: [[f32; LANES]; 2] = [
+                        std::array::from_fn(|_| value(&mut rng, bins_h as f32)),
+                        std::array::from_fn(|_| value(&mut rng, bins_w as f32)),
+                    ];
+                    let skip: [bool; LANES] = std::array::from_fn(|_| rng.gen_bool(0.2));
+                    let plain = match map {
+                        Some(m) => grid.lane_targets(&rounded, &bin, &skip, |i| m[i]),
+                        None => grid.lane_targets(&rounded, &bin, &skip, |_| 1.0),
+                    };
+                    // SAFETY: AVX2 is supported (checked above); the map holds H·W values.
+                    let fast = unsafe { grid.lane_targets_avx2(&rounded, &bin, &skip) };
+                    let bits = |t: [(u32, f32); LANES]| t.map(|(b, r)| (b, r.to_bits()));
+                    assert_eq!(bits(fast), bits(plain), "{rounded:?} {bin:?} {skip:?}");
+                }
+            }
         }
     }
 
