@@ -71,21 +71,20 @@ pub struct RefineConfig {
     /// 0.002 px). Three (was five): the coarse level only has to bring the fit within the
     /// finest level's capture range. See [`Self::fine_iterations`] for the measurements.
     pub iterations: usize, // 3
-    /// Gauss–Newton iterations at the finest level (fewer when the update falls below
-    /// 0.002 px). Two with the alternation damping of [`alternation_factor`] (it was three,
-    /// which scored as five without damping). Two fine and three coarse iterations against
-    /// three and five: on `bench quality` the burst PSNR of every capture within 0.01 dB
-    /// (means identical: tuning 27.70, validation 29.63 dB), chroma-BM3D within 0.02 dB (means
-    /// 29.66 → 29.65 and 31.62 → 31.62 dB), median EPE handheld 0.049 → 0.076 px on the dark
-    /// kodim02 and 0.151 → 0.155 px on the Bayer kodim07, the others within 0.013 px; the 10,000-frame chart of `bench speed`
-    /// +0.06 dB without denoising (26.90 → 26.96 dB sRGB PSNR, border 16) and +0.09 dB with
-    /// chroma-BM3D; two more seeds of 10,000-frame captures without denoising: the chart +0.06
-    /// to +0.07 dB, kodim02 and the HDR sky-and-sea (MultiResolution_Bonita) within 0.01 dB;
-    /// three more seeds of the HDR sky-and-sea, fast-handheld, handheld and HDR pan captures of
-    /// `bench quality` within 0.02 dB. One fine iteration scored the same as three on `bench quality`
-    /// (no capture there is longer than 3,000 frames) but lost 0.28 dB on the 10,000-frame
-    /// chart (0.46 dB denoised): long captures have sub-blocks bright enough for the second
-    /// fine step to matter.
+    /// Gauss–Newton iterations at the finest level (fewer when the update falls below 0.002 px).
+    /// Two with the alternation damping of [`alternation_factor`] (it was three, which scored as
+    /// five without damping). Two fine and three coarse iterations against three and five: on
+    /// `bench quality` the burst PSNR of every capture within 0.01 dB (means identical: tuning
+    /// 27.70, validation 29.63 dB), chroma-BM3D within 0.02 dB (means 29.66 → 29.65 and 31.62 →
+    /// 31.62 dB), median EPE handheld 0.049 → 0.076 px on the dark kodim02 and 0.151 → 0.155 px on
+    /// the Bayer kodim07, the others within 0.013 px; the 10,000-frame chart of `bench speed` +0.06
+    /// dB without denoising (26.90 → 26.96 dB sRGB PSNR, border 16) and +0.09 dB with chroma-BM3D;
+    /// two more seeds of 10,000-frame captures without denoising: the chart +0.06 to +0.07 dB,
+    /// kodim02 and the HDR sky-and-sea (MultiResolution_Bonita) within 0.01 dB; three more seeds of
+    /// the HDR sky-and-sea, fast-handheld, handheld and HDR pan captures of `bench quality` within
+    /// 0.02 dB. One fine iteration scored the same as three on `bench quality` (no capture there is
+    /// longer than 3,000 frames) but lost 0.28 dB on the 10,000-frame chart (0.46 dB denoised):
+    /// long captures have sub-blocks bright enough for the second fine step to matter.
     pub fine_iterations: usize, // 2
     /// The finest level's iterations but the last sum the normal equations over every 2^k-th
     /// group of eight bin rows only, k = min(this, iterations left after it) (0 = every
