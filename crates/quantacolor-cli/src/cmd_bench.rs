@@ -19,6 +19,7 @@ use quantacolor::simulate::{
     ground_truth_at, simulate_with_cfa, FluxSpec, Motion, MotionConfig, Scene, SimulatedCapture,
     SimulationConfig,
 };
+use quantacolor::timing::StageTiming;
 use quantacolor::video::{video_reference_frames, VideoReconstructor};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -109,8 +110,10 @@ pub enum BenchCommand {
     Speed {
         #[arg(long, default_value_t = 10_000)]
         frames: usize,
-        /// Timed runs of each method; the median run is reported (the naive sum takes tens of
-        /// milliseconds, so one run is at the mercy of the scheduler).
+        /// Timed rounds: each times the naive sum three times, then the default pipeline once
+        /// (interleaved, so that both see the same machine); the medians are reported (the
+        /// naive sum takes tens of milliseconds, so one run of it is at the mercy of the
+        /// scheduler).
         #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
         runs: u32,
     },
@@ -480,13 +483,13 @@ fn median_epe(
 }
 
 /// Median (upper median for an even count); NaN for no values.
-fn median(values: &mut [f32]) -> f64 {
+fn median<T: Copy + Into<f64>>(values: &mut [T]) -> f64 {
     if values.is_empty() {
         return f64::NAN;
     }
     let mid = values.len() / 2;
-    let (_, m, _) = values.select_nth_unstable_by(mid, f32::total_cmp);
-    f64::from(*m)
+    let (_, m, _) = values.select_nth_unstable_by(mid, |a, b| (*a).into().total_cmp(&(*b).into()));
+    (*m).into()
 }
 
 /// Keys cubic convolution weight (a = −0.5) at distance `d`.
@@ -1068,17 +1071,25 @@ fn write_summary(
     Ok(())
 }
 
-/// Median of `runs` timed calls of `f` (seconds), with the result of the median call.
-fn median_run<T>(runs: usize, mut f: impl FnMut() -> Result<T>) -> Result<(f64, T)> {
-    let mut timed = Vec::with_capacity(runs);
-    for _ in 0..runs.max(1) {
-        let start = Instant::now();
-        let out = f()?;
-        timed.push((start.elapsed().as_secs_f64(), out));
-    }
-    timed.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let middle = timed.len() / 2;
-    Ok(timed.swap_remove(middle))
+/// Naive sums timed in each round of [`speed`]: it takes tens of milliseconds against about a
+/// second for the pipeline, so more samples of it cost little and steady its median.
+const NAIVE_RUNS_PER_ROUND: usize = 3;
+
+/// One timed run of the default pipeline in [`speed`].
+struct WholeRun {
+    whole_s: f64,
+    burst_s: f64,
+    denoise_s: f64,
+    blocks: usize,
+    sub_blocks: usize,
+    timings: Vec<StageTiming>,
+}
+
+/// Seconds of one timed call of `f`, with its result.
+fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(f64, T)> {
+    let start = Instant::now();
+    let out = f()?;
+    Ok((start.elapsed().as_secs_f64(), out))
 }
 
 fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
@@ -1097,38 +1108,75 @@ fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
     )?;
     let capture = sim.to_capture()?;
     let reference = capture.reference_frame();
-    let (naive_s, naive) = median_run(runs, || {
-        Ok(reconstruct_naive(
-            &capture,
-            reference,
-            &NaiveConfig::default(),
-        )?)
-    })?;
-    std::hint::black_box(&naive);
-    // The default pipeline: its merge takes the denoiser's kernel settings (as `reconstruct`).
     let pipeline = ReconstructConfig::default();
-    let (whole_s, (burst_s, burst, denoise_s)) = median_run(runs, || {
-        let start = Instant::now();
-        let burst = reconstruct_burst(&capture, reference, &burst_config_for(&pipeline), &Silent)?;
-        let burst_s = start.elapsed().as_secs_f64();
-        let start = Instant::now();
-        let input = denoise_input(&capture, Some(&burst), frames);
-        let denoised = denoise_linear(burst.merged.linear.view(), &input, &pipeline.denoise)?;
-        std::hint::black_box(&denoised);
-        Ok((burst_s, burst, start.elapsed().as_secs_f64()))
-    })?;
+    // Rounds of NAIVE_RUNS_PER_ROUND naive sums and one run of the default pipeline (its merge
+    // takes the denoiser's kernel settings, as `reconstruct`), so that a slow spell of the
+    // machine slows both sides of the ratio.
+    let mut naive_times = Vec::with_capacity(runs * NAIVE_RUNS_PER_ROUND);
+    let mut whole_runs = Vec::with_capacity(runs);
+    for _ in 0..runs.max(1) {
+        for _ in 0..NAIVE_RUNS_PER_ROUND {
+            let (seconds, naive) = timed(|| {
+                Ok(reconstruct_naive(
+                    &capture,
+                    reference,
+                    &NaiveConfig::default(),
+                )?)
+            })?;
+            std::hint::black_box(&naive);
+            naive_times.push(seconds);
+        }
+        let (whole_s, (burst_s, burst, denoise_s)) = timed(|| {
+            let (burst_s, burst) = timed(|| {
+                Ok(reconstruct_burst(
+                    &capture,
+                    reference,
+                    &burst_config_for(&pipeline),
+                    &Silent,
+                )?)
+            })?;
+            let (denoise_s, denoised) = timed(|| {
+                let input = denoise_input(&capture, Some(&burst), frames);
+                Ok(denoise_linear(
+                    burst.merged.linear.view(),
+                    &input,
+                    &pipeline.denoise,
+                )?)
+            })?;
+            std::hint::black_box(&denoised);
+            Ok((burst_s, burst, denoise_s))
+        })?;
+        // What the report needs of the run; the reconstruction is dropped untimed.
+        whole_runs.push(WholeRun {
+            whole_s,
+            burst_s,
+            denoise_s,
+            blocks: burst.alignment.plan.len(),
+            sub_blocks: burst.sub_blocks.len(),
+            timings: burst.timings.clone(),
+        });
+    }
+    let naive_s = median(&mut naive_times);
+    whole_runs.sort_by(|a, b| a.whole_s.total_cmp(&b.whole_s));
+    let WholeRun {
+        whole_s,
+        burst_s,
+        denoise_s,
+        blocks,
+        sub_blocks,
+        timings,
+    } = whole_runs.swap_remove(whole_runs.len() / 2);
     println!(
-        "{frames} frames 496x254, {} threads, median of {runs} runs: naive {naive_s:.3} s, burst \
-         (align + merge) {burst_s:.3} s, ratio {:.1}x",
+        "{frames} frames 496x254, {} threads, medians of {runs} rounds: naive {naive_s:.3} s \
+         ({} runs, {:.3}-{:.3} s), burst (align + merge) {burst_s:.3} s, ratio {:.1}x",
         rayon::current_num_threads(),
+        naive_times.len(),
+        naive_times.iter().copied().fold(f64::INFINITY, f64::min),
+        naive_times.iter().copied().fold(0.0, f64::max),
         burst_s / naive_s
     );
-    println!(
-        "  {} alignment blocks, {} sub-blocks merged",
-        burst.alignment.plan.len(),
-        burst.sub_blocks.len()
-    );
-    for t in &burst.timings {
+    println!("  {blocks} alignment blocks, {sub_blocks} sub-blocks merged");
+    for t in &timings {
         println!("  {:<32} {:.3} s", t.stage, t.seconds);
     }
     println!(

@@ -453,11 +453,18 @@ fn multiscale(
         let correction =
             coarse_denoised.index_axis(Axis(0), ch).to_owned() - down(fine.index_axis(Axis(0), ch));
         let mut plane = fine.index_axis_mut(Axis(0), ch);
-        Zip::indexed(&mut plane).for_each(|(y, x), v| {
-            // Fine pixel centres in coarse cell coordinates.
-            let (cy, cx) = ((y as f32 + 0.5) / 2.0 - 0.5, (x as f32 + 0.5) / 2.0 - 0.5);
-            *v += bilinear(correction.view(), cy, cx);
-        });
+        plane
+            .axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(y, mut row)| {
+                // Fine pixel centres in coarse cell coordinates.
+                let cy = (y as f32 + 0.5) / 2.0 - 0.5;
+                for (x, v) in row.iter_mut().enumerate() {
+                    let cx = (x as f32 + 0.5) / 2.0 - 0.5;
+                    *v += bilinear(correction.view(), cy, cx);
+                }
+            });
     }
     Ok(fine)
 }
