@@ -206,6 +206,9 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     let err = reconstruct_with_config("[burst.refine]\nsimilarity_prior_px = -0.1\n");
     assert!(err.contains("similarity_prior_px"), "{err}");
     assert!(!out.exists(), "partial output left behind");
+    let err = reconstruct_with_config("[burst.refine]\nmax_sub_block_motion_px = nan\n");
+    assert!(err.contains("max_sub_block_motion_px"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
     let err = reconstruct_with_config("[burst.refine]\npases = 1\n");
     assert!(err.contains("`burst.refine.pases`"), "{err}");
     assert!(!out.exists(), "partial output left behind");

@@ -189,6 +189,8 @@ pub(crate) fn estimate_motion(
     laps: &mut Laps,
     progress: &dyn Progress,
 ) -> Result<EstimatedMotion> {
+    // Checked before alignment: the sub-block plan uses it even with the refinement off.
+    config.refine.validate()?;
     let alignment = align(
         &capture.frames,
         &capture.cfa,

@@ -166,10 +166,38 @@ impl RefineConfig {
             ("repeat_above_px", self.repeat_above_px),
             ("max_correction_px", self.max_correction_px),
             ("local_consistency", self.local_consistency as f64),
+            ("min_sub_block_counts", self.min_sub_block_counts),
         ] {
             if !(value.is_finite() && value >= 0.0) {
                 return Err(Error::invalid(format!(
                     "motion refinement: [burst.refine] {key} must be a non-negative number, got {value}"
+                )));
+            }
+        }
+        if !(self.max_sub_block_motion_px.is_finite() && self.max_sub_block_motion_px > 0.0) {
+            return Err(Error::invalid(format!(
+                "motion refinement: [burst.refine] max_sub_block_motion_px must be a positive \
+                 number of pixels, got {}",
+                self.max_sub_block_motion_px
+            )));
+        }
+        if !(self.fine_information > 0.0 && self.fine_information <= 1.0) {
+            return Err(Error::invalid(format!(
+                "motion refinement: [burst.refine] fine_information must be a share in (0, 1], \
+                 got {}",
+                self.fine_information
+            )));
+        }
+        for (key, value) in [
+            ("min_sub_block_frames", self.min_sub_block_frames),
+            ("iterations", self.iterations),
+            ("fine_iterations", self.fine_iterations),
+            ("passes", self.passes),
+        ] {
+            if value == 0 {
+                return Err(Error::invalid(format!(
+                    "motion refinement: [burst.refine] {key} must be at least 1 (enabled = false \
+                     turns the refinement off)"
                 )));
             }
         }
@@ -2298,6 +2326,48 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Binomial, Distribution};
+
+    #[test]
+    fn validate_names_each_out_of_range_setting() {
+        assert!(RefineConfig::default().validate().is_ok());
+        type Edit = fn(&mut RefineConfig);
+        let cases: [(&str, Edit); 11] = [
+            ("passes", |c| c.passes = 0),
+            ("iterations", |c| c.iterations = 0),
+            ("fine_iterations", |c| c.fine_iterations = 0),
+            ("min_sub_block_frames", |c| c.min_sub_block_frames = 0),
+            ("max_sub_block_motion_px", |c| {
+                c.max_sub_block_motion_px = 0.0
+            }),
+            ("max_sub_block_motion_px", |c| {
+                c.max_sub_block_motion_px = f64::NAN
+            }),
+            ("min_sub_block_counts", |c| c.min_sub_block_counts = -1.0),
+            ("min_sub_block_counts", |c| {
+                c.min_sub_block_counts = f64::NAN
+            }),
+            ("fine_information", |c| c.fine_information = 0.0),
+            ("fine_information", |c| c.fine_information = 1.5),
+            ("fine_information", |c| c.fine_information = f64::NAN),
+        ];
+        for (key, edit) in cases {
+            let mut config = RefineConfig::default();
+            edit(&mut config);
+            let message = config.validate().expect_err(key).to_string();
+            assert!(message.contains(key), "{key}: {message}");
+        }
+        // The edges of the ranges are accepted.
+        let edges = RefineConfig {
+            min_sub_block_counts: 0.0,
+            fine_information: 1.0,
+            passes: 1,
+            iterations: 1,
+            fine_iterations: 1,
+            min_sub_block_frames: 1,
+            ..RefineConfig::default()
+        };
+        assert!(edges.validate().is_ok());
+    }
 
     /// Textured grey scene (bit rate per frame) at a real position.
     fn scene(y: f64, x: f64) -> f64 {
