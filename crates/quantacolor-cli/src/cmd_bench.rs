@@ -1158,6 +1158,10 @@ fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
     }
     let naive_s = median(&mut naive_times);
     whole_runs.sort_by(|a, b| a.whole_s.total_cmp(&b.whole_s));
+    let whole_range = (
+        whole_runs[0].whole_s,
+        whole_runs[whole_runs.len() - 1].whole_s,
+    );
     let WholeRun {
         whole_s,
         burst_s,
@@ -1185,7 +1189,10 @@ fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
         denoise_s / naive_s
     );
     println!(
-        "whole default pipeline (align, merge, denoise): {whole_s:.3} s, ratio {:.1}x the naive sum",
+        "whole default pipeline (align, merge, denoise): {whole_s:.3} s ({:.3}-{:.3} s), ratio \
+         {:.1}x the naive sum",
+        whole_range.0,
+        whole_range.1,
         whole_s / naive_s
     );
     Ok(())
