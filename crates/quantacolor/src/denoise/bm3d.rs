@@ -78,8 +78,8 @@ pub struct Bm3dConfig {
     /// static −0.11 dB, kodim12 object −0.08), and 25 with `max_group_wiener` 16 29.57 / –. On the
     /// 10,000-frame chart of `bench speed` the denoising stage took 0.40 s at 39, 0.38 at 31,
     /// 0.33 at 25 and 0.27 at 25 with groups of 16 (25 in Step 1 alone 0.36–0.38 s, in Step 2
-    /// alone 0.35–0.36 s). Kept at 39: the time saved (at most 5 % of the whole pipeline) is not worth a
-    /// consistent loss.
+    /// alone 0.35–0.36 s). Kept at 39: the time saved (at most 5 % of the whole pipeline) is
+    /// not worth a consistent loss.
     pub search_window: usize,
     /// Maximum group size `N2^ht` of Step 1 (a power of two).
     pub max_group_ht: usize,
