@@ -1544,6 +1544,9 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             }
         ]
     });
+    let plan = ChannelPlan::new(g, &own);
+    // 0, 1, 2, … in f32 (exact): the bins' offsets from the first of a row segment.
+    let lane_index: Vec<f32> = (0..max_groups * LANES).map(|k| k as f32).collect();
     for (ox, out) in row.iter_mut().enumerate() {
         let px = ox as f32 * g.inv_s + g.offset;
         let ix = (px.round().max(0.0) as usize).min(g.w - 1);
@@ -1598,8 +1601,9 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                     None => {}
                 }
             }
-            // The groups of a channel: those overlapping its span.
-            let group_range = |ch: usize| -> (usize, usize) {
+            // The groups of every channel: those overlapping its span.
+            let mut ranges = [(0usize, 0usize); 4];
+            for ch in plan.present() {
                 let (l, h) = span[ch];
                 // First group whose last lane reaches l, last group starting at or before h.
                 let first = if l <= lo {
@@ -1614,29 +1618,25 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 } else {
                     (((h - lo) as usize) / LANES + 1).min(groups)
                 };
-                (first, end)
-            };
-            // The quadratic form of every bin of the groups (32-bit bin indices, exact in f32
-            // as the 64-bit ones are: converted eight at a time), then the weights of every
-            // group, per channel that makes its own.
-            let lo32 = lo as i32;
-            for (group, quads) in quads[..groups * LANES].chunks_exact_mut(LANES).enumerate() {
-                let first = lo32 + (group * LANES) as i32;
-                let mut lanes = [0.0f32; LANES];
-                for (i, quad) in lanes.iter_mut().enumerate() {
-                    let dx = (first + i as i32) as f32 * inv_u - margin - px;
-                    *quad = ady2 + dx * (bdy + c * dx);
-                }
-                quads.copy_from_slice(&lanes);
+                ranges[ch] = (first, end);
+            }
+            // The quadratic form of every bin of the groups: bin lo + k at dx = (lo + k)/u −
+            // margin − px, with lo + k made in f32 as the sum of two exact integers (below
+            // 2^24), so the same value as converting the integer bin index.
+            let lo_f = lo as f32;
+            for (quad, &k) in quads[..groups * LANES]
+                .iter_mut()
+                .zip(&lane_index[..groups * LANES])
+            {
+                let dx = (lo_f + k) * inv_u - margin - px;
+                *quad = ady2 + dx * (bdy + c * dx);
             }
             // Lanes past the row segment: a form no factor brings below the cutoff (weight 0).
             quads[(hi - lo) as usize + 1..groups * LANES].fill(f32::INFINITY);
-            for (ch, weights) in weights.iter_mut().enumerate() {
-                if !g.present[ch] || g.source[ch] != ch || g.power[ch] != 0 {
-                    continue;
-                }
-                let (first, end) = group_range(ch);
+            for &ch in plan.makers() {
+                let (first, end) = ranges[ch];
                 let factor = g.inv_scale[ch];
+                let weights = &mut weights[ch];
                 for group in first..end {
                     let at = group * LANES;
                     // Local lanes, so that the compiler sees eight independent values.
@@ -1652,12 +1652,8 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             }
             // The channels whose factor is a multiple of the base's: powers of its weights,
             // which cover every group (the base's ellipse is the widest).
-            for ch in 0..4 {
-                let k = g.power[ch];
-                if !g.present[ch] || k == 0 {
-                    continue;
-                }
-                let (first, end) = group_range(ch);
+            for &(ch, k) in plan.powered() {
+                let (first, end) = ranges[ch];
                 let mut own = std::mem::take(&mut weights[ch]);
                 let base = &weights[g.base];
                 for group in first..end {
@@ -1674,36 +1670,18 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             // the groups together: one pass with all their partial sums in registers (more
             // independent additions in flight), each partial sum receiving the same products
             // in the same order as in a pass of its own, so the same bits.
-            let mut done = [false; 4];
-            for ch in 0..4 {
-                if !g.present[ch] || done[ch] {
-                    continue;
-                }
-                let range = group_range(ch);
-                let mut members = [ch; 4];
-                let mut n = 0;
-                for other in ch..4 {
-                    if g.present[other]
-                        && !done[other]
-                        && source[other] == source[ch]
-                        && group_range(other) == range
-                    {
-                        members[n] = other;
-                        n += 1;
-                        done[other] = true;
-                    }
-                }
+            for members in plan.passes() {
                 let pass = RowPass {
                     bins,
-                    weights: &weights[source[ch]],
+                    weights: &weights[source[members[0]]],
                     start: row_start + lo as usize,
                     stride,
-                    groups: range,
+                    groups: ranges[members[0]],
                 };
-                if n == 3 {
-                    pass.run3(&mut acc, [members[0], members[1], members[2]]);
+                if let &[c0, c1, c2] = members {
+                    pass.run3(&mut acc, [c0, c1, c2]);
                 } else {
-                    for &ch in &members[..n] {
+                    for &ch in members {
                         pass.run1(&mut acc[ch], ch);
                     }
                 }
@@ -1714,6 +1692,87 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 out[ch * 3 + sum] = lane_sum(lanes);
             }
         }
+    }
+}
+
+/// What the channels of a [`Gather`] do in every bin row of [`gather_row_generic`], the same
+/// for every pixel: which channels make their weights with exponentials, which take powers of
+/// the base's, and which run over the groups together (those that share weights and ellipse,
+/// hence groups), each list in channel order.
+struct ChannelPlan {
+    present: [usize; 4],
+    present_len: usize,
+    makers: [usize; 4],
+    makers_len: usize,
+    powered: [(usize, u32); 4],
+    powered_len: usize,
+    /// Channels of pass i: `pass_members[pass_start[i]..pass_start[i + 1]]`.
+    pass_members: [usize; 4],
+    pass_start: [usize; 5],
+    passes_len: usize,
+}
+
+impl ChannelPlan {
+    /// The plan of `g` whose channels use the ellipses `own` ([`gather_row_generic`]).
+    fn new(g: &Gather, own: &[Option<usize>; 4]) -> ChannelPlan {
+        let mut plan = ChannelPlan {
+            present: [0; 4],
+            present_len: 0,
+            makers: [0; 4],
+            makers_len: 0,
+            powered: [(0, 0); 4],
+            powered_len: 0,
+            pass_members: [0; 4],
+            pass_start: [0; 5],
+            passes_len: 0,
+        };
+        let mut placed = [false; 4];
+        for ch in (0..4).filter(|&ch| g.present[ch]) {
+            plan.present[plan.present_len] = ch;
+            plan.present_len += 1;
+            if g.source[ch] == ch && g.power[ch] == 0 {
+                plan.makers[plan.makers_len] = ch;
+                plan.makers_len += 1;
+            }
+            if g.power[ch] != 0 {
+                plan.powered[plan.powered_len] = (ch, g.power[ch]);
+                plan.powered_len += 1;
+            }
+            if placed[ch] {
+                continue;
+            }
+            let mut n = plan.pass_start[plan.passes_len];
+            for other in ch..4 {
+                if g.present[other]
+                    && !placed[other]
+                    && g.source[other] == g.source[ch]
+                    && own[other] == own[ch]
+                {
+                    plan.pass_members[n] = other;
+                    n += 1;
+                    placed[other] = true;
+                }
+            }
+            plan.passes_len += 1;
+            plan.pass_start[plan.passes_len] = n;
+        }
+        plan
+    }
+
+    fn present(&self) -> impl Iterator<Item = usize> + '_ {
+        self.present[..self.present_len].iter().copied()
+    }
+
+    fn makers(&self) -> &[usize] {
+        &self.makers[..self.makers_len]
+    }
+
+    fn powered(&self) -> &[(usize, u32)] {
+        &self.powered[..self.powered_len]
+    }
+
+    fn passes(&self) -> impl Iterator<Item = &[usize]> + '_ {
+        (0..self.passes_len).map(|i| &self.pass_members[self.pass_start[i]..self.pass_start[i + 1]])
     }
 }
 
