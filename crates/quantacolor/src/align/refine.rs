@@ -1125,21 +1125,23 @@ pub(super) fn template_level(reference: &Array2<f32>, sigma: f32) -> TemplateLev
     // divided by the span, made as a product with 1 / span (1 or 1/2, so the same bits as the
     // division, without one per value).
     let inverse_span = |a: usize, b: usize| if b - a == 2 { 0.5f32 } else { 1.0 };
-    let mut samples = vec![[0.0f32; 4]; h * w];
-    for (y, out) in samples.chunks_exact_mut(w.max(1)).enumerate() {
+    // Written once, row by row (not zeroed first: a finest-level template is 2 MB, and every
+    // block of every pass makes one).
+    let mut samples = Vec::with_capacity(h * w);
+    for y in 0..h {
         let (ya, yb) = (y.saturating_sub(1), (y + 1).min(h - 1));
         let scale_y = inverse_span(ya, yb);
         let row = &value[y * w..(y + 1) * w];
         let (above, below) = (&value[ya * w..(ya + 1) * w], &value[yb * w..(yb + 1) * w]);
-        for (x, out) in out.iter_mut().enumerate() {
+        samples.extend((0..w).map(|x| {
             let (xa, xb) = (x.saturating_sub(1), (x + 1).min(w - 1));
-            *out = [
+            [
                 row[x],
                 (below[x] - above[x]) * scale_y,
                 (row[xb] - row[xa]) * inverse_span(xa, xb),
                 0.0,
-            ];
-        }
+            ]
+        }));
     }
     TemplateLevel {
         height: h,
