@@ -310,6 +310,21 @@ impl AffineMotion {
         worst
     }
 
+    /// Root-mean-square displacement difference to `other` over a `half` = (H/2, W/2) image
+    /// (px): the difference Δb + Δm·x averaged over the image rectangle, whose coordinates are
+    /// uniform with variance h²/3 and uncorrelated, so |Δb|² + Σ Δm_rc²·half_c²/3.
+    pub(super) fn rms_distance(&self, other: &AffineMotion, half: [f64; 2]) -> f64 {
+        let mut mean_square = (0..2)
+            .map(|r| (self.b[r] - other.b[r]).powi(2))
+            .sum::<f64>();
+        for (row, other_row) in self.m.iter().zip(&other.m) {
+            for ((m, o), h) in row.iter().zip(other_row).zip(half) {
+                mean_square += (m - o).powi(2) * h * h / 3.0;
+            }
+        }
+        mean_square.sqrt()
+    }
+
     /// The displacement of the map x ↦ self(other(x)) (both as maps x ↦ x + d(x)).
     pub fn after(&self, other: &AffineMotion) -> AffineMotion {
         let a = [
@@ -597,6 +612,28 @@ fn affine_from_tiles(field: &Array3<f32>, grid: &TileGrid, centre: [f64; 2]) -> 
 }
 
 impl FrameMotion {
+    /// One sub-block per block of `plan`, each with its camera and no local motion (tests).
+    #[cfg(test)]
+    pub(super) fn of_block_cameras(
+        height: usize,
+        width: usize,
+        plan: BlockPlan,
+        camera: Vec<AffineMotion>,
+    ) -> FrameMotion {
+        let grid = TileGrid::new(height, width, 16, 8);
+        FrameMotion {
+            height,
+            width,
+            sub_blocks: plan.blocks.clone(),
+            block_of: (0..plan.len()).collect(),
+            local: Flow::zeros((plan.len(), grid.tiles_y, grid.tiles_x, 2)),
+            plan,
+            grid,
+            camera,
+            has_local: false,
+        }
+    }
+
     /// Block-level motion of `alignment`: each block's robust affine fit (tolerance as in
     /// [`super::AlignConfig::affine_tolerance_px`]) as its camera motion, the rest as local
     /// residual where it covers at least `min_local_tiles` connected tiles (see
@@ -2647,6 +2684,43 @@ mod tests {
             }
             other => panic!("block 2 holds the object, got {other:?}"),
         }
+    }
+
+    /// The RMS displacement difference is the mean over the image rectangle (midpoints of a
+    /// 400 x 400 grid) of the squared difference, square-rooted; a translation's is its length.
+    #[test]
+    fn rms_distance_is_the_root_mean_square_over_the_image() {
+        let half = [127.0, 248.0];
+        let a = AffineMotion {
+            b: [1.0, -2.0],
+            m: [[0.01, -0.002], [0.03, 0.004]],
+        };
+        let b = AffineMotion {
+            b: [-0.5, 0.7],
+            m: [[-0.003, 0.001], [-0.002, 0.0]],
+        };
+        let n = 400;
+        let at = |i: usize, h: f64| (-1.0 + (2 * i + 1) as f64 / n as f64) * h;
+        let mut sum = 0.0;
+        for i in 0..n {
+            for j in 0..n {
+                let (da, db) = (
+                    a.at([at(i, half[0]), at(j, half[1])]),
+                    b.at([at(i, half[0]), at(j, half[1])]),
+                );
+                sum += (da[0] - db[0]).powi(2) + (da[1] - db[1]).powi(2);
+            }
+        }
+        let brute = (sum / (n * n) as f64).sqrt();
+        let rms = a.rms_distance(&b, half);
+        assert!((rms - brute).abs() < 1e-4 * brute, "{rms} vs {brute}");
+        assert_eq!(rms, b.rms_distance(&a, half));
+        assert!(rms < a.distance(&b, half));
+        let shift = AffineMotion {
+            b: [3.0, 4.0],
+            m: [[0.0; 2]; 2],
+        };
+        assert!((shift.rms_distance(&AffineMotion::default(), half) - 5.0).abs() < 1e-12);
     }
 
     /// The block warp made row by row from the block camera equals the warp by the dense
