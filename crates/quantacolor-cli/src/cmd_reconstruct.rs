@@ -50,7 +50,7 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub scale: Option<usize>,
     /// Burst method: largest camera motion inside one sub-block, px (smaller = more, shorter
-    /// sub-blocks; default 0.25).
+    /// sub-blocks; default 0.35).
     #[arg(long)]
     pub max_sub_block_motion: Option<f64>,
     /// Write intermediate stages (block grey images, flow, reference, merged planes) as .npy.
