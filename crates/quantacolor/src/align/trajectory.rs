@@ -151,13 +151,18 @@ fn for_each_site(
         let row = frames.raw_row(t, y);
         for &x in columns {
             let x = x as usize;
-            let bit = if packed {
-                (row[x / 8] >> (7 - x % 8)) & 1 == 1
-            } else {
-                row[x] != 0
-            };
-            visit(y, x, bit);
+            visit(y, x, site_bit(row, x, packed));
         }
+    }
+}
+
+/// Whether the site in column `x` of a frame's raw row detected a photon.
+#[inline(always)]
+fn site_bit(row: &[u8], x: usize, packed: bool) -> bool {
+    if packed {
+        (row[x / 8] >> (7 - x % 8)) & 1 == 1
+    } else {
+        row[x] != 0
     }
 }
 
@@ -256,11 +261,7 @@ fn frame_score(
         let mut weight = [[0.0f64; 3]; 3];
         for &x in columns {
             let x = x as usize;
-            let bit = if packed {
-                (row[x / 8] >> (7 - x % 8)) & 1 == 1
-            } else {
-                row[x] != 0
-            };
+            let bit = site_bit(row, x, packed);
             let rx = x as f64 - sites.centre[1];
             let d = [base[0] + camera.m[0][1] * rx, base[1] + camera.m[1][1] * rx];
             let Some([v, gy, gx]) =
