@@ -251,10 +251,10 @@ fn burst_with(
 }
 
 /// The static HDR capture of [`hdr_halves`] with fast-motion tracking forced (`trigger_px`
-/// 0; its noisy block motion set tracking off by default while the trigger read the block
-/// motion at the image corners, ~9 px, and does not at its root mean square over the image,
-/// [`TrackConfig::trigger_px`](quantacolor::align::track::TrackConfig)), and by default: the
-/// camera must stay still and the merge must not smear the bright half into the dim one.
+/// 0; its noisy block motion, ~9 px at the image corners, set tracking off by default while
+/// the trigger read the corners alone, [`TrackConfig::trigger_px`](quantacolor::align::track::TrackConfig)),
+/// and by default: the camera must stay still and the merge must not smear the bright half
+/// into the dim one.
 /// Before a tracking with a non-physical camera was abandoned (`TrackConfig::max_linear`), the
 /// dim sub-blocks' Gauss–Newton fits escaped (|b| up to ~2000 px, affine terms up to ~90, each
 /// extrapolated into the next prediction) and the dim half's relative RMS error was 2.74
