@@ -117,8 +117,8 @@ const MIN_RMS_SHARE: f64 = 0.65;
 /// `bench quality`'s HDR pan 5.20 / 5.05 px (not tracked) and Bonita handheld 5.78 / 4.18 px.
 /// The RMS alone cannot separate the pan (5.05) from the night fast shake (5.56). The margins
 /// are thin on both sides of the guard (3.60 and 4.28 px against 3.9): a fit of the camera's
-/// linear part that knows what the photons left unobserved (as the refinement's
-/// [`super::refine`] similarity prior does) would be the better fix.
+/// linear part that knows what the photons left unobserved (as the similarity prior of
+/// [`super::refine`] does) would be the better fix.
 fn moves_fast(motion: &FrameMotion, trigger_px: f64) -> bool {
     let half = motion.half_size();
     let cameras: Vec<AffineMotion> = motion
@@ -331,8 +331,9 @@ mod tests {
 
     /// Block cameras 1 px apart whose shear alternates by 0.045 (what a scene that constrains
     /// one direction only leaves unobserved: 5.7 px at the top and bottom edges of a 254-row
-    /// image, 6.7 px at the corners with the translation, 3.5 px RMS) do not move fast; blocks 7 px apart do, and so do blocks turning by
-    /// 3° at a time (14.6 px at the corners, 8.4 px RMS), but not blocks 5.9 px apart.
+    /// image, 6.7 px at the corners with the translation, 3.5 px RMS) do not move fast; blocks
+    /// 7 px apart do, and so do blocks turning by 3° at a time (14.6 px at the corners, 8.4 px
+    /// RMS), but not blocks 5.9 px apart.
     #[test]
     fn an_unobserved_shear_is_not_fast_motion() {
         let (h, w) = (254, 496);
