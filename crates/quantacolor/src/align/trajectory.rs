@@ -289,15 +289,15 @@ fn frame_score(
         }
         // Parameter p is g_{GRADIENT[p]}·r_y^{POWER_Y[p]}·r_x^{POWER_X[p]}.
         const GRADIENT: [usize; 6] = [0, 1, 0, 0, 1, 1];
-        const POWER_Y: [i32; 6] = [0, 0, 1, 0, 1, 0];
+        const POWER_Y: [usize; 6] = [0, 0, 1, 0, 1, 0];
         const POWER_X: [usize; 6] = [0, 0, 0, 1, 0, 1];
         let ry_power = [1.0, ry, ry * ry];
         for a in 0..6 {
-            g[a] += ry_power[POWER_Y[a] as usize] * score[GRADIENT[a]][POWER_X[a]];
+            g[a] += ry_power[POWER_Y[a]] * score[GRADIENT[a]][POWER_X[a]];
             for b in a..6 {
                 let pair = GRADIENT[a] + GRADIENT[b];
-                info[a][b] += ry_power[(POWER_Y[a] + POWER_Y[b]) as usize]
-                    * weight[pair][POWER_X[a] + POWER_X[b]];
+                info[a][b] +=
+                    ry_power[POWER_Y[a] + POWER_Y[b]] * weight[pair][POWER_X[a] + POWER_X[b]];
             }
         }
     }
