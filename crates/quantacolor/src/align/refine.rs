@@ -1141,6 +1141,23 @@ pub(super) struct TemplateLevel {
     samples: Vec<[f32; 4]>,
 }
 
+impl TemplateLevel {
+    /// (height, width) in pixels.
+    pub(super) fn dims(&self) -> (usize, usize) {
+        (self.height, self.width)
+    }
+
+    /// The samples as one float slice: pixel i's (value, ∂/∂y, ∂/∂x, 0) at 4i..4i + 4.
+    pub(super) fn floats(&self) -> &[f32] {
+        self.samples.as_flattened()
+    }
+
+    /// The number of floats in [`Self::floats`].
+    pub(super) fn float_len(&self) -> usize {
+        4 * self.samples.len()
+    }
+}
+
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
 #[inline(always)]
 pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
