@@ -129,10 +129,33 @@ struct Sites {
     width: usize,
     /// For every row, the columns of its grey sites.
     columns: Vec<Vec<u16>>,
+    /// For every row, one mask per eight columns 8k..8k + 8: bit l set where column 8k + l is
+    /// a grey site.
+    masks: Vec<Vec<u8>>,
     centre: [f64; 2],
 }
 
 impl Sites {
+    /// The sites in `columns` (row by row, increasing) of an image `width` wide.
+    fn new(width: usize, columns: Vec<Vec<u16>>, centre: [f64; 2]) -> Sites {
+        let masks = columns
+            .iter()
+            .map(|row| {
+                let mut masks = vec![0u8; width.div_ceil(8)];
+                for &x in row {
+                    masks[x as usize / 8] |= 1 << (x % 8);
+                }
+                masks
+            })
+            .collect();
+        Sites {
+            width,
+            columns,
+            masks,
+            centre,
+        }
+    }
+
     fn count(&self) -> usize {
         self.columns.iter().map(Vec::len).sum()
     }
@@ -193,7 +216,7 @@ fn build_template(
                         continue;
                     }
                     let map = RowMap::new(sites, &camera, y, packed, margin as f64);
-                    splats.add_row(frames.raw_row(t, y), y, columns, &map);
+                    splats.add_row(frames.raw_row(t, y), y, sites, &map);
                 }
             }
             (splats.sum, splats.exposure)
@@ -234,37 +257,17 @@ impl Splats {
 
     /// Splats every site of one row of a frame: a trial at each, a detection where its bit is
     /// set; bilinearly, sites outside the images' interior dropped.
-    fn add_row(&mut self, row: &[u8], y: usize, columns: &[u16], map: &RowMap) {
+    fn add_row(&mut self, row: &[u8], y: usize, sites: &Sites, map: &RowMap) {
         let (h, w) = self.sum.dim();
         let sum = self.sum.as_slice_mut().expect("standard layout");
         let exposure = self.exposure.as_slice_mut().expect("standard layout");
-        let mut add = |i: usize, weights: [f32; 4], bit: bool| {
-            let at = [i, i + 1, i + w, i + w + 1];
-            for (&j, &v) in at.iter().zip(&weights) {
-                exposure[j] += v;
-            }
-            if bit {
-                for (&j, &v) in at.iter().zip(&weights) {
-                    sum[j] += v;
-                }
-            }
-        };
         #[cfg(target_arch = "x86_64")]
         if self.avx2 {
-            for (chunk_index, chunk) in columns.chunks(8).enumerate() {
-                // SAFETY: `avx2` holds the CPU's features and that indices fit an i32.
-                let (index, weights, inside) = unsafe { splat_weights_avx2(y, chunk, map, h, w) };
-                let mut inside = inside;
-                while inside != 0 {
-                    let lane = inside.trailing_zeros() as usize;
-                    inside &= inside - 1;
-                    let bit = site_bit(row, columns[8 * chunk_index + lane] as usize, map.packed);
-                    add(index[lane] as usize, weights.map(|v| v[lane]), bit);
-                }
-            }
+            // SAFETY: `avx2` holds the CPU's features and that indices fit an i32.
+            unsafe { splat_row_avx2(exposure, sum, (h, w), row, y, &sites.masks[y], map) };
             return;
         }
-        for &x in columns {
+        for &x in &sites.columns[y] {
             let (py, px) = map.position(y, x as usize);
             if !(py >= 0.0 && px >= 0.0 && py < (h - 1) as f64 && px < (w - 1) as f64) {
                 continue;
@@ -277,65 +280,198 @@ impl Splats {
                 fy * (1.0 - fx),
                 fy * fx,
             ];
-            add(y0 * w + x0, weights, site_bit(row, x as usize, map.packed));
+            let bit = site_bit(row, x as usize, map.packed);
+            splat_at(exposure, sum, w, y0 * w + x0, weights, bit);
         }
     }
 }
 
-/// For up to eight sites `columns` of row `y`: the flat index of the top-left pixel of each
-/// one's bilinear splat into an `h` × `w` image, the weights of its four pixels (top left, top
-/// right, bottom left, bottom right), and a bit mask of the sites inside the interior.
+/// Adds the bilinear `weights` of one site at the pixels (i, i + 1, i + w, i + w + 1) of
+/// `exposure`, and of `sum` if it detected a photon.
+#[inline(always)]
+fn splat_at(
+    exposure: &mut [f32],
+    sum: &mut [f32],
+    w: usize,
+    i: usize,
+    weights: [f32; 4],
+    detected: bool,
+) {
+    let at = [i, i + 1, i + w, i + w + 1];
+    for (&j, &v) in at.iter().zip(&weights) {
+        exposure[j] += v;
+    }
+    if detected {
+        for (&j, &v) in at.iter().zip(&weights) {
+            sum[j] += v;
+        }
+    }
+}
+
+/// [`Splats::add_row`] eight columns at a time (`masks`: the row's [`Sites::masks`]).
+///
+/// Under small rotation and zoom, eight neighbouring columns land in one pair of template rows
+/// at eight consecutive columns. Their bilinear splats then cover nine consecutive pixels of
+/// each row: pixel l takes the left weight of site l and the right weight of site l − 1, so
+/// each row is one vector addition; the ninth pixel's weight is carried into the next group
+/// when that starts there (as it does along a row), else added alone. Other groups are
+/// splatted site by site.
 ///
 /// # Safety
 /// The CPU must support AVX2 and FMA, and `h · w` must fit an i32.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn splat_weights_avx2(
+unsafe fn splat_row_avx2(
+    exposure: &mut [f32],
+    sum: &mut [f32],
+    (h, w): (usize, usize),
+    row: &[u8],
     y: usize,
-    columns: &[u16],
+    masks: &[u8],
     map: &RowMap,
-    h: usize,
-    w: usize,
-) -> ([i32; 8], [[f32; 8]; 4], u32) {
+) {
     use std::arch::x86_64::*;
-    let (_, py, px, valid) = positions_avx2(y, columns, map);
-    let zero = _mm256_setzero_ps();
-    let inside = _mm256_and_ps(
-        _mm256_and_ps(
-            _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
-            _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
-        ),
-        _mm256_and_ps(
-            _mm256_cmp_ps::<_CMP_LT_OQ>(py, _mm256_set1_ps((h - 1) as f32)),
-            _mm256_cmp_ps::<_CMP_LT_OQ>(px, _mm256_set1_ps((w - 1) as f32)),
-        ),
+    assert!(exposure.len() >= h * w && sum.len() >= h * w);
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    let lanes_of = |bits: u32| {
+        _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+            _mm256_and_si256(_mm256_set1_epi32(bits as i32), lane_bits),
+            lane_bits,
+        ))
+    };
+    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let (y_end, x_end) = (
+        _mm256_set1_ps((h - 1) as f32),
+        _mm256_set1_ps((w - 1) as f32),
     );
-    let inside = _mm256_and_ps(inside, valid);
-    let (py, px) = (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside));
-    let (y0, x0) = (_mm256_cvttps_epi32(py), _mm256_cvttps_epi32(px));
-    let fy = _mm256_sub_ps(py, _mm256_cvtepi32_ps(y0));
-    let fx = _mm256_sub_ps(px, _mm256_cvtepi32_ps(x0));
-    let one = _mm256_set1_ps(1.0);
-    let (gy, gx) = (_mm256_sub_ps(one, fy), _mm256_sub_ps(one, fx));
-    let mut index = [0i32; 8];
-    _mm256_storeu_si256(
-        index.as_mut_ptr().cast(),
-        _mm256_add_epi32(_mm256_mullo_epi32(y0, _mm256_set1_epi32(w as i32)), x0),
-    );
-    let mut weights = [[0.0f32; 8]; 4];
-    for (out, v) in weights.iter_mut().zip([
-        _mm256_mul_ps(gy, gx),
-        _mm256_mul_ps(gy, fx),
-        _mm256_mul_ps(fy, gx),
-        _mm256_mul_ps(fy, fx),
-    ]) {
-        _mm256_storeu_ps(out.as_mut_ptr(), v);
+    let previous = _mm256_setr_epi32(7, 0, 1, 2, 3, 4, 5, 6);
+    // Adds the nine-pixel splat (left weights `a`, right weights `b`) of one row at `i`, with
+    // `carry` (the previous group's ninth pixel) added to the first; returns the ninth.
+    let add_run = |image: &mut [f32], i: usize, a: __m256, b: __m256, carry: f32| {
+        let rotated = _mm256_permutevar8x32_ps(b, previous);
+        let shifted = _mm256_blend_ps::<1>(rotated, _mm256_set1_ps(carry));
+        let at = image[i..i + 8].as_mut_ptr();
+        _mm256_storeu_ps(
+            at,
+            _mm256_add_ps(_mm256_loadu_ps(at), _mm256_add_ps(a, shifted)),
+        );
+        _mm256_cvtss_f32(rotated)
+    };
+    // The pending ninth pixels: (index of the top one, exposure top/bottom, sum top/bottom).
+    let mut carry: Option<(usize, [f32; 4])> = None;
+    let flush = |carry: &mut Option<(usize, [f32; 4])>, exposure: &mut [f32], sum: &mut [f32]| {
+        if let Some((i, [e_top, e_bottom, s_top, s_bottom])) = carry.take() {
+            exposure[i] += e_top;
+            exposure[i + w] += e_bottom;
+            sum[i] += s_top;
+            sum[i + w] += s_bottom;
+        }
+    };
+    for (k, &mask) in masks.iter().enumerate() {
+        if mask == 0 {
+            continue;
+        }
+        let detected = u32::from(mask) & chunk_bits(row, k, map.packed);
+        let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(8 * k as i32), lane));
+        let (_, py, px) = positions_avx2(y, x, map);
+        let inside = _mm256_and_ps(
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
+            ),
+            _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_LT_OQ>(py, y_end),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(px, x_end),
+            ),
+        );
+        let inside_bits = _mm256_movemask_ps(inside) as u32;
+        // Lanes outside take position 0 (in bounds); their weights are not used.
+        let (py, px) = (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside));
+        let (y0, x0) = (_mm256_cvttps_epi32(py), _mm256_cvttps_epi32(px));
+        let fy = _mm256_sub_ps(py, _mm256_cvtepi32_ps(y0));
+        let fx = _mm256_sub_ps(px, _mm256_cvtepi32_ps(x0));
+        let (gy, gx) = (_mm256_sub_ps(one, fy), _mm256_sub_ps(one, fx));
+        let weights = [
+            _mm256_mul_ps(gy, gx),
+            _mm256_mul_ps(gy, fx),
+            _mm256_mul_ps(fy, gx),
+            _mm256_mul_ps(fy, fx),
+        ];
+        let first_y = _mm256_permutevar8x32_epi32(y0, _mm256_setzero_si256());
+        let first_x = _mm256_permutevar8x32_epi32(x0, _mm256_setzero_si256());
+        let consecutive = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_and_si256(
+            _mm256_cmpeq_epi32(y0, first_y),
+            _mm256_cmpeq_epi32(x0, _mm256_add_epi32(first_x, lane)),
+        ))) == 0xFF;
+        if inside_bits == 0xFF && consecutive {
+            // All eight lanes inside: the last one's top-left pixel is at most (h − 2, w − 2),
+            // so both nine-pixel runs lie inside the images.
+            let i = (_mm256_cvtsi256_si32(first_y) as usize) * w
+                + _mm256_cvtsi256_si32(first_x) as usize;
+            let mut pending = [0.0f32; 4];
+            match carry {
+                // Taken up here; `carry` is replaced below.
+                Some((at, values)) if at == i => pending = values,
+                _ => flush(&mut carry, exposure, sum),
+            }
+            let sites = lanes_of(u32::from(mask));
+            let [a, b, c, d] = weights.map(|v| _mm256_and_ps(v, sites));
+            let mut next = [
+                add_run(exposure, i, a, b, pending[0]),
+                add_run(exposure, i + w, c, d, pending[1]),
+                0.0,
+                0.0,
+            ];
+            if detected != 0 {
+                let photons = lanes_of(detected);
+                let [a, b, c, d] = weights.map(|v| _mm256_and_ps(v, photons));
+                next[2] = add_run(sum, i, a, b, pending[2]);
+                next[3] = add_run(sum, i + w, c, d, pending[3]);
+            } else {
+                sum[i] += pending[2];
+                sum[i + w] += pending[3];
+            }
+            carry = Some((i + 8, next));
+            continue;
+        }
+        let mut index = [0i32; 8];
+        _mm256_storeu_si256(
+            index.as_mut_ptr().cast(),
+            _mm256_add_epi32(_mm256_mullo_epi32(y0, _mm256_set1_epi32(w as i32)), x0),
+        );
+        let mut lanes = [[0.0f32; 8]; 4];
+        for (out, v) in lanes.iter_mut().zip(weights) {
+            _mm256_storeu_ps(out.as_mut_ptr(), v);
+        }
+        let mut todo = inside_bits & u32::from(mask);
+        while todo != 0 {
+            let l = todo.trailing_zeros() as usize;
+            todo &= todo - 1;
+            let site_weights = lanes.map(|v| v[l]);
+            let photon = detected >> l & 1 == 1;
+            splat_at(exposure, sum, w, index[l] as usize, site_weights, photon);
+        }
     }
-    (index, weights, _mm256_movemask_ps(inside) as u32)
+    flush(&mut carry, exposure, sum);
 }
 
-/// For up to eight sites `columns` of row `y` under `map`: r_x (the column about the centre),
-/// the template positions y and x, and a mask of the lanes that hold a site.
+/// The detections of columns 8k..8k + 8 of a frame's raw row: bit l for column 8k + l.
+#[inline(always)]
+fn chunk_bits(row: &[u8], k: usize, packed: bool) -> u32 {
+    if packed {
+        // Packed rows hold column 8k + l in bit 7 − l of byte k.
+        u32::from(row[k].reverse_bits())
+    } else {
+        row[8 * k..(8 * k + 8).min(row.len())]
+            .iter()
+            .enumerate()
+            .fold(0, |bits, (l, &v)| bits | (u32::from(v != 0) << l))
+    }
+}
+
+/// For eight sites in columns `x` of row `y` under `map`: r_x (the column about the centre)
+/// and the template positions y and x.
 ///
 /// # Safety
 /// The CPU must support AVX2 and FMA.
@@ -344,19 +480,14 @@ unsafe fn splat_weights_avx2(
 #[inline]
 unsafe fn positions_avx2(
     y: usize,
-    columns: &[u16],
+    x: std::arch::x86_64::__m256,
     map: &RowMap,
 ) -> (
     std::arch::x86_64::__m256,
     std::arch::x86_64::__m256,
     std::arch::x86_64::__m256,
-    std::arch::x86_64::__m256,
 ) {
     use std::arch::x86_64::*;
-    let n = columns.len().min(8);
-    let mut xs = [0u16; 8];
-    xs[..n].copy_from_slice(&columns[..n]);
-    let x = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(_mm_loadu_si128(xs.as_ptr().cast())));
     let splat = |v: f64| _mm256_set1_ps(v as f32);
     let rx = _mm256_sub_ps(x, splat(map.centre_x));
     let py = _mm256_fmadd_ps(
@@ -368,9 +499,7 @@ unsafe fn positions_avx2(
         _mm256_fmadd_ps(splat(map.m_xx), rx, splat(map.base[1] + map.margin)),
         x,
     );
-    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    let valid = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), lane));
-    (rx, py, px, valid)
+    (rx, py, px)
 }
 
 /// Score (gradient of the log-likelihood) and Fisher information of one frame's inverse camera
@@ -586,6 +715,7 @@ unsafe fn row_sums_avx2(
     );
     let (p_min, p_max) = (splat(P_MIN), splat(1.0 - P_MIN));
     let row_floats = _mm256_set1_epi32(4 * w as i32);
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
     // Accumulators: score (y, 1), (y, r_x), (x, 1), (x, r_x); weight (yy, yx, xx) × (1, r_x, r_x²).
     let mut acc = [zero; 13];
     for start in (0..columns.len()).step_by(8) {
@@ -593,7 +723,11 @@ unsafe fn row_sums_avx2(
         let mut bs = [0.0f32; 8];
         bs[..n].copy_from_slice(&bits[start..start + n]);
         let bit = _mm256_loadu_ps(bs.as_ptr());
-        let (rx, py, px, valid) = positions_avx2(y, &columns[start..start + n], map);
+        let mut xs = [0u16; 8];
+        xs[..n].copy_from_slice(&columns[start..start + n]);
+        let x = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(_mm_loadu_si128(xs.as_ptr().cast())));
+        let (rx, py, px) = positions_avx2(y, x, map);
+        let valid = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), lane));
         // Lanes inside the template (and holding a site), as in `sample_template`.
         let inside = _mm256_and_ps(
             _mm256_and_ps(
@@ -872,9 +1006,9 @@ pub fn fit_photon_trajectory(
     }
     let (h, w) = (motion.height, motion.width);
     let hot = capture.hot_pixels.as_ref();
-    let sites = Sites {
-        width: w,
-        columns: (0..h)
+    let sites = Sites::new(
+        w,
+        (0..h)
             .map(|y| {
                 (0..w)
                     .filter(|&x| {
@@ -884,8 +1018,8 @@ pub fn fit_photon_trajectory(
                     .collect()
             })
             .collect(),
-        centre: motion.centre(),
-    };
+        motion.centre(),
+    );
     if sites.count() == 0 {
         return Ok(false);
     }
@@ -1042,9 +1176,9 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let bits = ndarray::Array3::from_shape_fn((2, h, w), |_| rng.gen_bool(0.3) as u8);
         let frames = BinaryFrames::from_packed(pack_bits(&bits), w).unwrap();
-        let sites = Sites {
-            width: w,
-            columns: (0..h)
+        let sites = Sites::new(
+            w,
+            (0..h)
                 .map(|y| {
                     (0..w)
                         .filter(|x| (x + 2 * y) % 3 != 0)
@@ -1052,8 +1186,8 @@ mod tests {
                         .collect()
                 })
                 .collect(),
-            centre: [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0],
-        };
+            [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0],
+        );
         let template = Array2::from_shape_fn((h + 2 * margin, w + 2 * margin), |(y, x)| {
             0.3 + 0.2 * ((y as f32 / 3.0).sin() * (x as f32 / 4.0).cos())
         });
@@ -1118,9 +1252,9 @@ mod tests {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
         let bits = ndarray::Array3::from_shape_fn((1, h, w), |_| rng.gen_bool(0.4) as u8);
         let frames = BinaryFrames::from_packed(pack_bits(&bits), w).unwrap();
-        let sites = Sites {
-            width: w,
-            columns: (0..h)
+        let sites = Sites::new(
+            w,
+            (0..h)
                 .map(|y| {
                     (0..w)
                         .filter(|x| (x + y) % 4 != 1)
@@ -1128,67 +1262,79 @@ mod tests {
                         .collect()
                 })
                 .collect(),
-            centre: [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0],
-        };
-        // A turn and a shift that carry part of the image beyond the margin.
-        let camera = AffineMotion {
-            b: [5.3, -3.7],
-            m: [[0.02, 0.05], [-0.05, 0.01]],
-        };
+            [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0],
+        );
         let (th, tw) = (h + 2 * margin, w + 2 * margin);
-        let splat_all = |vector: bool| {
-            let mut splats = Splats::zeros(th, tw);
-            #[cfg(target_arch = "x86_64")]
-            {
-                splats.avx2 &= vector;
-            }
-            #[cfg(not(target_arch = "x86_64"))]
-            let _ = vector;
-            let mut inside = 0usize;
-            for (y, columns) in sites.columns.iter().enumerate() {
-                let map = RowMap::new(&sites, &camera, y, true, margin as f64);
-                inside += columns
-                    .iter()
-                    .filter(|&&x| {
-                        let (py, px) = map.position(y, x as usize);
-                        py >= 0.0 && px >= 0.0 && py < (th - 1) as f64 && px < (tw - 1) as f64
-                    })
-                    .count();
-                splats.add_row(frames.raw_row(0, y), y, columns, &map);
-            }
-            (splats, inside)
-        };
-        let (scalar, inside) = splat_all(false);
-        let (vector, _) = splat_all(true);
-        // Every site inside adds weights summing to 1; some fall outside.
-        assert!(inside > 0 && inside < sites.count());
-        assert!((scalar.exposure.sum() - inside as f32).abs() < 1e-3);
-        let detected: usize = (0..h)
-            .map(|y| {
-                let map = RowMap::new(&sites, &camera, y, true, margin as f64);
-                sites.columns[y]
-                    .iter()
-                    .filter(|&&x| {
-                        let (py, px) = map.position(y, x as usize);
-                        bits[[0, y, x as usize]] == 1
-                            && py >= 0.0
-                            && px >= 0.0
-                            && py < (th - 1) as f64
-                            && px < (tw - 1) as f64
-                    })
-                    .count()
-            })
-            .sum();
-        assert!((scalar.sum.sum() - detected as f32).abs() < 1e-3);
-        for (a, b) in [
-            (&scalar.sum, &vector.sum),
-            (&scalar.exposure, &vector.exposure),
+        // A turn and a shift that carry part of the image beyond the margin (most groups of
+        // eight sites splatted one by one), and a small shift (most groups as runs, carried).
+        for camera in [
+            AffineMotion {
+                b: [5.3, -3.7],
+                m: [[0.02, 0.05], [-0.05, 0.01]],
+            },
+            AffineMotion {
+                b: [0.3, 4.6],
+                m: [[0.0, 0.001], [-0.001, 0.0]],
+            },
         ] {
-            let largest = a
-                .iter()
-                .zip(b)
-                .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
-            assert!(largest < 1e-4, "largest difference {largest}");
+            let maps: Vec<RowMap> = (0..h)
+                .map(|y| RowMap::new(&sites, &camera, y, true, margin as f64))
+                .collect();
+            let splat_all = |vector: bool| {
+                let mut splats = Splats::zeros(th, tw);
+                #[cfg(target_arch = "x86_64")]
+                {
+                    splats.avx2 &= vector;
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                let _ = vector;
+                for (y, map) in maps.iter().enumerate() {
+                    splats.add_row(frames.raw_row(0, y), y, &sites, map);
+                }
+                splats
+            };
+            let (scalar, vector) = (splat_all(false), splat_all(true));
+            // Every site inside adds weights summing to 1 (to the sum where it detected).
+            let (mut inside, mut detected) = (0usize, 0usize);
+            for (y, map) in maps.iter().enumerate() {
+                for &x in &sites.columns[y] {
+                    let (py, px) = map.position(y, x as usize);
+                    if py >= 0.0 && px >= 0.0 && py < (th - 1) as f64 && px < (tw - 1) as f64 {
+                        inside += 1;
+                        detected += usize::from(bits[[0, y, x as usize]]);
+                    }
+                }
+            }
+            assert!(inside > 0 && inside < sites.count());
+            for splats in [&scalar, &vector] {
+                assert!((splats.exposure.sum() - inside as f32).abs() < 1e-2);
+                assert!((splats.sum.sum() - detected as f32).abs() < 1e-2);
+            }
+            for (a, b) in [
+                (&scalar.sum, &vector.sum),
+                (&scalar.exposure, &vector.exposure),
+            ] {
+                let largest = a
+                    .iter()
+                    .zip(b)
+                    .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+                assert!(largest < 1e-4, "largest difference {largest}");
+            }
+        }
+    }
+
+    #[test]
+    fn chunk_bits_read_packed_and_unpacked_rows_alike() {
+        use crate::capture::frames::pack_bits;
+        let row: Vec<u8> = (0..21u32).map(|x| u8::from(x % 3 == 0 || x == 7)).collect();
+        let packed = pack_bits(&ndarray::Array3::from_shape_vec((1, 1, 21), row.clone()).unwrap());
+        let packed = packed.as_slice().unwrap();
+        for k in 0..3 {
+            let expected = (0..8)
+                .filter(|l| row.get(8 * k + l) == Some(&1))
+                .fold(0u32, |bits, l| bits | 1 << l);
+            assert_eq!(chunk_bits(packed, k, true), expected);
+            assert_eq!(chunk_bits(&row, k, false), expected);
         }
     }
 
