@@ -333,13 +333,6 @@ unsafe fn splat_row_avx2(
     use std::arch::x86_64::*;
     assert!(exposure.len() >= h * w && sum.len() >= h * w);
     let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
-    let lanes_of = |bits: u32| {
-        _mm256_castsi256_ps(_mm256_cmpeq_epi32(
-            _mm256_and_si256(_mm256_set1_epi32(bits as i32), lane_bits),
-            lane_bits,
-        ))
-    };
     let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
     let (y_end, x_end) = (
         _mm256_set1_ps((h - 1) as f32),
@@ -415,7 +408,7 @@ unsafe fn splat_row_avx2(
                 Some((at, values)) if at == i => pending = values,
                 _ => flush(&mut carry, exposure, sum),
             }
-            let sites = lanes_of(u32::from(mask));
+            let sites = lane_mask_avx2(u32::from(mask));
             let [a, b, c, d] = weights.map(|v| _mm256_and_ps(v, sites));
             let mut next = [
                 add_run(exposure, i, a, b, pending[0]),
@@ -424,7 +417,7 @@ unsafe fn splat_row_avx2(
                 0.0,
             ];
             if detected != 0 {
-                let photons = lanes_of(detected);
+                let photons = lane_mask_avx2(detected);
                 let [a, b, c, d] = weights.map(|v| _mm256_and_ps(v, photons));
                 next[2] = add_run(sum, i, a, b, pending[2]);
                 next[3] = add_run(sum, i + w, c, d, pending[3]);
@@ -454,6 +447,22 @@ unsafe fn splat_row_avx2(
         }
     }
     flush(&mut carry, exposure, sum);
+}
+
+/// All ones in lane l where bit l of `bits` is set, zeros elsewhere.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn lane_mask_avx2(bits: u32) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::*;
+    let lane_bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    _mm256_castsi256_ps(_mm256_cmpeq_epi32(
+        _mm256_and_si256(_mm256_set1_epi32(bits as i32), lane_bits),
+        lane_bits,
+    ))
 }
 
 /// The detections of columns 8k..8k + 8 of a frame's raw row: bit l for column 8k + l.
@@ -523,16 +532,9 @@ fn frame_score(
 ) -> ([f64; 6], [[f64; 6]; 6]) {
     #[cfg(target_arch = "x86_64")]
     if row_sums_avx2_fits(level) {
-        let mut bits = Vec::with_capacity(sites.width);
-        return frame_score_by_rows(frames, sites, t, camera, margin, |row, y, columns, d| {
-            bits.clear();
-            bits.extend(
-                columns
-                    .iter()
-                    .map(|&x| site_bit(row, x as usize, d.packed) as u32 as f32),
-            );
+        return frame_score_by_rows(frames, sites, t, camera, margin, |row, y, _, d| {
             // SAFETY: `row_sums_avx2_fits` checked the CPU's features and the template's size.
-            unsafe { row_sums_avx2(level, y, columns, &bits, d) }
+            unsafe { row_sums_avx2(level, row, y, &sites.masks[y], d) }
         });
     }
     frame_score_scalar(frames, sites, t, camera, level, margin)
@@ -686,9 +688,9 @@ fn row_sums_avx2_fits(level: &TemplateLevel) -> bool {
         && level.float_len() < i32::MAX as usize
 }
 
-/// One row's [`RowSums`], eight sites at a time in f32 (the template is f32 already; positions
-/// in f32 are within 4e-5 px below 1000 px), summed per row in f64. `bits[i]` is 1.0 where
-/// site `columns[i]` detected a photon, else 0.0.
+/// One row's [`RowSums`], eight columns at a time (`masks`: the row's [`Sites::masks`]) in f32
+/// (the template is f32 already; positions in f32 are within 4e-5 px below 1000 px), summed
+/// per row in f64.
 ///
 /// # Safety
 /// The CPU must support AVX2 and FMA, and the template's float indices must fit an i32
@@ -697,13 +699,12 @@ fn row_sums_avx2_fits(level: &TemplateLevel) -> bool {
 #[target_feature(enable = "avx2,fma")]
 unsafe fn row_sums_avx2(
     level: &TemplateLevel,
+    row: &[u8],
     y: usize,
-    columns: &[u16],
-    bits: &[f32],
+    masks: &[u8],
     map: &RowMap,
 ) -> RowSums {
     use std::arch::x86_64::*;
-    debug_assert_eq!(columns.len(), bits.len());
     let (h, w) = level.dims();
     let samples = level.floats().as_ptr();
     let splat = |v: f64| _mm256_set1_ps(v as f32);
@@ -718,16 +719,14 @@ unsafe fn row_sums_avx2(
     let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
     // Accumulators: score (y, 1), (y, r_x), (x, 1), (x, r_x); weight (yy, yx, xx) × (1, r_x, r_x²).
     let mut acc = [zero; 13];
-    for start in (0..columns.len()).step_by(8) {
-        let n = (columns.len() - start).min(8);
-        let mut bs = [0.0f32; 8];
-        bs[..n].copy_from_slice(&bits[start..start + n]);
-        let bit = _mm256_loadu_ps(bs.as_ptr());
-        let mut xs = [0u16; 8];
-        xs[..n].copy_from_slice(&columns[start..start + n]);
-        let x = _mm256_cvtepi32_ps(_mm256_cvtepu16_epi32(_mm_loadu_si128(xs.as_ptr().cast())));
+    for (k, &mask) in masks.iter().enumerate() {
+        if mask == 0 {
+            continue;
+        }
+        let valid = lane_mask_avx2(u32::from(mask));
+        let bit = _mm256_and_ps(lane_mask_avx2(chunk_bits(row, k, map.packed)), one);
+        let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(8 * k as i32), lane));
         let (rx, py, px) = positions_avx2(y, x, map);
-        let valid = _mm256_castsi256_ps(_mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), lane));
         // Lanes inside the template (and holding a site), as in `sample_template`.
         let inside = _mm256_and_ps(
             _mm256_and_ps(
