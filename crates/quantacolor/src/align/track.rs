@@ -166,8 +166,10 @@ impl Mosaic {
     /// Mean bit rate per frame, normalised-convolution filled (σ 0.7 px); the global mean where
     /// nothing landed nearby.
     fn template(&self) -> Array2<f32> {
-        let num = gaussian_blur(&self.sum, 0.7);
-        let den = gaussian_blur(&self.frames, 0.7);
+        let (num, den) = rayon::join(
+            || gaussian_blur(&self.sum, 0.7),
+            || gaussian_blur(&self.frames, 0.7),
+        );
         let total: f32 = self.sum.sum();
         let mean = total / self.frames.sum().max(1.0);
         let floor = 1e-3 * den.iter().copied().fold(0.0f32, f32::max);
@@ -241,13 +243,19 @@ pub fn track_fast_camera_motion(
                 }
                 None => camera[k],
             };
-            let template = mosaic.template();
-            let templates: Vec<_> = config
-                .levels
-                .iter()
-                .map(|l| template_level(&template, l.sigma_px))
-                .collect();
-            let c = counts(next);
+            // The template's levels and the next sub-block's counts, side by side (each fit
+            // needs the template with every sub-block before it, so the fits are in turn).
+            let (templates, c): (Vec<_>, _) = rayon::join(
+                || {
+                    let template = mosaic.template();
+                    config
+                        .levels
+                        .par_iter()
+                        .map(|l| template_level(&template, l.sigma_px))
+                        .collect()
+                },
+                || counts(next),
+            );
             let frames = motion.sub_blocks[next].len();
             camera[next] = prediction
                 .inverse()
