@@ -1158,6 +1158,35 @@ impl TemplateLevel {
     }
 }
 
+/// All ones in the lanes where 0 ≤ y and 0 ≤ x and y `UPPER` `y_end` and x `UPPER` `x_end`
+/// (`UPPER` a comparison predicate: `_CMP_LE_OQ` for a template sample, `_CMP_LT_OQ` for a
+/// bilinear splat); NaN lanes are outside.
+///
+/// # Safety
+/// The CPU must support AVX.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+#[inline]
+pub(super) unsafe fn inside_avx2<const UPPER: i32>(
+    y: std::arch::x86_64::__m256,
+    x: std::arch::x86_64::__m256,
+    y_end: std::arch::x86_64::__m256,
+    x_end: std::arch::x86_64::__m256,
+) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::*;
+    let zero = _mm256_setzero_ps();
+    _mm256_and_ps(
+        _mm256_and_ps(
+            _mm256_cmp_ps::<_CMP_GE_OQ>(y, zero),
+            _mm256_cmp_ps::<_CMP_GE_OQ>(x, zero),
+        ),
+        _mm256_and_ps(
+            _mm256_cmp_ps::<UPPER>(y, y_end),
+            _mm256_cmp_ps::<UPPER>(x, x_end),
+        ),
+    )
+}
+
 /// Bilinear value and gradient of `level` at (y, x); `None` outside the interior.
 #[inline(always)]
 pub(super) fn sample_template(level: &TemplateLevel, y: f64, x: f64) -> Option<[f64; 3]> {
@@ -1925,16 +1954,7 @@ unsafe fn run_sums_group_avx2(
                 _mm256_add_ps(base_x, _mm256_mul_ps(m_xx, x)),
             );
             // Inside the template's interior (as `run_sums`; NaN is outside).
-            let inside = _mm256_and_ps(
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
-                    _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
-                ),
-                _mm256_and_ps(
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(py, y_max),
-                    _mm256_cmp_ps::<_CMP_LE_OQ>(px, x_max),
-                ),
-            );
+            let inside = inside_avx2::<_CMP_LE_OQ>(py, px, y_max, x_max);
             let all_inside = _mm256_movemask_ps(inside) == 0xFF;
             // Lanes outside sample pixel (0, 0) and get weight zero below.
             let (py, px) = if all_inside {

@@ -29,6 +29,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use super::grey::GreyMethod;
+#[cfg(target_arch = "x86_64")]
+use super::refine::inside_avx2;
 use super::refine::{sample_template, template_level, AffineMotion, FrameMotion, TemplateLevel};
 use crate::capture::frames::FrameLayout;
 use crate::capture::{BinaryFrames, Capture};
@@ -333,7 +335,7 @@ unsafe fn splat_row_avx2(
     use std::arch::x86_64::*;
     assert!(exposure.len() >= h * w && sum.len() >= h * w);
     let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
-    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let one = _mm256_set1_ps(1.0);
     let (y_end, x_end) = (
         _mm256_set1_ps((h - 1) as f32),
         _mm256_set1_ps((w - 1) as f32),
@@ -368,16 +370,7 @@ unsafe fn splat_row_avx2(
         let detected = u32::from(mask) & chunk_bits(row, k, map.packed);
         let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(8 * k as i32), lane));
         let (_, py, px) = positions_avx2(y, x, map);
-        let inside = _mm256_and_ps(
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
-            ),
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_LT_OQ>(py, y_end),
-                _mm256_cmp_ps::<_CMP_LT_OQ>(px, x_end),
-            ),
-        );
+        let inside = inside_avx2::<_CMP_LT_OQ>(py, px, y_end, x_end);
         let inside_bits = _mm256_movemask_ps(inside) as u32;
         // Lanes outside take position 0 (in bounds); their weights are not used.
         let (py, px) = (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside));
@@ -728,17 +721,7 @@ unsafe fn row_sums_avx2(
         let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(8 * k as i32), lane));
         let (rx, py, px) = positions_avx2(y, x, map);
         // Lanes inside the template (and holding a site), as in `sample_template`.
-        let inside = _mm256_and_ps(
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
-            ),
-            _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_LE_OQ>(py, y_last),
-                _mm256_cmp_ps::<_CMP_LE_OQ>(px, x_last),
-            ),
-        );
-        let inside = _mm256_and_ps(inside, valid);
+        let inside = _mm256_and_ps(inside_avx2::<_CMP_LE_OQ>(py, px, y_last, x_last), valid);
         // Positions of lanes outside are replaced by 0 so that their loads stay in bounds.
         let (py, px) = (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside));
         let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(py), y0_last);
@@ -1137,6 +1120,31 @@ mod tests {
         (g, info)
     }
 
+    /// Random packed binary frames of shape `[frames, h, w]` (each bit set with probability
+    /// `p`, seeded), as bits and as frames, and the sites where `is_site(y, x)`.
+    fn random_capture(
+        [n, h, w]: [usize; 3],
+        p: f64,
+        seed: u64,
+        is_site: impl Fn(usize, usize) -> bool,
+    ) -> (ndarray::Array3<u8>, BinaryFrames, Sites) {
+        use crate::capture::frames::pack_bits;
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let bits = ndarray::Array3::from_shape_fn((n, h, w), |_| rng.gen_bool(p) as u8);
+        let frames = BinaryFrames::from_packed(pack_bits(&bits), w).unwrap();
+        let columns = (0..h)
+            .map(|y| {
+                (0..w)
+                    .filter(|&x| is_site(y, x))
+                    .map(|x| x as u16)
+                    .collect()
+            })
+            .collect();
+        let sites = Sites::new(w, columns, [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0]);
+        (bits, frames, sites)
+    }
+
     #[test]
     fn banded_cholesky_solves_a_known_system() {
         // Pentadiagonal SPD matrix, checked against A x.
@@ -1169,24 +1177,8 @@ mod tests {
     /// that fall outside the template skipped alike.
     #[test]
     fn frame_score_equals_the_site_by_site_sums() {
-        use crate::capture::frames::pack_bits;
-        use rand::{Rng, SeedableRng};
         let (h, w, margin) = (40, 56, 6usize);
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-        let bits = ndarray::Array3::from_shape_fn((2, h, w), |_| rng.gen_bool(0.3) as u8);
-        let frames = BinaryFrames::from_packed(pack_bits(&bits), w).unwrap();
-        let sites = Sites::new(
-            w,
-            (0..h)
-                .map(|y| {
-                    (0..w)
-                        .filter(|x| (x + 2 * y) % 3 != 0)
-                        .map(|x| x as u16)
-                        .collect()
-                })
-                .collect(),
-            [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0],
-        );
+        let (_, frames, sites) = random_capture([2, h, w], 0.3, 5, |y, x| (x + 2 * y) % 3 != 0);
         let template = Array2::from_shape_fn((h + 2 * margin, w + 2 * margin), |(y, x)| {
             0.3 + 0.2 * ((y as f32 / 3.0).sin() * (x as f32 / 4.0).cos())
         });
@@ -1245,24 +1237,8 @@ mod tests {
 
     #[test]
     fn splats_agree_between_the_vector_and_scalar_paths() {
-        use crate::capture::frames::pack_bits;
-        use rand::{Rng, SeedableRng};
         let (h, w, margin) = (30, 45, 4usize);
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
-        let bits = ndarray::Array3::from_shape_fn((1, h, w), |_| rng.gen_bool(0.4) as u8);
-        let frames = BinaryFrames::from_packed(pack_bits(&bits), w).unwrap();
-        let sites = Sites::new(
-            w,
-            (0..h)
-                .map(|y| {
-                    (0..w)
-                        .filter(|x| (x + y) % 4 != 1)
-                        .map(|x| x as u16)
-                        .collect()
-                })
-                .collect(),
-            [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0],
-        );
+        let (bits, frames, sites) = random_capture([1, h, w], 0.4, 9, |y, x| (x + y) % 4 != 1);
         let (th, tw) = (h + 2 * margin, w + 2 * margin);
         // A turn and a shift that carry part of the image beyond the margin (most groups of
         // eight sites splatted one by one), and a small shift (most groups as runs, carried).
