@@ -1,15 +1,18 @@
 //! Criterion benchmarks of the burst pipeline's hot kernels on a simulated capture of the
 //! built-in chart (496x254, colour-SPAD CFA, hand-held motion, 0.1 photons/pixel/frame): block
 //! alignment, the sub-block motion refinement, the merge guide (reference, kernels, robustness),
-//! the phase-bin accumulator of the joint demosaic-merge, BM3D, and the branch-free exponential
-//! of the merge's kernel weights against libm.
+//! the phase-bin accumulator of the joint demosaic-merge, BM3D, the branch-free exponential
+//! of the merge's kernel weights against libm, and the photon trajectory of a fast-shake
+//! capture.
 //!
 //! `cargo bench -p quantacolor --bench kernels` (CI only builds them, with clippy). The whole
 //! pipeline against the naive sum: `quantacolor bench speed`.
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use ndarray::{Array2, Array3};
-use quantacolor::align::{align, plan_sub_blocks, refine_camera_motion, FrameMotion};
+use quantacolor::align::{
+    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, FrameMotion,
+};
 use quantacolor::burst::BurstConfig;
 use quantacolor::capture::Capture;
 use quantacolor::cfa::colorspad_cfa;
@@ -26,10 +29,15 @@ use std::hint::black_box;
 
 /// A 1024-frame capture: long enough for several blocks and sub-blocks, short to simulate.
 fn capture() -> Capture {
+    capture_with(1024, "handheld")
+}
+
+/// A capture of the chart of `frames` frames under `motion`.
+fn capture_with(frames: usize, motion: &str) -> Capture {
     let config = SimulationConfig {
-        frames: 1024,
+        frames,
         flux: FluxSpec::Mean { flux: 0.1 },
-        motion: "handheld".parse::<MotionConfig>().expect("motion"),
+        motion: motion.parse::<MotionConfig>().expect("motion"),
         ..SimulationConfig::default()
     };
     let scene = Scene::from_spec("builtin:chart").expect("chart");
@@ -207,9 +215,49 @@ fn exp(c: &mut Criterion) {
     });
 }
 
+/// The photon trajectory (per-frame camera fitted to every photon) of a 256-frame fast-shake
+/// capture, from the block alignment's motion: the slow stage of fast captures.
+fn trajectory(c: &mut Criterion) {
+    let capture = capture_with(256, "fast-handheld");
+    let config = BurstConfig::default();
+    let alignment = align(
+        &capture.frames,
+        &capture.cfa,
+        capture.hot_pixels.as_ref(),
+        capture.reference_frame(),
+        &config.align,
+        &Silent,
+    )
+    .expect("alignment");
+    let motion = FrameMotion::from_alignment(
+        &alignment,
+        config.align.affine_tolerance_px,
+        config.refine.min_local_tiles,
+        config.refine.local_consistency,
+    );
+    c.bench_function("photon trajectory (256 fast-shake frames)", |b| {
+        b.iter_batched(
+            || motion.clone(),
+            |mut m| {
+                fit_photon_trajectory(
+                    &capture,
+                    alignment.grey_method,
+                    &mut m,
+                    &config.trajectory,
+                    config.refine.max_sub_block_motion_px,
+                    &Silent,
+                )
+                .expect("trajectory");
+                m
+            },
+            BatchSize::LargeInput,
+        )
+    });
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(10);
-    targets = pipeline_kernels, bm3d, exp
+    targets = pipeline_kernels, bm3d, exp, trajectory
 }
 criterion_main!(benches);
