@@ -227,8 +227,10 @@ fn build_template(
             || (Array2::zeros((th, tw)), Array2::zeros((th, tw))),
             |(a, b), (c, d)| (a + c, b + d),
         );
-    let num = gaussian_blur(&sum, 0.7);
-    let den = gaussian_blur(&exposure, 0.7);
+    let (num, den) = rayon::join(
+        || gaussian_blur(&sum, 0.7),
+        || gaussian_blur(&exposure, 0.7),
+    );
     let mean = sum.sum() / exposure.sum().max(1.0);
     let floor = 1e-3 * den.iter().copied().fold(0.0f32, f32::max);
     ndarray::Zip::from(&num)
