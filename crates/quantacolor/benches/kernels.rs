@@ -11,7 +11,7 @@
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use ndarray::{Array2, Array3};
 use quantacolor::align::{
-    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, FrameMotion,
+    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, Alignment, FrameMotion,
 };
 use quantacolor::burst::BurstConfig;
 use quantacolor::capture::Capture;
@@ -47,41 +47,40 @@ fn capture_with(frames: usize, motion: &str) -> Capture {
         .expect("capture")
 }
 
-fn pipeline_kernels(c: &mut Criterion) {
-    let capture = capture();
-    let config = BurstConfig::default();
-    let reference_frame = capture.reference_frame();
-    let hot = capture.hot_pixels.as_ref();
-    let alignment = align(
+/// The block alignment of `capture` with `config`'s settings.
+fn block_alignment(capture: &Capture, config: &BurstConfig) -> Alignment {
+    align(
         &capture.frames,
         &capture.cfa,
-        hot,
-        reference_frame,
+        capture.hot_pixels.as_ref(),
+        capture.reference_frame(),
         &config.align,
         &Silent,
     )
-    .expect("alignment");
-    c.bench_function("align (1024 frames)", |b| {
-        b.iter(|| {
-            align(
-                &capture.frames,
-                &capture.cfa,
-                hot,
-                reference_frame,
-                &config.align,
-                &Silent,
-            )
-            .expect("alignment")
-        })
-    });
+    .expect("alignment")
+}
 
-    let grey_blocks: &[Array2<f32>] = &alignment.grey;
-    let mut motion = FrameMotion::from_alignment(
-        &alignment,
+/// The frame motion that `alignment` gives, with `config`'s settings.
+fn block_motion(alignment: &Alignment, config: &BurstConfig) -> FrameMotion {
+    FrameMotion::from_alignment(
+        alignment,
         config.align.affine_tolerance_px,
         config.refine.min_local_tiles,
         config.refine.local_consistency,
-    );
+    )
+}
+
+fn pipeline_kernels(c: &mut Criterion) {
+    let capture = capture();
+    let config = BurstConfig::default();
+    let hot = capture.hot_pixels.as_ref();
+    let alignment = block_alignment(&capture, &config);
+    c.bench_function("align (1024 frames)", |b| {
+        b.iter(|| block_alignment(&capture, &config))
+    });
+    let mut motion = block_motion(&alignment, &config);
+
+    let grey_blocks: &[Array2<f32>] = &alignment.grey;
     let reference_block = alignment.plan.reference_block;
     let detections = alignment.grey[reference_block].mean().unwrap_or(0.0) as f64;
     plan_sub_blocks(&mut motion, detections, &config.refine);
@@ -220,21 +219,8 @@ fn exp(c: &mut Criterion) {
 fn trajectory(c: &mut Criterion) {
     let capture = capture_with(256, "fast-handheld");
     let config = BurstConfig::default();
-    let alignment = align(
-        &capture.frames,
-        &capture.cfa,
-        capture.hot_pixels.as_ref(),
-        capture.reference_frame(),
-        &config.align,
-        &Silent,
-    )
-    .expect("alignment");
-    let motion = FrameMotion::from_alignment(
-        &alignment,
-        config.align.affine_tolerance_px,
-        config.refine.min_local_tiles,
-        config.refine.local_consistency,
-    );
+    let alignment = block_alignment(&capture, &config);
+    let motion = block_motion(&alignment, &config);
     c.bench_function("photon trajectory (256 fast-shake frames)", |b| {
         b.iter_batched(
             || motion.clone(),

@@ -242,7 +242,7 @@ fn build_template(
 struct Splats {
     sum: Array2<f32>,
     exposure: Array2<f32>,
-    /// Whether [`splat_weights_avx2`] can run: AVX2 and FMA, and flat indices fit an i32.
+    /// Whether [`splat_row_avx2`] can run: AVX2 and FMA, and flat indices fit an i32.
     #[cfg(target_arch = "x86_64")]
     avx2: bool,
 }
@@ -253,9 +253,7 @@ impl Splats {
             sum: Array2::zeros((height, width)),
             exposure: Array2::zeros((height, width)),
             #[cfg(target_arch = "x86_64")]
-            avx2: std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma")
-                && height * width < i32::MAX as usize,
+            avx2: has_avx2_and_fma() && height * width < i32::MAX as usize,
         }
     }
 
@@ -532,18 +530,6 @@ fn frame_score(
             unsafe { row_sums_avx2(level, row, y, &sites.masks[y], d) }
         });
     }
-    frame_score_scalar(frames, sites, t, camera, level, margin)
-}
-
-/// [`frame_score`] with [`row_sums_scalar`] on every CPU.
-fn frame_score_scalar(
-    frames: &BinaryFrames,
-    sites: &Sites,
-    t: usize,
-    camera: &AffineMotion,
-    level: &TemplateLevel,
-    margin: f64,
-) -> ([f64; 6], [[f64; 6]; 6]) {
     frame_score_by_rows(frames, sites, t, camera, margin, |row, y, columns, d| {
         row_sums_scalar(level, row, y, columns, d)
     })
@@ -678,9 +664,13 @@ fn row_sums_scalar(
 /// template fits an i32.
 #[cfg(target_arch = "x86_64")]
 fn row_sums_avx2_fits(level: &TemplateLevel) -> bool {
-    std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
-        && level.float_len() < i32::MAX as usize
+    has_avx2_and_fma() && level.float_len() < i32::MAX as usize
+}
+
+/// Whether the CPU has AVX2 and FMA (the trajectory's vector kernels).
+#[cfg(target_arch = "x86_64")]
+fn has_avx2_and_fma() -> bool {
+    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
 }
 
 /// One row's [`RowSums`], eight columns at a time (`masks`: the row's [`Sites::masks`]) in f32
@@ -1199,15 +1189,6 @@ mod tests {
         ] {
             // The f64 row sums agree to rounding; `frame_score` (f32 lanes where the CPU has
             // AVX2) to f32 rounding.
-            type Score = fn(
-                &BinaryFrames,
-                &Sites,
-                usize,
-                &AffineMotion,
-                &TemplateLevel,
-                f64,
-            ) -> ([f64; 6], [[f64; 6]; 6]);
-            let kernels: [(Score, f64); 2] = [(frame_score_scalar, 1e-10), (frame_score, 1e-5)];
             for t in 0..2 {
                 let (g_ref, info_ref) =
                     frame_score_reference(&frames, &sites, t, &camera, &level, margin as f64);
@@ -1216,8 +1197,16 @@ mod tests {
                     .flatten()
                     .fold(0.0f64, |m, v| m.max(v.abs()));
                 let g_scale = g_ref.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                for (kernel, tolerance) in kernels {
-                    let (g, info) = kernel(&frames, &sites, t, &camera, &level, margin as f64);
+                let scalar = frame_score_by_rows(
+                    &frames,
+                    &sites,
+                    t,
+                    &camera,
+                    margin as f64,
+                    |row, y, columns, d| row_sums_scalar(&level, row, y, columns, d),
+                );
+                let dispatched = frame_score(&frames, &sites, t, &camera, &level, margin as f64);
+                for ((g, info), tolerance) in [(scalar, 1e-10), (dispatched, 1e-5)] {
                     for a in 0..6 {
                         assert!(
                             (g[a] - g_ref[a]).abs() <= tolerance * g_scale,
