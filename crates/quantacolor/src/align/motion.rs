@@ -5,7 +5,8 @@
 
 use super::blocks::BlockPlan;
 use super::patch::TileGrid;
-use ndarray::{s, Array3, Array4};
+use ndarray::{s, Array3, Array4, Axis};
+use rayon::prelude::*;
 
 /// Flow of frame `t`, `(tiles_y, tiles_x, 2)`, from the block flows `flow`
 /// (`(n_blocks, tiles_y, tiles_x, 2)`) by linear interpolation between the two block centres
@@ -109,23 +110,27 @@ pub fn block_centre_flow(flow: &Array4<f32>, plan: &BlockPlan) -> Array4<f32> {
         .map(|k| quadratic_weights(plan, k, centers[k]))
         .collect();
     let anchor_row = quadratic_weights(plan, plan.reference_block, plan.reference_frame as f64);
-    let (_, ty, tx, _) = flow.dim();
+    let (_, _, tx, _) = flow.dim();
     let mut out = flow.clone();
-    for i in 0..ty {
-        for j in 0..tx {
-            for c in 0..2 {
-                let value = |row: &[(usize, f64)]| -> f64 {
-                    row.iter()
-                        .map(|&(b, w)| w * flow[[b, i, j, c]] as f64)
-                        .sum()
-                };
-                let anchor = value(&anchor_row);
-                for (k, row) in rows.iter().enumerate() {
-                    out[[k, i, j, c]] = (value(row) - anchor) as f32;
+    // Tile rows in parallel: every value depends on its own tile alone.
+    out.axis_iter_mut(Axis(1))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, mut out)| {
+            for j in 0..tx {
+                for c in 0..2 {
+                    let value = |row: &[(usize, f64)]| -> f64 {
+                        row.iter()
+                            .map(|&(b, w)| w * flow[[b, i, j, c]] as f64)
+                            .sum()
+                    };
+                    let anchor = value(&anchor_row);
+                    for (k, row) in rows.iter().enumerate() {
+                        out[[k, j, c]] = (value(row) - anchor) as f32;
+                    }
                 }
             }
-        }
-    }
+        });
     out
 }
 

@@ -400,6 +400,7 @@ fn block_variances(
     }
     Ok(Some(
         map.outer_iter()
+            .into_par_iter()
             .map(|plane| block_means(plane, geo))
             .collect(),
     ))
@@ -1365,13 +1366,16 @@ fn run_step(
     let channels = planes.len();
     let mut num = recycled(std::mem::take(&mut work.num), channels * h * w, true);
     let mut den = recycled(std::mem::take(&mut work.den), channels * h * w, true);
-    // Reference rows in batches, so that at most `ROWS_PER_BATCH` strips live at once; their
-    // buffers are made once (or kept from the last step, `work`) and cleared for every batch
-    // (fresh ones cost page faults).
-    const ROWS_PER_BATCH: usize = 16;
+    // Reference rows in batches of equal size, so that at most `MAX_ROWS_PER_BATCH` strips live
+    // at once; their buffers are made once (or kept from the last step, `work`) and cleared for
+    // every batch (fresh ones cost page faults). Each batch ends when its slowest row does, so
+    // batches are few and alike (one short last batch left a thread idle).
+    const MAX_ROWS_PER_BATCH: usize = 32;
+    let batches = geo.ref_ys.len().div_ceil(MAX_ROWS_PER_BATCH);
+    let rows_per_batch = geo.ref_ys.len().div_ceil(batches);
     let strip_rows = (2 * geo.half_window + n).min(h);
     let mut buffers = std::mem::take(&mut work.strips);
-    buffers.resize_with(ROWS_PER_BATCH.min(geo.ref_ys.len()), Default::default);
+    buffers.resize_with(rows_per_batch, Default::default);
     for (num, den) in &mut buffers {
         let len = channels * strip_rows * w;
         *num = recycled(std::mem::take(num), len, false);
@@ -1382,7 +1386,7 @@ fn run_step(
         let y0 = yr.saturating_sub(geo.half_window);
         (y0, (yr + geo.half_window + n).min(h) - y0)
     };
-    for batch in geo.ref_ys.chunks(ROWS_PER_BATCH) {
+    for batch in geo.ref_ys.chunks(rows_per_batch) {
         batch.par_iter().zip(buffers.par_iter_mut()).for_each_init(
             || Scratch::new(n2, p.max_group),
             |scratch, (&yr, (num, den))| {

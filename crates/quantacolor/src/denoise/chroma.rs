@@ -324,12 +324,19 @@ pub fn denoise_linear(
     // BM3D's published thresholds are for images on a 0–255 scale: map the luma range there.
     let (lo, hi) = planes
         .index_axis(Axis(0), 0)
-        .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &v| {
-            (lo.min(v), hi.max(v))
-        });
+        .as_slice()
+        .expect("planes in standard layout")
+        .par_iter()
+        .fold(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |(lo, hi), &v| (lo.min(v), hi.max(v)),
+        )
+        .reduce(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |(lo, hi), (l, h)| (lo.min(l), hi.max(h)),
+        );
     let scale = if hi > lo { 255.0 / (hi - lo) } else { 1.0 };
-    planes.mapv_inplace(|v| v * scale);
+    planes.par_mapv_inplace(|v| v * scale);
     let scaled_sigmas: Vec<f32> = sigmas.iter().map(|s| s * scale).collect();
     let scaled_sigmas: [f32; 3] = [scaled_sigmas[0], scaled_sigmas[1], scaled_sigmas[2]];
     let chroma_scales = match config.method {
@@ -344,7 +351,7 @@ pub fn denoise_linear(
         config.coarse_sigma_factor,
         &config.bm3d_config(),
     )?;
-    denoised.mapv_inplace(|v| v / scale);
+    denoised.par_mapv_inplace(|v| v / scale);
 
     // Back: inverse colour transform, unbiased inverse Anscombe, flux.
     let mut out = Array3::<f32>::zeros((h, w, 3));
@@ -542,13 +549,7 @@ pub fn stabilise(
                 .collect()
         })
         .collect();
-    for (y, row) in rows.iter().enumerate() {
-        for (x, (t, _)) in row.iter().enumerate() {
-            for ch in 0..3 {
-                planes[[ch, y, x]] = t[ch];
-            }
-        }
-    }
+    scatter_rows(&mut planes, &rows, |(t, _)| *t);
     let (sigmas, source, relative_variance) = match input.noise {
         Some(noise) => {
             let variance = variance_map(
@@ -619,18 +620,18 @@ fn anscombe_trials(noise: &MergeNoise) -> f64 {
 /// σ of the three transformed channels: the square root of the median over pixels of a
 /// variance map ([`model_variance_map`]).
 fn median_sigmas(variances: &Array3<f32>) -> [f32; 3] {
-    [0, 1, 2].map(|i| {
-        let mut v: Vec<f32> = variances
-            .index_axis(Axis(0), i)
-            .iter()
-            .copied()
-            .filter(|v| v.is_finite())
-            .collect();
-        if v.is_empty() {
-            return 0.0;
-        }
-        upper_median(&mut v, f32::total_cmp).sqrt()
-    })
+    let sigmas: Vec<f32> = variances
+        .outer_iter()
+        .into_par_iter()
+        .map(|plane| {
+            let mut v: Vec<f32> = plane.iter().copied().filter(|v| v.is_finite()).collect();
+            if v.is_empty() {
+                return 0.0;
+            }
+            upper_median(&mut v, f32::total_cmp).sqrt()
+        })
+        .collect();
+    [sigmas[0], sigmas[1], sigmas[2]]
 }
 
 /// `variance / sigma²` per channel, clamped to [1/16, 25] (σ within a factor 4 below and 5
@@ -638,7 +639,7 @@ fn median_sigmas(variances: &Array3<f32>) -> [f32; 3] {
 fn relative_variance(mut variance: Array3<f32>, sigmas: [f32; 3]) -> Array3<f32> {
     for (ch, mut plane) in variance.outer_iter_mut().enumerate() {
         let s2 = sigmas[ch] * sigmas[ch];
-        plane.mapv_inplace(|v| {
+        plane.par_mapv_inplace(|v| {
             if v.is_finite() && s2 > 0.0 {
                 (v / s2).clamp(1.0 / 16.0, 25.0)
             } else {
@@ -695,14 +696,29 @@ fn variance_map(
                 .collect()
         })
         .collect();
-    for (y, row) in rows.iter().enumerate() {
-        for (x, v) in row.iter().enumerate() {
-            for ch in 0..3 {
-                out[[ch, y, x]] = v[ch];
-            }
-        }
-    }
+    scatter_rows(&mut out, &rows, |v| *v);
     out
+}
+
+/// Writes `rows[y][x]`'s three values (`triple` of it) into `planes[.., y, x]`, (3, H, W), in
+/// parallel by rows.
+fn scatter_rows<T: Sync>(
+    planes: &mut Array3<f32>,
+    rows: &[Vec<T>],
+    triple: impl Fn(&T) -> [f32; 3] + Sync,
+) {
+    planes
+        .axis_iter_mut(Axis(1))
+        .into_par_iter()
+        .zip(rows.par_iter())
+        .for_each(|(mut plane_row, row)| {
+            for (x, value) in row.iter().enumerate() {
+                let t = triple(value);
+                for ch in 0..3 {
+                    plane_row[[ch, x]] = t[ch];
+                }
+            }
+        });
 }
 
 /// The variances of [`model_variance_map`] at pixel (y, x); `derivative` gives ∂a_c/∂λ_c there

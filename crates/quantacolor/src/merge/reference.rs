@@ -6,7 +6,7 @@
 use super::warp::{positive, warp_to_reference};
 use super::GreyNoise;
 use crate::error::{Error, Result};
-use ndarray::{Array2, Array3};
+use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
 use rustfft::{Fft, FftPlanner};
@@ -355,24 +355,35 @@ impl TileLayout {
         let window = raised_cosine(n);
         let mut num = Array2::<f32>::zeros((h, w));
         let mut den = Array2::<f32>::zeros((h, w));
-        for tile in &tiles {
-            for i in 0..n {
-                let y = tile.y0 + i as isize;
-                if y < 0 || y >= h as isize {
-                    continue;
-                }
-                for j in 0..n {
-                    let x = tile.x0 + j as isize;
-                    if x < 0 || x >= w as isize {
-                        continue;
+        // Bands of rows in parallel; every pixel still adds its tiles in tile order.
+        const BAND_ROWS: usize = 8;
+        num.axis_chunks_iter_mut(Axis(0), BAND_ROWS)
+            .into_par_iter()
+            .zip(den.axis_chunks_iter_mut(Axis(0), BAND_ROWS))
+            .enumerate()
+            .for_each(|(band, (mut num, mut den))| {
+                let first = (band * BAND_ROWS) as isize;
+                let rows = first..first + num.nrows() as isize;
+                for tile in &tiles {
+                    for i in 0..n {
+                        let y = tile.y0 + i as isize;
+                        if !rows.contains(&y) {
+                            continue;
+                        }
+                        let y = (y - first) as usize;
+                        for j in 0..n {
+                            let x = tile.x0 + j as isize;
+                            if x < 0 || x >= w as isize {
+                                continue;
+                            }
+                            let wt = window[i] * window[j];
+                            num[[y, x as usize]] += wt * tile.acc[i * n + j].re;
+                            den[[y, x as usize]] += wt;
+                        }
                     }
-                    let wt = window[i] * window[j];
-                    num[[y as usize, x as usize]] += wt * tile.acc[i * n + j].re;
-                    den[[y as usize, x as usize]] += wt;
                 }
-            }
-        }
-        num.zip_mut_with(&den, |v, &d| *v /= d);
+                num.zip_mut_with(&den, |v, &d| *v /= d);
+            });
         num
     }
 }
