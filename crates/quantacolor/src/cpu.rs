@@ -63,10 +63,92 @@ pub unsafe fn transpose8x8(r: &[std::arch::x86_64::__m256i; 8]) -> [std::arch::x
 /// instead of taken by the calling thread alone (`vec![0.0; len]` of a large buffer, e.g. the
 /// merge's 26 MB of phase bins, is one thread's memset). The same values as `vec!`.
 pub fn zeroed_par<T: Default + Clone + Send + Sync>(len: usize) -> Vec<T> {
-    use rayon::prelude::*;
     let mut out = Vec::new();
-    rayon::iter::repeat_n(T::default(), len)
-        .with_min_len(1 << 14)
-        .collect_into_vec(&mut out);
+    resize_par(&mut out, len, T::default());
     out
+}
+
+/// [`Vec::resize`] with the new values written by all threads at once (as [`zeroed_par`]).
+pub fn resize_par<T: Clone + Send + Sync>(buffer: &mut Vec<T>, len: usize, value: T) {
+    use rayon::prelude::*;
+    if len <= buffer.len() {
+        buffer.truncate(len);
+        return;
+    }
+    let missing = len - buffer.len();
+    buffer.par_extend(rayon::iter::repeat_n(value, missing).with_min_len(PAR_FILL_ITEMS));
+}
+
+/// `buffer.fill(value)` by all threads at once (as [`zeroed_par`]).
+pub fn fill_par<T: Clone + Send + Sync>(buffer: &mut [T], value: T) {
+    use rayon::prelude::*;
+    buffer
+        .par_chunks_mut(PAR_FILL_ITEMS)
+        .for_each(|chunk| chunk.fill(value.clone()));
+}
+
+/// The shortest chunk length that still splits `len` items into the fewest chunks of at most
+/// `max` items (`max` 0 counts as 1): for loops that run chunk after chunk, each in parallel,
+/// where every chunk waits for its slowest task. Chunks of `max` can leave a short last one (25
+/// blocks in eights: 8, 8, 8, 1) whose few tasks leave cores idle; this gives 7, 7, 7, 4.
+pub fn balanced_chunk_len(len: usize, max: usize) -> usize {
+    let max = max.max(1);
+    match len.div_ceil(max) {
+        0 => max,
+        chunks => len.div_ceil(chunks),
+    }
+}
+
+/// Fewest values one task of the parallel fills writes.
+const PAR_FILL_ITEMS: usize = 1 << 14;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn balanced_chunks_are_as_few_as_max_gives_and_as_short_as_that_allows() {
+        assert_eq!(balanced_chunk_len(25, 8), 7);
+        assert_eq!(balanced_chunk_len(99, 32), 25);
+        for len in 1..300usize {
+            for max in 0..40usize {
+                let c = balanced_chunk_len(len, max);
+                let fewest = len.div_ceil(max.max(1));
+                assert!(c >= 1 && c <= max.max(1), "{len} {max}: {c}");
+                assert_eq!(len.div_ceil(c), fewest, "{len} {max}: {c}");
+                if c > 1 {
+                    assert!(
+                        len.div_ceil(c - 1) > fewest,
+                        "{len} {max}: {c} is not the shortest"
+                    );
+                }
+            }
+        }
+        assert!(
+            balanced_chunk_len(0, 8) >= 1,
+            "an empty slice still takes a chunk length"
+        );
+    }
+
+    #[test]
+    fn parallel_fills_write_what_the_serial_ones_do() {
+        for (old, len) in [
+            (0usize, 0usize),
+            (0, 100_000),
+            (5, 3),
+            (70_000, 70_001),
+            (10, 50_000),
+        ] {
+            let start: Vec<u32> = (0..old as u32).collect();
+            let mut serial = start.clone();
+            serial.resize(len, 7);
+            let mut parallel = start.clone();
+            resize_par(&mut parallel, len, 7);
+            assert_eq!(parallel, serial, "resize {old} -> {len}");
+            serial.fill(9);
+            fill_par(&mut parallel, 9);
+            assert_eq!(parallel, serial, "fill {len}");
+        }
+        assert_eq!(zeroed_par::<f32>(40_000), vec![0.0f32; 40_000]);
+    }
 }

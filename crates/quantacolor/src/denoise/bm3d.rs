@@ -50,6 +50,7 @@
 //! row aggregates into its own strip buffer (the rows its search window reaches), and strips are
 //! summed into the image in row order afterwards (batches of 16 rows bound the memory), so the result is bit-identical for any thread count.
 
+use crate::cpu;
 use crate::error::{Error, Result};
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};
 use rayon::prelude::*;
@@ -280,16 +281,20 @@ pub(crate) struct Bm3dBuffers {
 }
 
 /// `buffer`'s allocation as a vector of `len` values, zeros where `zeroed` (otherwise only the
-/// values beyond its old length are zeros); a fresh zeroed vector when it is too small.
+/// values beyond its old length are zeros); a fresh allocation when it is too small. The zeros
+/// are written by all threads ([`cpu::fill_par`], [`cpu::resize_par`]): these buffers hold up
+/// to tens of megabytes, and one thread's fill (a `calloc` of memory the allocator had used
+/// before clears it on one thread too) left a core idle for milliseconds at the start of
+/// every denoising.
 fn recycled(mut buffer: Vec<f32>, len: usize, zeroed: bool) -> Vec<f32> {
     if buffer.capacity() < len {
-        return vec![0.0; len];
+        buffer = Vec::with_capacity(len);
     }
     buffer.truncate(len);
     if zeroed {
-        buffer.fill(0.0);
+        cpu::fill_par(&mut buffer, 0.0);
     }
-    buffer.resize(len, 0.0);
+    cpu::resize_par(&mut buffer, len, 0.0);
     buffer
 }
 
@@ -1371,8 +1376,7 @@ fn run_step(
     // every batch (fresh ones cost page faults). Each batch ends when its slowest row does, so
     // batches are few and alike (one short last batch left a thread idle).
     const MAX_ROWS_PER_BATCH: usize = 32;
-    let batches = geo.ref_ys.len().div_ceil(MAX_ROWS_PER_BATCH);
-    let rows_per_batch = geo.ref_ys.len().div_ceil(batches);
+    let rows_per_batch = cpu::balanced_chunk_len(geo.ref_ys.len(), MAX_ROWS_PER_BATCH);
     let strip_rows = (2 * geo.half_window + n).min(h);
     let mut buffers = std::mem::take(&mut work.strips);
     buffers.resize_with(rows_per_batch, Default::default);

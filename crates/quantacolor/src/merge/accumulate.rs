@@ -947,7 +947,9 @@ impl<'a> MergeAccumulator<'a> {
         let mut targets = std::mem::take(&mut self.targets);
         let mut row_bins = std::mem::take(&mut self.row_bins);
         if targets.len() < group_len * h * w {
-            targets = vec![(u32::MAX, 0.0f32); group_len * h * w];
+            // Written by all threads: one thread's first touch of 8 MB left the other idle.
+            targets = Vec::new();
+            cpu::resize_par(&mut targets, group_len * h * w, (u32::MAX, 0.0f32));
             row_bins = vec![(u32::MAX, 0u32); group_len * h];
         }
         let stride = self.stride;
