@@ -520,19 +520,55 @@ fn frame_score(
     sites: &Sites,
     t: usize,
     camera: &AffineMotion,
-    level: &TemplateLevel,
+    template: &ScoreTemplate<'_>,
     margin: f64,
 ) -> ([f64; 6], [[f64; 6]; 6]) {
+    let level = template.level;
     #[cfg(target_arch = "x86_64")]
     if row_sums_avx2_fits(level) {
         return frame_score_by_rows(frames, sites, t, camera, margin, |row, y, _, d| {
-            // SAFETY: `row_sums_avx2_fits` checked the CPU's features and the template's size.
-            unsafe { row_sums_avx2(level, row, y, &sites.masks[y], d) }
+            // SAFETY: `row_sums_avx2_fits` checked the CPU's features and the template's size;
+            // the planes are the level's.
+            unsafe { row_sums_avx2(level, Some(&template.planes), row, y, &sites.masks[y], d) }
         });
     }
     frame_score_by_rows(frames, sites, t, camera, margin, |row, y, columns, d| {
         row_sums_scalar(level, row, y, columns, d)
     })
+}
+
+/// The template that [`frame_score`] samples: its level, and the level's value and gradients
+/// as three planes of their own ([`TemplatePlanes`]) for [`row_sums_avx2`]'s row runs.
+struct ScoreTemplate<'a> {
+    level: &'a TemplateLevel,
+    planes: TemplatePlanes,
+}
+
+impl<'a> ScoreTemplate<'a> {
+    fn new(level: &'a TemplateLevel) -> ScoreTemplate<'a> {
+        ScoreTemplate {
+            level,
+            planes: TemplatePlanes::new(level),
+        }
+    }
+}
+
+/// A [`TemplateLevel`]'s value, ∂/∂y and ∂/∂x, each as a row-major plane of its own: eight
+/// consecutive pixels of one are one load.
+struct TemplatePlanes {
+    width: usize,
+    /// Value, ∂/∂y, ∂/∂x.
+    planes: [Vec<f32>; 3],
+}
+
+impl TemplatePlanes {
+    fn new(level: &TemplateLevel) -> TemplatePlanes {
+        let floats = level.floats();
+        TemplatePlanes {
+            width: level.dims().1,
+            planes: std::array::from_fn(|k| floats.iter().skip(k).step_by(4).copied().collect()),
+        }
+    }
 }
 
 /// How one row's sites map into the template: a site in column x (r_x = x − centre) sits at
@@ -684,6 +720,7 @@ fn has_avx2_and_fma() -> bool {
 #[target_feature(enable = "avx2,fma")]
 unsafe fn row_sums_avx2(
     level: &TemplateLevel,
+    planes: Option<&TemplatePlanes>,
     row: &[u8],
     y: usize,
     masks: &[u8],
@@ -713,40 +750,73 @@ unsafe fn row_sums_avx2(
         let x = _mm256_cvtepi32_ps(_mm256_add_epi32(_mm256_set1_epi32(8 * k as i32), lane));
         let (rx, py, px) = positions_avx2(y, x, map);
         // Lanes inside the template (and holding a site), as in `sample_template`.
-        let inside = _mm256_and_ps(inside_avx2::<_CMP_LE_OQ>(py, px, y_last, x_last), valid);
+        let in_template = inside_avx2::<_CMP_LE_OQ>(py, px, y_last, x_last);
+        let inside = _mm256_and_ps(in_template, valid);
         // Positions of lanes outside are replaced by 0 so that their loads stay in bounds.
-        let (py, px) = (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside));
+        // When every lane is inside, a lane without a site keeps its position (in bounds too):
+        // its weight is zero all the same, and a zero weight times a finite sample adds ±0,
+        // which leaves every sum as it is.
+        let all_in_template = _mm256_movemask_ps(in_template) == 0xFF;
+        let (py, px) = if all_in_template {
+            (py, px)
+        } else {
+            (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside))
+        };
         let y0 = _mm256_min_epi32(_mm256_cvttps_epi32(py), y0_last);
         let x0 = _mm256_min_epi32(_mm256_cvttps_epi32(px), x0_last);
         let fy = _mm256_sub_ps(py, _mm256_cvtepi32_ps(y0));
         let fx = _mm256_sub_ps(px, _mm256_cvtepi32_ps(x0));
         let (gx, gy) = (_mm256_sub_ps(one, fx), _mm256_sub_ps(one, fy));
-        // Each lane's two top pixels (8 floats) and two bottom pixels, transposed so that
-        // vector k holds float k of every lane: (value, ∂/∂y, ∂/∂x, 0) left, then right (eight
-        // loads and a transpose were faster than twelve gathers). A lane's top-left pixel is at
-        // most (h − 2, w − 2), so both pairs lie inside the template.
-        let mut top_left = [0i32; 8];
-        _mm256_storeu_si256(
-            top_left.as_mut_ptr().cast(),
-            _mm256_add_epi32(
-                _mm256_mullo_epi32(y0, row_floats),
-                _mm256_slli_epi32::<2>(x0),
-            ),
-        );
-        let pairs = |offset: usize| {
-            let rows: [__m256i; 8] = std::array::from_fn(|l| {
-                _mm256_castps_si256(_mm256_loadu_ps(samples.add(top_left[l] as usize + offset)))
-            });
-            crate::cpu::transpose8x8(&rows).map(|r| _mm256_castsi256_ps(r))
-        };
-        let (top, bottom) = (pairs(0), pairs(4 * w));
-        // Float k (value, ∂/∂y, ∂/∂x) of the bilinear interpolation, as `bilinear4`.
-        let sample = |k: usize| {
-            let t = _mm256_fmadd_ps(top[k], gx, _mm256_mul_ps(top[4 + k], fx));
-            let b = _mm256_fmadd_ps(bottom[k], gx, _mm256_mul_ps(bottom[4 + k], fx));
+        // Float k (value, ∂/∂y, ∂/∂x) of the bilinear interpolation, as `bilinear4`, from each
+        // lane's top-left, top-right, bottom-left and bottom-right pixels' float k.
+        let bilinear = |tl: __m256, tr: __m256, bl: __m256, br: __m256| {
+            let t = _mm256_fmadd_ps(tl, gx, _mm256_mul_ps(tr, fx));
+            let b = _mm256_fmadd_ps(bl, gx, _mm256_mul_ps(br, fx));
             _mm256_fmadd_ps(t, gy, _mm256_mul_ps(b, fy))
         };
-        let (v, grad_y, grad_x) = (sample(0), sample(1), sample(2));
+        let run_start = if all_in_template && planes.is_some() {
+            row_run_start(y0, x0, w)
+        } else {
+            None
+        };
+        let (v, grad_y, grad_x) = if let (Some(planes), Some(start)) = (planes, run_start) {
+            // A row run (the lanes' top-left pixels are eight consecutive pixels of one row,
+            // as under small rotation and zoom): each corner of every lane is one load from
+            // each plane, the same floats as the transposed loads below.
+            let sample = |k: usize| {
+                let p = planes.planes[k].as_ptr().add(start);
+                let below = p.add(planes.width);
+                bilinear(
+                    _mm256_loadu_ps(p),
+                    _mm256_loadu_ps(p.add(1)),
+                    _mm256_loadu_ps(below),
+                    _mm256_loadu_ps(below.add(1)),
+                )
+            };
+            (sample(0), sample(1), sample(2))
+        } else {
+            // Each lane's two top pixels (8 floats) and two bottom pixels, transposed so that
+            // vector k holds float k of every lane: (value, ∂/∂y, ∂/∂x, 0) left, then right
+            // (eight loads and a transpose were faster than twelve gathers). A lane's top-left
+            // pixel is at most (h − 2, w − 2), so both pairs lie inside the template.
+            let mut top_left = [0i32; 8];
+            _mm256_storeu_si256(
+                top_left.as_mut_ptr().cast(),
+                _mm256_add_epi32(
+                    _mm256_mullo_epi32(y0, row_floats),
+                    _mm256_slli_epi32::<2>(x0),
+                ),
+            );
+            let pairs = |offset: usize| {
+                let rows: [__m256i; 8] = std::array::from_fn(|l| {
+                    _mm256_castps_si256(_mm256_loadu_ps(samples.add(top_left[l] as usize + offset)))
+                });
+                crate::cpu::transpose8x8(&rows).map(|r| _mm256_castsi256_ps(r))
+            };
+            let (top, bottom) = (pairs(0), pairs(4 * w));
+            let sample = |k: usize| bilinear(top[k], top[4 + k], bottom[k], bottom[4 + k]);
+            (sample(0), sample(1), sample(2))
+        };
         let p = _mm256_min_ps(_mm256_max_ps(v, p_min), p_max);
         let q = _mm256_sub_ps(one, p);
         // w = 1 / (p (1 − p)); s = 1/p = q·w for a detection, −1/(1 − p) = −p·w otherwise.
@@ -787,6 +857,34 @@ unsafe fn row_sums_avx2(
         score: [[total[0], total[1]], [total[2], total[3]]],
         weight: std::array::from_fn(|k| std::array::from_fn(|j| total[4 + 3 * k + j])),
     }
+}
+
+/// The flat index `y0 · width + x0` of lane 0's pixel when the eight lanes' pixels `(y0, x0)`
+/// are consecutive pixels of one row (lane l at `(y0[0], x0[0] + l)`), else `None`.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn row_run_start(
+    y0: std::arch::x86_64::__m256i,
+    x0: std::arch::x86_64::__m256i,
+    width: usize,
+) -> Option<usize> {
+    use std::arch::x86_64::*;
+    let first_y = _mm256_broadcastd_epi32(_mm256_castsi256_si128(y0));
+    let first_x = _mm256_broadcastd_epi32(_mm256_castsi256_si128(x0));
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let same = _mm256_and_si256(
+        _mm256_cmpeq_epi32(y0, first_y),
+        _mm256_cmpeq_epi32(x0, _mm256_add_epi32(first_x, lane)),
+    );
+    if _mm256_movemask_epi8(same) != -1 {
+        return None;
+    }
+    let (y, x) = (_mm256_cvtsi256_si32(first_y), _mm256_cvtsi256_si32(first_x));
+    (y >= 0 && x >= 0).then(|| y as usize * width + x as usize)
 }
 
 /// A symmetric positive-definite banded matrix, upper band stored row by row:
@@ -872,11 +970,12 @@ fn scoring_step(
     margin: f64,
 ) -> f64 {
     let n_frames = frames.frame_count();
+    let template = ScoreTemplate::new(level);
     let scores: Vec<([f64; 6], [[f64; 6]; 6])> = (0..n_frames)
         .into_par_iter()
         .map(|t| {
             let camera = trajectory.inverse_camera_at(t as f64);
-            frame_score(frames, sites, t, &camera, level, margin)
+            frame_score(frames, sites, t, &camera, &template, margin)
         })
         .collect();
     let n_knots = trajectory.knots.len();
@@ -1205,7 +1304,8 @@ mod tests {
                     margin as f64,
                     |row, y, columns, d| row_sums_scalar(&level, row, y, columns, d),
                 );
-                let dispatched = frame_score(&frames, &sites, t, &camera, &level, margin as f64);
+                let template = ScoreTemplate::new(&level);
+                let dispatched = frame_score(&frames, &sites, t, &camera, &template, margin as f64);
                 for ((g, info), tolerance) in [(scalar, 1e-10), (dispatched, 1e-5)] {
                     for a in 0..6 {
                         assert!(
@@ -1224,6 +1324,80 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The row runs' planar loads give the same bits as the transposed loads on every row,
+    /// under a still camera (every group a row run), a small turn and zoom (most groups), and a
+    /// camera that moves part of the image beyond the template (no run where a lane is outside).
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn row_runs_sum_the_same_bits_as_the_transposed_loads() {
+        if !has_avx2_and_fma() {
+            return;
+        }
+        let (h, w, margin) = (40, 67, 6usize);
+        let (_, frames, sites) = random_capture([1, h, w], 0.3, 11, |y, x| (x + 2 * y) % 3 != 0);
+        let template = Array2::from_shape_fn((h + 2 * margin, w + 2 * margin), |(y, x)| {
+            0.3 + 0.2 * ((y as f32 / 3.0).sin() * (x as f32 / 4.0).cos())
+        });
+        let level = template_level(&template, 0.8);
+        let planes = TemplatePlanes::new(&level);
+        let packed = matches!(frames.layout(), FrameLayout::Packed);
+        for camera in [
+            AffineMotion::default(),
+            AffineMotion {
+                b: [0.4, -0.7],
+                m: [[0.004, -0.006], [0.006, 0.003]],
+            },
+            AffineMotion {
+                b: [9.0, 4.5],
+                m: [[0.0, 0.03], [-0.03, 0.0]],
+            },
+        ] {
+            for y in 0..h {
+                let map = RowMap::new(&sites, &camera, y, packed, margin as f64);
+                let row = frames.raw_row(0, y);
+                let masks = &sites.masks[y];
+                // SAFETY: AVX2 and FMA checked above; a small template.
+                let (runs, transposed) = unsafe {
+                    (
+                        row_sums_avx2(&level, Some(&planes), row, y, masks, &map),
+                        row_sums_avx2(&level, None, row, y, masks, &map),
+                    )
+                };
+                let bits = |r: &RowSums| {
+                    let mut v: Vec<u64> = r.score.iter().flatten().map(|x| x.to_bits()).collect();
+                    v.extend(r.weight.iter().flatten().map(|x| x.to_bits()));
+                    v
+                };
+                assert_eq!(bits(&runs), bits(&transposed), "row {y} under {camera:?}");
+            }
+        }
+    }
+
+    /// A row run is eight lanes at consecutive pixels of one row; any other layout is not.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn row_runs_are_eight_consecutive_pixels_of_one_row() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        use std::arch::x86_64::*;
+        let start = |y: [i32; 8], x: [i32; 8]| {
+            // SAFETY: AVX2 checked above.
+            unsafe {
+                row_run_start(
+                    _mm256_loadu_si256(y.as_ptr().cast()),
+                    _mm256_loadu_si256(x.as_ptr().cast()),
+                    100,
+                )
+            }
+        };
+        let run = [10, 11, 12, 13, 14, 15, 16, 17];
+        assert_eq!(start([5; 8], run), Some(510));
+        assert_eq!(start([5, 5, 5, 5, 5, 5, 5, 6], run), None);
+        assert_eq!(start([5; 8], [10, 11, 12, 13, 15, 16, 17, 18]), None);
+        assert_eq!(start([5; 8], [10; 8]), None);
     }
 
     #[test]
