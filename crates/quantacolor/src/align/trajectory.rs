@@ -713,6 +713,9 @@ fn has_avx2_and_fma() -> bool {
 /// (the template is f32 already; positions in f32 are within 4e-5 px below 1000 px), summed
 /// per row in f64.
 ///
+/// `planes`, when given, must be `level`'s ([`TemplatePlanes::new`]): groups of sites that
+/// form a row run then sample them instead of `level` (the same floats, so the same sums).
+///
 /// # Safety
 /// The CPU must support AVX2 and FMA, and the template's float indices must fit an i32
 /// ([`row_sums_avx2_fits`]).
@@ -782,7 +785,8 @@ unsafe fn row_sums_avx2(
         let (v, grad_y, grad_x) = if let (Some(planes), Some(start)) = (planes, run_start) {
             // A row run (the lanes' top-left pixels are eight consecutive pixels of one row,
             // as under small rotation and zoom): each corner of every lane is one load from
-            // each plane, the same floats as the transposed loads below.
+            // each plane, the same floats as the transposed loads below. Lane 7's top-left
+            // pixel is at most (h − 2, w − 2), so the nine pixels of both rows lie inside.
             let sample = |k: usize| {
                 let p = planes.planes[k].as_ptr().add(start);
                 let below = p.add(planes.width);
