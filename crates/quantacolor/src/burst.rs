@@ -147,6 +147,16 @@ pub fn reconstruct_burst_with_motion(
     oracle: Option<MotionOracle<'_>>,
     progress: &dyn Progress,
 ) -> Result<BurstReconstruction> {
+    crate::cpu::on_pool(|| burst_on_pool(capture, reference_frame, config, oracle, progress))
+}
+
+fn burst_on_pool(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &BurstConfig,
+    oracle: Option<MotionOracle<'_>>,
+    progress: &dyn Progress,
+) -> Result<BurstReconstruction> {
     let config = &config_for_capture(capture, config);
     let mut laps = Laps::new();
     // Block and sub-block sums are made once and shared by alignment, refinement and merge.

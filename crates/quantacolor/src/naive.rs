@@ -114,6 +114,14 @@ pub fn reconstruct_naive(
     reference_frame: usize,
     config: &NaiveConfig,
 ) -> Result<NaiveReconstruction> {
+    crate::cpu::on_pool(|| naive_on_pool(capture, reference_frame, config))
+}
+
+fn naive_on_pool(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &NaiveConfig,
+) -> Result<NaiveReconstruction> {
     let t = capture.frames.frame_count();
     if reference_frame >= t {
         return Err(Error::invalid(format!(

@@ -129,6 +129,14 @@ pub fn reconstruct(
     config: &ReconstructConfig,
     progress: &dyn Progress,
 ) -> Result<Reconstruction> {
+    crate::cpu::on_pool(|| reconstruct_on_pool(capture, config, progress))
+}
+
+fn reconstruct_on_pool(
+    capture: &Capture,
+    config: &ReconstructConfig,
+    progress: &dyn Progress,
+) -> Result<Reconstruction> {
     let reference_frame = config
         .reference_frame
         .unwrap_or_else(|| capture.reference_frame());

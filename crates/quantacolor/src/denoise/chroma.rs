@@ -254,6 +254,14 @@ pub fn denoise_linear(
     input: &DenoiseInput,
     config: &DenoiseConfig,
 ) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
+    crate::cpu::on_pool(|| denoise_on_pool(linear, input, config))
+}
+
+fn denoise_on_pool(
+    linear: ArrayView3<f32>,
+    input: &DenoiseInput,
+    config: &DenoiseConfig,
+) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
     let (h, w, c) = linear.dim();
     if c != 3 {
         return Err(Error::invalid(format!(
