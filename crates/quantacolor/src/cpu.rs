@@ -1,4 +1,5 @@
-//! CPU hints shared by the hot kernels (this project's own engineering, not a paper stage).
+//! CPU hints and parallel helpers shared by the hot kernels (this project's own engineering,
+//! not a paper stage).
 
 /// Asks the CPU to bring every 64-byte cache line of `items` into cache. A hint only: no value
 /// depends on it. Used where the next reads lie at strides the hardware prefetchers do not follow
@@ -99,14 +100,14 @@ pub fn balanced_chunk_len(len: usize, max: usize) -> usize {
     }
 }
 
-/// Runs `f` on a thread of rayon's global pool (in place when already on one) and returns what
-/// it returns: for the library's entry points, whose stages run many short parallel loops in
-/// turn. From a thread outside the pool each loop is a job sent into the pool while the caller
-/// sleeps until a worker has finished it and woken it; on a worker, the caller works on its
-/// own loop and goes on at once. Measured on `reconstruct` of the 10,000-frame chart (24
-/// alternating pairs): the merge 7.7 ms faster, the whole 6.3 ms; fast-motion tracking (a
-/// chain of small parallel steps) 10 % faster. The same results: no value depends on which
-/// thread computes it.
+/// Runs `f` on a thread of rayon's pool (the global one, or the caller's own pool when it
+/// already runs on one of its threads: then in place) and returns what it returns: for the
+/// library's entry points, whose stages run many short parallel loops in turn. From a thread
+/// outside the pool each loop is a job sent into the pool while the caller sleeps until a
+/// worker has finished it and woken it; on a worker, the caller works on its own loop and goes
+/// on at once. Measured on `reconstruct` of the 10,000-frame chart (24 alternating pairs): the
+/// merge 7.7 ms faster, the whole 6.3 ms; fast-motion tracking (a chain of small parallel
+/// steps) 10 % faster. The same results: no value depends on which thread computes it.
 pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| f())
 }
