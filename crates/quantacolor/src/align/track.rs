@@ -228,66 +228,61 @@ pub fn track_fast_camera_motion(
         centre,
     );
     progress.advance(1);
-    // The fits are in turn; the template's levels and the next counts are made side by side,
-    // on the pool ([`crate::cpu::on_pool`]: from a thread outside it, tracking a 2,000-frame
-    // fast capture took 1.09 s instead of 0.99 s, median of six).
-    crate::cpu::on_pool(|| {
-        for forward in [true, false] {
-            let mut k = first;
-            let mut previous: Option<usize> = None;
-            loop {
-                let next = if forward { k + 1 } else { k.wrapping_sub(1) };
-                if next >= n {
-                    break;
-                }
-                let prediction = match previous {
-                    Some(p) => {
-                        let a = (centres[next] - centres[p]) / (centres[k] - centres[p]);
-                        camera[p].lerp(&camera[k], a)
-                    }
-                    None => camera[k],
-                };
-                // The template's levels and the next sub-block's counts, side by side (each fit
-                // needs the template with every sub-block before it, so the fits are in turn).
-                let (templates, c): (Vec<_>, _) = rayon::join(
-                    || {
-                        let template = mosaic.template();
-                        config
-                            .levels
-                            .par_iter()
-                            .map(|l| template_level(&template, l.sigma_px))
-                            .collect()
-                    },
-                    || counts(next),
-                );
-                let frames = motion.sub_blocks[next].len();
-                camera[next] = prediction
-                    .inverse()
-                    .and_then(|start| {
-                        fit_sub_block(
-                            &c,
-                            frames,
-                            &layouts,
-                            &templates.iter().collect::<Vec<_>>(),
-                            start,
-                            centre,
-                            FitSettings {
-                                iterations: config.iterations,
-                                fine_iterations: config.iterations,
-                                fine_information: 1.0,
-                                fine_thinning: 0,
-                            },
-                        )
-                    })
-                    .and_then(|inverse| inverse.inverse())
-                    .unwrap_or(prediction);
-                mosaic.add(&c, frames, &camera[next], centre);
-                progress.advance(1);
-                previous = Some(k);
-                k = next;
+    for forward in [true, false] {
+        let mut k = first;
+        let mut previous: Option<usize> = None;
+        loop {
+            let next = if forward { k + 1 } else { k.wrapping_sub(1) };
+            if next >= n {
+                break;
             }
+            let prediction = match previous {
+                Some(p) => {
+                    let a = (centres[next] - centres[p]) / (centres[k] - centres[p]);
+                    camera[p].lerp(&camera[k], a)
+                }
+                None => camera[k],
+            };
+            // The template's levels and the next sub-block's counts, side by side (each fit
+            // needs the template with every sub-block before it, so the fits are in turn).
+            let (templates, c): (Vec<_>, _) = rayon::join(
+                || {
+                    let template = mosaic.template();
+                    config
+                        .levels
+                        .par_iter()
+                        .map(|l| template_level(&template, l.sigma_px))
+                        .collect()
+                },
+                || counts(next),
+            );
+            let frames = motion.sub_blocks[next].len();
+            camera[next] = prediction
+                .inverse()
+                .and_then(|start| {
+                    fit_sub_block(
+                        &c,
+                        frames,
+                        &layouts,
+                        &templates.iter().collect::<Vec<_>>(),
+                        start,
+                        centre,
+                        FitSettings {
+                            iterations: config.iterations,
+                            fine_iterations: config.iterations,
+                            fine_information: 1.0,
+                            fine_thinning: 0,
+                        },
+                    )
+                })
+                .and_then(|inverse| inverse.inverse())
+                .unwrap_or(prediction);
+            mosaic.add(&c, frames, &camera[next], centre);
+            progress.advance(1);
+            previous = Some(k);
+            k = next;
         }
-    });
+    }
     progress.finish();
     // Largest |m| entry of every camera (NaN ranks above everything), at the median.
     let mut linear: Vec<f64> = camera
