@@ -27,9 +27,9 @@
 //! one ([`config_for_capture`]).
 
 use crate::align::{
-    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, split_for_merge,
-    track_fast_camera_motion, AlignConfig, Alignment, FrameMotion, RefineConfig, TrackConfig,
-    TrajectoryConfig,
+    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, shortest_sub_block,
+    split_for_merge, track_fast_camera_motion, AlignConfig, Alignment, FrameMotion, RefineConfig,
+    TrackConfig, TrajectoryConfig,
 };
 use crate::capture::Capture;
 use crate::error::{Error, Result};
@@ -227,6 +227,9 @@ pub(crate) fn estimate_motion(
     if let Some(oracle) = oracle {
         split_at_oracle_motion(&mut motion, oracle, config.refine.max_sub_block_motion_px);
     }
+    // The fastest camera whose shortest sub-blocks stay within the refinement's bound.
+    let followable_px_per_frame = config.refine.max_sub_block_motion_px
+        / shortest_sub_block(detections_per_frame, &config.refine) as f64;
     let tracked = oracle.is_none()
         && config.refine.enabled
         && track_fast_camera_motion(
@@ -234,6 +237,7 @@ pub(crate) fn estimate_motion(
             alignment.grey_method,
             &mut motion,
             &config.track,
+            followable_px_per_frame,
             progress,
         )?;
     if tracked {

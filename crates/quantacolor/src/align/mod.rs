@@ -32,7 +32,8 @@ pub use hot_pixels::{
 pub use motion::{block_centre_flow, flow_at, frame_flow};
 pub use patch::{Norm, PatchConfig, ReferenceAligner, TileGrid};
 pub use refine::{
-    plan_sub_blocks, refine_camera_motion, AffineMotion, FrameMotion, RefineConfig, RefineLevel,
+    plan_sub_blocks, refine_camera_motion, shortest_sub_block, AffineMotion, FrameMotion,
+    RefineConfig, RefineLevel,
 };
 pub use track::{split_for_merge, track_fast_camera_motion, TrackConfig};
 pub use trajectory::{fit_photon_trajectory, TrajectoryConfig};

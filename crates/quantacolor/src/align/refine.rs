@@ -961,18 +961,24 @@ impl FrameMotion {
     }
 }
 
+/// The shortest sub-block [`plan_sub_blocks`] cuts (frames): `max(min_sub_block_frames,
+/// min_sub_block_counts / detections_per_frame)`, at least 1.
+pub fn shortest_sub_block(detections_per_frame: f64, config: &RefineConfig) -> usize {
+    let by_light = if detections_per_frame > 0.0 {
+        (config.min_sub_block_counts / detections_per_frame).ceil() as usize
+    } else {
+        usize::MAX
+    };
+    by_light.max(config.min_sub_block_frames).max(1)
+}
+
 /// Cuts every block of `motion` (one sub-block per block, as from
 /// [`FrameMotion::from_alignment`]) into equal sub-blocks so that the camera moves at most
 /// `config.max_sub_block_motion_px` inside each, never shorter than
 /// `max(min_sub_block_frames, min_sub_block_counts / detections_per_frame)` frames; each
 /// sub-block starts at the block motion interpolated to its centre.
 pub fn plan_sub_blocks(motion: &mut FrameMotion, detections_per_frame: f64, config: &RefineConfig) {
-    let by_light = if detections_per_frame > 0.0 {
-        (config.min_sub_block_counts / detections_per_frame).ceil() as usize
-    } else {
-        usize::MAX
-    };
-    let shortest = by_light.max(config.min_sub_block_frames).max(1);
+    let shortest = shortest_sub_block(detections_per_frame, config);
     let half = motion.half_size();
     let pieces: Vec<usize> = motion
         .sub_blocks
