@@ -251,7 +251,7 @@ fn burst_with(
 }
 
 /// The static HDR capture of [`hdr_halves`] with fast-motion tracking forced (`trigger_px`
-/// 0; its noisy block motion, ~9 px at the image corners, set tracking off by default while
+/// 0, and `steady_px` 0 so that no block pair counts as a steady camera; its noisy block motion, ~9 px at the image corners, set tracking off by default while
 /// the trigger read the corners alone, [`TrackConfig::trigger_px`](quantacolor::align::track::TrackConfig)),
 /// and by default: the camera must stay still and the merge must not smear the bright half
 /// into the dim one.
@@ -264,7 +264,10 @@ fn a_static_hdr_capture_that_sets_off_tracking_merges_without_motion() {
     let (sim, capture) = hdr_halves();
     let w = capture.frames.width();
     let half = [capture.frames.height() as f64 / 2.0, w as f64 / 2.0];
-    let forced = burst_with(&capture, |c| c.track.trigger_px = 0.0);
+    let forced = burst_with(&capture, |c| {
+        c.track.trigger_px = 0.0;
+        c.track.steady_px = 0.0;
+    });
     let default = default_burst(&capture);
     let ran = |burst: &quantacolor::burst::BurstReconstruction, stage: &str| {
         burst.timings.iter().any(|t| t.stage == stage)
