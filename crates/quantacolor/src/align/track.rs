@@ -145,12 +145,7 @@ const MIN_RMS_SHARE: f64 = 0.65;
 /// [`super::refine`] does) would be the better fix.
 fn moves_fast(motion: &FrameMotion, config: &TrackConfig, followable_px_per_frame: f64) -> bool {
     let half = motion.half_size();
-    let times: Vec<f64> = motion
-        .plan
-        .center_frames()
-        .iter()
-        .map(|&t| t as f64)
-        .collect();
+    let times = motion.plan.center_frames();
     let cameras: Vec<AffineMotion> = times.iter().map(|&t| motion.camera_at(t)).collect();
     let off_path = off_constant_velocity(&cameras, &times, half);
     let trigger = config.trigger_px;
@@ -407,9 +402,7 @@ mod tests {
     fn block_motion(camera: &dyn Fn(usize, f64) -> AffineMotion) -> FrameMotion {
         let plan = BlockPlan::new(2000, 200, 1000).unwrap();
         let centres = plan.center_frames();
-        let cameras = (0..plan.len())
-            .map(|b| camera(b, centres[b] as f64))
-            .collect();
+        let cameras = (0..plan.len()).map(|b| camera(b, centres[b])).collect();
         FrameMotion::of_block_cameras(254, 496, plan, cameras)
     }
 
