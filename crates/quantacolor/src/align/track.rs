@@ -52,13 +52,15 @@ pub struct TrackConfig {
     /// from block motion interpolated linearly in time, which is right for such a camera, so
     /// long captures of slow pans no longer take the tracking and photon-trajectory path
     /// (which costs about 1.3 ms per frame). Measured on 10,000-frame captures (`quantacolor
-    /// simulate --frames 10000 --cfa colorspad`, sRGB PSNR without denoising / with
-    /// chroma-BM3D, border 16): the steady pans' block cameras lay 0.02–0.34 px off the
+    /// simulate --frames 10000 --cfa colorspad`; pans `--motion pan`, seeds 202, 304 and 309;
+    /// fast shake seeds 204 and 303; sRGB PSNR without denoising / with chroma-BM3D, border
+    /// 16): the steady pans' block cameras lay 0.02–0.34 px off the
     /// path, fast shake's 1.6–9.5 px at the pairs over the trigger (kodim15 and kodim22
-    /// `fast-handheld`). Untracked against tracked: kodim07 pan (0.02 px per frame, 7.7 px
-    /// between blocks) 29.62 / – against 29.62 dB, 2.3 s against 17 s;
-    /// ScanLines_Cannon HDR pan 32.38 against 32.36 dB; kodim04 pan at 0.015 px per frame
-    /// 35.66 / 38.60 against 35.60 / 38.46 dB, 2.7 s against 31 s. Faster steady pans, which
+    /// `fast-handheld`). Untracked against tracked (stage times summed, default
+    /// chroma-BM3D run): kodim07 pan (0.02 px per frame, 7.7 px between blocks) 29.62 / 33.36
+    /// against 29.62 / 33.37 dB, 1.5 s against 17.9 s; ScanLines_Cannon HDR pan 32.38 / 34.48
+    /// against 32.36 / 34.47 dB, 1.5 s against 18.3 s; kodim04 pan at 0.015 px per frame
+    /// 35.66 / 38.60 against 35.60 / 38.46 dB, 1.3 s against 17.7 s. Faster steady pans, which
     /// the speed condition keeps tracked (shortest sub-blocks of 14 frames at 0.1 detections
     /// per frame): kodim07 at 0.04 px per frame (5,000 frames) untracked 28.83 / 32.19
     /// against 28.90 / 32.39 dB, kodim22 at 0.08 (2,500 frames) 27.53 / 29.75 against 27.74
