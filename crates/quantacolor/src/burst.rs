@@ -201,6 +201,7 @@ pub(crate) fn estimate_motion(
 ) -> Result<EstimatedMotion> {
     // Checked before alignment: the sub-block plan uses it even with the refinement off.
     config.refine.validate()?;
+    config.track.validate()?;
     let alignment = align(
         &capture.frames,
         &capture.cfa,

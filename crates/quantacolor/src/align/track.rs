@@ -22,7 +22,7 @@ use super::refine::{
 };
 use crate::capture::Capture;
 use crate::cfa::Channel;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::filters::gaussian_blur;
 use crate::progress::Progress;
 use ndarray::Array2;
@@ -112,6 +112,42 @@ impl Default for TrackConfig {
             iterations: 8,
             max_linear: 0.1,
         }
+    }
+}
+
+impl TrackConfig {
+    /// Checks that the thresholds and levels hold usable values (the error names the key).
+    pub fn validate(&self) -> Result<()> {
+        let bad = |key: &str, what: &str, value: f64| {
+            Err(Error::invalid(format!(
+                "fast-motion tracking: [burst.track] {key} must be {what}, got {value}"
+            )))
+        };
+        if self.trigger_px.is_nan() || self.trigger_px < 0.0 {
+            return bad(
+                "trigger_px",
+                "a non-negative number of pixels (inf turns tracking off)",
+                self.trigger_px,
+            );
+        }
+        for (key, value) in [
+            ("steady_px", self.steady_px),
+            ("max_linear", self.max_linear),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return bad(key, "a non-negative number", value);
+            }
+        }
+        if self.iterations == 0 {
+            return bad("iterations", "at least 1", 0.0);
+        }
+        if self.levels.is_empty() || self.levels.iter().any(|l| l.bin == 0 || l.sigma_px <= 0.0) {
+            return Err(Error::invalid(
+                "fast-motion tracking: [burst.track] levels need a bin of at least 1 px and a \
+                 positive sigma_px",
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -389,6 +425,37 @@ pub fn split_for_merge(motion: &mut FrameMotion, max_motion_px: f64) {
 mod tests {
     use super::*;
     use crate::align::BlockPlan;
+
+    #[test]
+    fn validate_names_each_out_of_range_setting() {
+        assert!(TrackConfig::default().validate().is_ok());
+        type Edit = fn(&mut TrackConfig);
+        let cases: [(&str, Edit); 8] = [
+            ("trigger_px", |c| c.trigger_px = -1.0),
+            ("trigger_px", |c| c.trigger_px = f64::NAN),
+            ("steady_px", |c| c.steady_px = -0.5),
+            ("steady_px", |c| c.steady_px = f64::INFINITY),
+            ("max_linear", |c| c.max_linear = f64::NAN),
+            ("iterations", |c| c.iterations = 0),
+            ("levels", |c| c.levels.clear()),
+            ("levels", |c| c.levels[0].bin = 0),
+        ];
+        for (key, edit) in cases {
+            let mut config = TrackConfig::default();
+            edit(&mut config);
+            let message = config.validate().expect_err(key).to_string();
+            assert!(message.contains(key), "{key}: {message}");
+        }
+        // The edges are accepted: tracking off (inf) or always on (0), no steady exemption.
+        for trigger_px in [0.0, f64::INFINITY] {
+            let edges = TrackConfig {
+                trigger_px,
+                steady_px: 0.0,
+                ..TrackConfig::default()
+            };
+            assert!(edges.validate().is_ok());
+        }
+    }
 
     /// `moves_fast` with the default trigger (6 px) and no steady exemption.
     fn moves_fast_at_6_px(motion: &FrameMotion) -> bool {
