@@ -170,14 +170,21 @@ pub struct RefineConfig {
     pub similarity_prior_px: f64, // 0.1 px
 }
 
+/// Checks that coarse-to-fine `levels` (of the refinement or the tracking) are not empty and
+/// each has a bin of at least 1 px and a positive σ; `what` names them in the error.
+pub(super) fn validate_levels(levels: &[RefineLevel], what: &str) -> Result<()> {
+    if levels.is_empty() || levels.iter().any(|l| l.bin == 0 || l.sigma_px <= 0.0) {
+        return Err(Error::invalid(format!(
+            "{what} need a bin of at least 1 px and a positive sigma"
+        )));
+    }
+    Ok(())
+}
+
 impl RefineConfig {
     /// Checks that the levels and the pixel thresholds hold usable values.
     pub fn validate(&self) -> Result<()> {
-        if self.levels.is_empty() || self.levels.iter().any(|l| l.bin == 0 || l.sigma_px <= 0.0) {
-            return Err(Error::invalid(
-                "motion refinement: levels need a bin of at least 1 px and a positive sigma",
-            ));
-        }
+        validate_levels(&self.levels, "motion refinement: levels")?;
         for (key, value) in [
             ("similarity_prior_px", self.similarity_prior_px),
             ("repeat_above_px", self.repeat_above_px),

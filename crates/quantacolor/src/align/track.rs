@@ -17,8 +17,8 @@
 
 use super::grey::GreyMethod;
 use super::refine::{
-    bin_layout, fit_sub_block, template_level, AffineMotion, BinLayout, FitSettings, FrameMotion,
-    RefineLevel,
+    bin_layout, fit_sub_block, template_level, validate_levels, AffineMotion, BinLayout,
+    FitSettings, FrameMotion, RefineLevel,
 };
 use crate::capture::Capture;
 use crate::cfa::Channel;
@@ -141,13 +141,7 @@ impl TrackConfig {
         if self.iterations == 0 {
             return bad("iterations", "at least 1", 0.0);
         }
-        if self.levels.is_empty() || self.levels.iter().any(|l| l.bin == 0 || l.sigma_px <= 0.0) {
-            return Err(Error::invalid(
-                "fast-motion tracking: [burst.track] levels need a bin of at least 1 px and a \
-                 positive sigma_px",
-            ));
-        }
-        Ok(())
+        validate_levels(&self.levels, "fast-motion tracking: [burst.track] levels")
     }
 }
 
