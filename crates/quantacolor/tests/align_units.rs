@@ -2,7 +2,7 @@
 //! block plans, grey-image classes, exact integer and large shifts, time/space interpolation of
 //! flow, and the flow files.
 
-use ndarray::{Array2, Array3, Array4};
+use ndarray::{Array2, Array3, Array4, Axis};
 use ndarray_npy::ReadNpyExt;
 use quantacolor::align::patch::TileGrid;
 use quantacolor::align::*;
@@ -623,6 +623,57 @@ fn median_filter_skips_unrefined_tiles() {
         median_filter_valid_flow(&flow, &none, 1),
         median_filter_flow(&flow, 1)
     );
+}
+
+#[test]
+fn second_motion_leaves_a_still_grating_matched_periods_off_with_the_camera() {
+    // A still scene seen 0.5 px to the right: a vertical grating of period 16.25 px in a
+    // textured frame. The camera fit is exact, but its integer flow is 0.5 px off the match,
+    // while a period on (16.75 px) the integer offset 17 px is 0.25 px off it. The grating's
+    // tiles, matched two periods on by the tile search, score better a period away (without
+    // the check of the reference's own period they were sent 16.25 px off).
+    let (h, w) = (128, 192);
+    let (period, motion) = (16.25f32, 0.5f32);
+    let on_grating = |y: usize, x: usize| (40..96).contains(&y) && (48..152).contains(&x);
+    let scene = |dx: f32| {
+        let background = texture(h, w, 0.0, dx);
+        Array2::from_shape_fn((h, w), |(y, x)| {
+            if on_grating(y, x) {
+                1.0 + 0.4 * (std::f32::consts::TAU * (x as f32 - dx) / period).sin()
+            } else {
+                background[[y, x]]
+            }
+        })
+    };
+    let (reference, block) = (scene(0.0), scene(motion));
+    let aligner = ReferenceAligner::new(&reference, &PatchConfig::default()).unwrap();
+    let grid = aligner.grid().clone();
+    let camera = Array3::from_shape_fn((grid.tiles_y, grid.tiles_x, 2), |(_, _, c)| {
+        [0.0, motion][c]
+    });
+    let inside = |i: usize, j: usize| {
+        let (y, x) = (i * grid.tile_stride, j * grid.tile_stride);
+        on_grating(y, x) && on_grating(y + grid.tile_size - 1, x + grid.tile_size - 1)
+    };
+    let mut flow = camera.clone();
+    let mut grating_tiles = 0;
+    for i in 0..grid.tiles_y {
+        for j in 0..grid.tiles_x {
+            if inside(i, j) {
+                flow[[i, j, 1]] = motion + 2.0 * period;
+                grating_tiles += 1;
+            }
+        }
+    }
+    assert!(grating_tiles >= 40, "{grating_tiles} grating tiles");
+    let out = aligner.follow_second_motion(&block, &flow, &camera, 2.0, 16, 4);
+    // Every tile ends on the true motion: none a period away.
+    let worst = out
+        .lanes(Axis(2))
+        .into_iter()
+        .map(|v| v[0].hypot(v[1] - motion))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 0.1, "a tile left the true motion by {worst} px");
 }
 
 #[test]

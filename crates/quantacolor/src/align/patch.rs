@@ -1392,7 +1392,12 @@ impl ReferenceAligner {
     /// texture that a single tile cannot), on pyramid level 1 and then within ±f px on level 0,
     /// and refined to sub-pixel as the median of the tiles' Lucas–Kanade results. Every tile
     /// within two tiles of the set then takes that translation where its own patch cost there
-    /// is lower than at the camera flow, and the camera flow otherwise.
+    /// is lower than at the camera flow, and the camera flow otherwise; the whole set keeps the
+    /// camera flow when the translation's offset from the camera is a period of the reference's
+    /// own texture ([`is_texture_period`]): a grating matched a whole number of periods off, which
+    /// long blocks (whose camera fit can sit half a pixel off the best integer match) otherwise
+    /// sent a period away (10,000-frame chart, seed 2: groups of 115–231 tiles at 8, 16 and 24 px
+    /// that the merge kept as local motion, −0.83 dB).
     pub fn follow_second_motion(
         &self,
         block: &Array2<f32>,
@@ -1691,6 +1696,20 @@ impl ReferenceAligner {
                     break;
                 }
             }
+            let followers: Vec<(usize, usize)> = label
+                .indexed_iter()
+                .filter(|&((i, j), l)| region[[i, j]] && *l == Some(true))
+                .map(|(p, _)| p)
+                .collect();
+            let offset_from_camera = |(i, j): (usize, usize)| {
+                (
+                    (translation.0 - camera[[i, j, 0]]).round() as isize,
+                    (translation.1 - camera[[i, j, 1]]).round() as isize,
+                )
+            };
+            if is_texture_period(ref0, grid, &followers, offset_from_camera) {
+                label.fill(Some(false));
+            }
             for ((i, j), &near) in region.indexed_iter() {
                 if !near {
                     continue;
@@ -1712,6 +1731,51 @@ impl ReferenceAligner {
 /// this fraction of its cost at the camera flow: periodic static texture, equally good at a
 /// period's offset, then stays with the camera instead of following the photon noise.
 const SWITCH_MARGIN: f32 = 0.9;
+
+/// A second motion is taken for a texture period ([`is_texture_period`]) when the reference
+/// matches itself at the motion's offset from the camera with a summed L1 cost below this
+/// fraction of the mean cost at the four offsets [`PERIOD_PROBE_PX`] away. This project's
+/// heuristic: measured on the tiles the second motion took on 10,000-frame captures
+/// (`quantacolor simulate --frames 10000 --cfa colorspad`), the chart's gratings (seeds 2 and
+/// 3) gave ratios of 0.22–0.60 for the sets matched a whole number of periods off, and the
+/// natural textures of the `object` captures (kodim15, kodim12; also at 512 frames) 0.84 and
+/// above.
+const PERIOD_RATIO: f32 = 0.75;
+
+/// Distance (px) of the four offsets that [`is_texture_period`] compares the reference's
+/// self-match against: a quarter of the chart's 8 px grating period, so the probes fall
+/// between the grating's repeats.
+const PERIOD_PROBE_PX: isize = 2;
+
+/// Whether the reference shifted onto itself by each tile's `offset` (px, integer) matches
+/// itself markedly better there than at the offsets [`PERIOD_PROBE_PX`] away in y and in x,
+/// summed over `tiles` of `grid` (L1 patch costs; [`PERIOD_RATIO`]). A block that matches the
+/// reference at the camera's motion plus such an offset matches it equally well at the camera's
+/// motion: a static periodic texture (a grating matched a whole number of periods off), not a
+/// second motion. A natural texture moved by an object matches itself no better at the object's
+/// offset than beside it.
+fn is_texture_period(
+    reference: &Array2<f32>,
+    grid: &TileGrid,
+    tiles: &[(usize, usize)],
+    offset: impl Fn((usize, usize)) -> (isize, isize),
+) -> bool {
+    let ts = grid.tile_size;
+    let (mut at_offset, mut beside) = (0.0f32, 0.0f32);
+    for &(i, j) in tiles {
+        let origin = (i * grid.tile_stride, j * grid.tile_stride);
+        let d = offset((i, j));
+        let cost = |d: (isize, isize)| offset_cost(reference, reference, origin, ts, d, Norm::L1);
+        let here = cost(d);
+        let p = PERIOD_PROBE_PX;
+        let around = [(p, 0), (-p, 0), (0, p), (0, -p)].map(|(a, b)| cost((d.0 + a, d.1 + b)));
+        if here.is_finite() && around.iter().all(|c| c.is_finite()) {
+            at_offset += here;
+            beside += around.iter().sum::<f32>() / 4.0;
+        }
+    }
+    beside > 0.0 && at_offset < PERIOD_RATIO * beside
+}
 
 /// 8-connected sets of `true` cells, each as its (row, column) list.
 fn connected_components(mask: &Array2<bool>) -> Vec<Vec<(usize, usize)>> {
