@@ -513,10 +513,10 @@ fn residual_groups(residual: &Array3<f32>) -> Vec<Vec<(usize, usize)>> {
 /// confirmed, and groups fall until all that are left are confirmed by each other. Tile-level
 /// work only: no image is read.
 ///
-/// The tolerance is a fraction of the predicted change, not of the residual itself (as it was
-/// until session 26): far from the reference, neighbouring blocks' distances differ by a few
-/// per cent, and a residual that stays put from block to block (no motion between them) was
-/// confirmed as one growing with the distance. On 10,000-frame `object` captures (400-frame
+/// The tolerance is a fraction of the predicted change, not of the residual itself (it was
+/// once): far from the reference, neighbouring blocks' distances differ by a few per cent, and
+/// a residual that stays put from block to block (no motion between them) then passed for one
+/// growing with the distance. On 10,000-frame `object` captures (400-frame
 /// blocks; the disc crosses the frame and leaves it) the blocks after it had left kept groups
 /// of 80–240 tiles at a steady 30–48 px (what the second motion found where the disc had been
 /// in the reference): with the change as the measure they fall, and sRGB PSNR without
