@@ -27,6 +27,12 @@ pub struct BlockConfig {
     pub min_blocks: usize,
     /// Floor of the automatic block size when `min_blocks` shortens it, frames.
     pub min_short_block_size: usize,
+    /// Most camera motion (px at the image corners) one automatic block may collect when the
+    /// camera moves steadily (a pan that the refinement follows): a longer block is re-planned
+    /// shorter after a first alignment (`burst::estimate_motion`); 0 = never. This project's
+    /// heuristic, not the paper's: every block image is smeared along the pan, and the merge's
+    /// guide and robustness compare those images.
+    pub max_steady_smear_px: f64, // 4 px
 }
 
 impl Default for BlockConfig {
@@ -38,6 +44,7 @@ impl Default for BlockConfig {
             target_counts: 30.0,
             min_blocks: 8,
             min_short_block_size: 32,
+            max_steady_smear_px: 4.0,
         }
     }
 }

@@ -35,7 +35,7 @@ pub use refine::{
     plan_sub_blocks, refine_camera_motion, shortest_sub_block, AffineMotion, FrameMotion,
     RefineConfig, RefineLevel,
 };
-pub use track::{split_for_merge, track_fast_camera_motion, TrackConfig};
+pub use track::{split_for_merge, steady_block_smear, track_fast_camera_motion, TrackConfig};
 pub use trajectory::{fit_photon_trajectory, TrajectoryConfig};
 
 use crate::atomic::write_atomic_synced;

@@ -193,6 +193,27 @@ fn moves_fast(motion: &FrameMotion, config: &TrackConfig, followable_px_per_fram
     })
 }
 
+/// Camera motion (px at the image corners) that one block of `motion`'s plan collects when the
+/// camera moves steadily: the largest displacement between consecutive block cameras, scaled
+/// from the distance of their centre frames to the nominal block size, when every block
+/// camera with two neighbours lies within `steady_px` of the constant-velocity path through
+/// them; `None` for any other motion (hand shake, fast motion) or fewer than three blocks.
+pub fn steady_block_smear(motion: &FrameMotion, steady_px: f64) -> Option<f64> {
+    let half = motion.half_size();
+    let times = motion.plan.center_frames();
+    let cameras: Vec<AffineMotion> = times.iter().map(|&t| motion.camera_at(t)).collect();
+    let off_path = off_constant_velocity(&cameras, &times, half);
+    if cameras.len() < 3 || off_path.iter().flatten().any(|&off| off > steady_px) {
+        return None;
+    }
+    let block = motion.plan.block_size as f64;
+    (0..cameras.len() - 1)
+        .map(|i| {
+            cameras[i].distance(&cameras[i + 1], half) * block / (times[i + 1] - times[i]).max(1.0)
+        })
+        .reduce(f64::max)
+}
+
 /// How far each block camera lies from the constant-velocity path through its two neighbours
 /// (px at the image corners: the camera against its neighbours' cameras interpolated linearly
 /// in time to its centre frame); `None` for the first and the last block.
@@ -518,6 +539,34 @@ mod tests {
     /// `steady_px`, 1 px, at the corners: 0.75 px each way is 1.5 px off its neighbours' path)
     /// alternately ahead and behind the pan is tracked, at 0.25 px not; so is a pan that turns
     /// by 90°; with `steady_px` 0 every streak is tracked.
+    #[test]
+    fn a_steady_pan_smears_each_block_by_its_speed_over_a_block() {
+        let steady = TrackConfig::default().steady_px;
+        // 0.02 px per frame over 200-frame blocks (the end blocks longer, scaled back).
+        let pan = block_motion(&|_, t| translation(0.0, 0.02 * t));
+        let smear = steady_block_smear(&pan, steady).expect("a steady pan");
+        assert!((smear - 4.0).abs() < 1e-9, "{smear} px");
+        // Block cameras alternately 0.75 px ahead and behind: not steady.
+        let shaky = block_motion(&|b, t| {
+            translation(0.0, 0.02 * t + if b % 2 == 0 { 0.75 } else { -0.75 })
+        });
+        assert_eq!(steady_block_smear(&shaky, steady), None);
+        assert!(steady_block_smear(&shaky, 2.0).is_some());
+        // Two blocks have no path to lie on.
+        let plan = BlockPlan::new(400, 200, 100).unwrap();
+        assert_eq!(plan.len(), 2);
+        let two = FrameMotion::of_block_cameras(
+            254,
+            496,
+            plan.clone(),
+            plan.center_frames()
+                .iter()
+                .map(|&t| translation(0.0, 0.02 * t))
+                .collect(),
+        );
+        assert_eq!(steady_block_smear(&two, steady), None);
+    }
+
     #[test]
     fn a_steady_pan_is_left_to_the_refinement_when_its_sub_blocks_can_follow() {
         let config = TrackConfig::default();
