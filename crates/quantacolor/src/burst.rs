@@ -216,6 +216,8 @@ pub(crate) fn estimate_motion(
     {
         let mut align_config = config.align.clone();
         align_config.blocks.block_size = Some(block_size);
+        // The first alignment's grey blocks are not needed while the second is made.
+        drop((alignment, motion));
         (alignment, motion) =
             align_blocks(capture, reference_frame, &align_config, config, progress)?;
     }
