@@ -146,10 +146,12 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
                 .bm3d_config()
                 .validate()
                 .map_err(|e| anyhow::anyhow!("{}: [denoise]: {e}", path.display()))?;
-            config
-                .burst
+            let burst = &config.burst;
+            burst
                 .refine
                 .validate()
+                .and_then(|()| burst.track.validate())
+                .and_then(|()| burst.trajectory.validate())
                 .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             config
         }

@@ -202,6 +202,9 @@ pub(crate) fn estimate_motion(
     // Checked before alignment: the sub-block plan uses it even with the refinement off.
     config.refine.validate()?;
     config.track.validate()?;
+    if config.trajectory.enabled {
+        config.trajectory.validate()?;
+    }
     let max_smear = config.align.blocks.max_steady_smear_px;
     if !(max_smear.is_finite() && max_smear >= 0.0) {
         return Err(Error::invalid(format!(
