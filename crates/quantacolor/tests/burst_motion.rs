@@ -175,6 +175,9 @@ fn fast_shake_is_tracked_and_merged_at_single_frames() {
     let mut sub_block_fits = BurstConfig::default();
     sub_block_fits.trajectory.enabled = false;
     let sub_blocks_only = reconstruct_burst(&capture, reference, &sub_block_fits, &Silent).unwrap();
+    sub_block_fits.track.template_growth = 0.0;
+    let every_template = reconstruct_burst(&capture, reference, &sub_block_fits, &Silent).unwrap();
+    let e_every_template = median_epe(&sim, &every_template);
     let mut every_row = BurstConfig::default();
     every_row.trajectory.early_row_step = 1;
     let every_row = reconstruct_burst(&capture, reference, &every_row, &Silent).unwrap();
@@ -188,7 +191,9 @@ fn fast_shake_is_tracked_and_merged_at_single_frames() {
     );
     println!(
         "fast shake: photon trajectory {p_tracked:.2} dB ({} sub-blocks, EPE {e_tracked:.3} px; \
-         every row in every iteration: EPE {e_every_row:.3} px), tracked sub-blocks only {p_sub_blocks:.2} dB (EPE {e_sub_blocks:.3} px), without \
+         every row in every iteration: EPE {e_every_row:.3} px), tracked sub-blocks only \
+         {p_sub_blocks:.2} dB (EPE {e_sub_blocks:.3} px; a template for every sub-block: EPE \
+         {e_every_template:.3} px), without \
          tracking {p_untracked:.2} dB (EPE {e_untracked:.3} px)",
         tracked.sub_blocks.len(),
     );
@@ -208,6 +213,13 @@ fn fast_shake_is_tracked_and_merged_at_single_frames() {
     assert!(
         e_tracked < 0.5 * e_sub_blocks,
         "{e_tracked} vs {e_sub_blocks} px"
+    );
+    // A template made again only once the mosaic has grown by 5 % tracks as one made for
+    // every sub-block does.
+    assert!(
+        e_sub_blocks < 1.1 * e_every_template,
+        "templates made at 5 % growth: EPE {e_sub_blocks} px, for every sub-block \
+         {e_every_template} px"
     );
     assert!(
         p_tracked > p_sub_blocks + 0.5,
