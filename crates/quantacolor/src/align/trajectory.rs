@@ -62,20 +62,22 @@ pub struct TrajectoryConfig {
     /// sensor while the camera moves still aligns.
     pub margin_px: usize, // 48 px
     /// Every Fisher-scoring iteration but the last (template and score) uses the grey sites of
-    /// every n-th sensor row only; the last uses every site, so the fitted trajectory keeps the
-    /// precision of all photons. 1 uses every row throughout. This project's heuristic: the
-    /// early iterations bring the knots within the fine level's capture range, for which a
-    /// fraction of the photons suffices. Measured with 2 against 1 (`quantacolor simulate
-    /// --cfa colorspad --motion fast-handheld`, sRGB PSNR without denoising, border 16): the
-    /// stage took 0.68 of the time (10,000-frame kodim15, seed 204: 13.96 → 9.44 s) at
-    /// 33.945 → 33.957 dB (kodim15, tuning) and 29.765 → 29.758 dB (10,000-frame kodim22, seed
-    /// 303, validation); 3,000-frame captures (tuning kodim02 and the chart, validation
-    /// kodim04, kodim12 and ScanLines_Cannon) −0.009 to +0.16 dB; `bench quality`'s fast
-    /// handheld captures (512 frames, 40 px, 2°) 32.02 → 31.99 and 29.52 → 29.56 dB with
+    /// every n-th sensor row only; the last uses every site. 1 (the default) uses every row
+    /// throughout; 2 is a speed setting: the early iterations only bring the knots within the
+    /// fine level's capture range, for which a fraction of the photons nearly suffices.
+    /// Measured with 2 against 1 (`quantacolor simulate --cfa colorspad --motion
+    /// fast-handheld`, sRGB PSNR without denoising, border 16): the stage takes 0.68 of the
+    /// time (10,000-frame kodim15, seed 204: 13.96 → 9.44 s) at 33.945 → 33.957 dB, and
+    /// 29.765 → 29.758 dB on 10,000-frame kodim22 (seed 303); 3,000-frame captures of kodim02,
+    /// kodim04, kodim12, the chart and ScanLines_Cannon −0.009 to +0.16 dB; `bench quality`'s
+    /// fast handheld captures (512 frames, 40 px, 2°) 32.02 → 31.99 and 29.52 → 29.56 dB with
     /// chroma-BM3D; `experiment sensors`' night fast-shake SPAD capture (0.04 detections per
-    /// frame) 19.15 → 19.12 dB. Skipping iterations instead (the coarse level, or one
-    /// iteration of each level) lost 0.19–0.42 dB on `bench quality`'s kodim22 fast capture.
-    pub early_row_step: usize, // 2
+    /// frame) 19.15 → 19.12 dB. But on MultiResolution_Bonita under fast shake (HDR, 3,000
+    /// frames, seeds 311–313), whose tracked cameras carry a shear that the trajectory must
+    /// remove ([`super::TrackConfig::max_linear`]), it lost 0.04–0.15 dB, so it is not the
+    /// default. Skipping iterations instead (the coarse level, or one iteration of each
+    /// level) lost 0.19–0.42 dB on `bench quality`'s kodim22 fast capture.
+    pub early_row_step: usize, // 1
 }
 
 impl Default for TrajectoryConfig {
@@ -87,7 +89,7 @@ impl Default for TrajectoryConfig {
             iterations: 2,
             acceleration_px: 0.05,
             margin_px: 48,
-            early_row_step: 2,
+            early_row_step: 1,
         }
     }
 }
@@ -1174,7 +1176,8 @@ pub fn fit_photon_trajectory(
         "photon trajectory",
         (config.sigmas_px.len() * config.iterations) as u64,
     );
-    let early_sites = sites.every_nth_row(config.early_row_step);
+    let early_sites =
+        (config.early_row_step > 1).then(|| sites.every_nth_row(config.early_row_step));
     let last_iteration = config.sigmas_px.len() * config.iterations;
     let iterations = config
         .sigmas_px
@@ -1182,10 +1185,9 @@ pub fn fit_photon_trajectory(
         .flat_map(|&sigma| std::iter::repeat_n(sigma, config.iterations))
         .enumerate();
     for (iteration, sigma) in iterations {
-        let sites = if iteration + 1 == last_iteration {
-            &sites
-        } else {
-            &early_sites
+        let sites = match &early_sites {
+            Some(early) if iteration + 1 < last_iteration => early,
+            _ => &sites,
         };
         let template = build_template(frames, sites, &trajectory, h, margin);
         let level = template_level(&template, sigma);
