@@ -92,8 +92,9 @@ pub struct TrackConfig {
     /// 50 --peak 0.1`, seeds 311–313) the tracked cameras carry a shear of 0.06–0.11 at the
     /// median (x displacement along y, which the horizon's edges do not constrain; the photon
     /// trajectory fitted afterwards removes it). Seed 311 (0.108) was abandoned and its merge
-    /// at the refined block motion scored 24.18 dB (sRGB PSNR without denoising), against
-    /// 34.24 dB tracked, as seeds 312 and 313 were (34.40, 34.24 dB). 0.25 keeps a margin of
+    /// at the refined block motion scored 24.18 dB (sRGB PSNR without denoising; 24.24 dB with
+    /// chroma-BM3D), against 34.40 dB (36.58 dB) tracked, as seeds 312 and 313 were (34.50,
+    /// 34.28 dB). 0.25 keeps a margin of
     /// 2.3x over that drift and of 300x under the runaway fits (the fast-shake HDR captures of
     /// ScanLines_StillLife and ScanLines_Cannon: medians 0.012 and 0.009); `bench quality` is
     /// unchanged.
