@@ -2307,22 +2307,80 @@ fn refine_pass(
     progress: &dyn Progress,
 ) -> Result<Vec<Option<Information>>> {
     let n_blocks = grey_blocks.len();
-    let centre = motion.centre();
-    let half = motion.half_size();
-    // Each block's grey image on the reference grid, made when needed rather than kept: the
-    // blocks' dense flows would grow with the number of frames.
-    let warped = |b: usize| motion.warp_block(b, &grey_blocks[b]);
-    let block_ids: Vec<usize> = (0..n_blocks).collect();
+    let WarpedBlocks { total, mut kept } = warp_blocks_to_reference(grey_blocks, motion)?;
+    let all = &total / n_blocks as f32;
+    let last = config.levels.len() - 1;
+    // Every level but the finest is made from the mean of all blocks; the finest from the
+    // other blocks' mean, per block (one block alone: its own).
+    let shared: Vec<Option<TemplateLevel>> = config
+        .levels
+        .iter()
+        .enumerate()
+        .map(|(i, l)| (i < last || n_blocks == 1).then(|| template_level(&all, l.sigma_px)))
+        .collect();
+    progress.start("motion refinement", motion.sub_blocks.len() as u64);
+    let mut fitted: Vec<Option<(AffineMotion, Information)>> = vec![None; motion.sub_blocks.len()];
+    let busy: Vec<usize> = (0..n_blocks)
+        .filter(|b| motion.block_of.contains(b))
+        .collect();
+    // A few blocks at a time: their own templates in parallel, then all their sub-blocks' fits
+    // in one parallel loop (one block's few sub-blocks leave cores idle); memory stays bounded
+    // by the group, not the number of blocks.
+    for group in busy.chunks(cpu::balanced_chunk_len(busy.len(), TEMPLATE_GROUP)) {
+        let own_images: Vec<Option<Array2<f32>>> = group.iter().map(|&b| kept[b].take()).collect();
+        let own_templates = leave_one_out_templates(
+            group,
+            own_images,
+            &total,
+            grey_blocks,
+            motion,
+            config.levels[last].sigma_px,
+        )?;
+        let templates: Vec<Vec<&TemplateLevel>> = own_templates
+            .iter()
+            .map(|own| match own {
+                Some(own) => shared.iter().map(|t| t.as_ref().unwrap_or(own)).collect(),
+                None => shared.iter().flatten().collect(),
+            })
+            .collect();
+        for (k, result) in
+            fit_group_sub_blocks(frames, layouts, motion, group, &templates, config, progress)
+        {
+            fitted[k] = result;
+        }
+    }
+    progress.finish();
+    motion.camera = refined_camera(&fitted, motion, config);
+    Ok(fitted
+        .into_iter()
+        .map(|f| f.map(|(_, info)| info))
+        .collect())
+}
+
+/// The sum of every grey block warped to the reference grid by `motion`, and the warped
+/// images themselves when they fit in [`WARP_CACHE_BYTES`] (`None` each otherwise: they are
+/// warped again when needed, the same numbers).
+struct WarpedBlocks {
+    total: Array2<f32>,
+    kept: Vec<Option<Array2<f32>>>,
+}
+
+/// [`WarpedBlocks`] of `grey_blocks`: each block's grey image on the reference grid is made
+/// when needed rather than kept (the blocks' dense flows would grow with the number of frames);
+/// warped in parallel a group at a time, summed in block order (the same sum as one at a time).
+fn warp_blocks_to_reference(
+    grey_blocks: &[Array2<f32>],
+    motion: &FrameMotion,
+) -> Result<WarpedBlocks> {
+    let n_blocks = grey_blocks.len();
     let mut total = Array2::<f32>::zeros(grey_blocks[0].dim());
-    // The warped images are kept for the blocks' own templates below when they fit in
-    // WARP_CACHE_BYTES (else warped again there: the same numbers).
     let keep = n_blocks * total.len() * std::mem::size_of::<f32>() <= WARP_CACHE_BYTES;
     let mut kept: Vec<Option<Array2<f32>>> = vec![None; n_blocks];
+    let block_ids: Vec<usize> = (0..n_blocks).collect();
     for group in block_ids.chunks(cpu::balanced_chunk_len(n_blocks, TEMPLATE_GROUP)) {
-        // Warped in parallel, summed in block order (the same sum as one at a time).
         let images: Vec<Array2<f32>> = group
             .par_iter()
-            .map(|&b| warped(b))
+            .map(|&b| motion.warp_block(b, &grey_blocks[b]))
             .collect::<Result<_>>()?;
         for (&b, image) in group.iter().zip(images) {
             total += &image;
@@ -2331,103 +2389,108 @@ fn refine_pass(
             }
         }
     }
-    let all = &total / n_blocks as f32;
-    let last = config.levels.len() - 1;
-    let shared: Vec<Option<TemplateLevel>> = config
-        .levels
-        .iter()
-        .enumerate()
-        .map(|(i, l)| (i < last || n_blocks == 1).then(|| template_level(&all, l.sigma_px)))
-        .collect();
+    Ok(WarpedBlocks { total, kept })
+}
+
+/// The finest template level of each block of `group`: the mean of the other blocks' warped
+/// images, `(total − own) / (n − 1)` (the block's own warped image from `own_images` or warped
+/// again), smoothed with `sigma_px`; `None` each when there is one block only.
+fn leave_one_out_templates(
+    group: &[usize],
+    own_images: Vec<Option<Array2<f32>>>,
+    total: &Array2<f32>,
+    grey_blocks: &[Array2<f32>],
+    motion: &FrameMotion,
+    sigma_px: f32,
+) -> Result<Vec<Option<TemplateLevel>>> {
+    let n_blocks = grey_blocks.len();
+    group
+        .par_iter()
+        .zip(own_images)
+        .map(|(&b, own)| -> Result<Option<TemplateLevel>> {
+            if n_blocks == 1 {
+                return Ok(None);
+            }
+            let own = match own {
+                Some(image) => image,
+                None => motion.warp_block(b, &grey_blocks[b])?,
+            };
+            // (total − own) / (n − 1) in one pass, element by element.
+            let others = ndarray::Zip::from(total)
+                .and(&own)
+                .map_collect(|&t, &o| (t - o) / (n_blocks - 1) as f32);
+            Ok(Some(template_level(&others, sigma_px)))
+        })
+        .collect()
+}
+
+/// The fit of every sub-block of the blocks of `group` (`templates[g]` are the levels of
+/// `group[g]`'s), in one parallel loop: `(sub-block, fitted motion and its information)`,
+/// `None` where the fit failed or moved farther than `max_correction_px` from its start.
+fn fit_group_sub_blocks(
+    frames: &BinaryFrames,
+    layouts: &[BinLayout],
+    motion: &FrameMotion,
+    group: &[usize],
+    templates: &[Vec<&TemplateLevel>],
+    config: &RefineConfig,
+    progress: &dyn Progress,
+) -> Vec<(usize, Option<(AffineMotion, Information)>)> {
     let settings = FitSettings {
         fine_iterations: config.fine_iterations,
         fine_information: config.fine_information,
         fine_thinning: config.fine_thinning,
         iterations: config.iterations,
     };
-    progress.start("motion refinement", motion.sub_blocks.len() as u64);
-    let mut fitted: Vec<Option<(AffineMotion, Information)>> = vec![None; motion.sub_blocks.len()];
-    let busy: Vec<usize> = block_ids
-        .iter()
-        .copied()
-        .filter(|&b| motion.block_of.contains(&b))
+    let (centre, half) = (motion.centre(), motion.half_size());
+    let members: Vec<(usize, usize)> = (0..motion.sub_blocks.len())
+        .filter_map(|k| {
+            group
+                .iter()
+                .position(|&b| b == motion.block_of[k])
+                .map(|g| (k, g))
+        })
         .collect();
-    // A few blocks at a time: their own templates in parallel, then all their sub-blocks' fits
-    // in one parallel loop (one block's few sub-blocks leave cores idle); memory stays bounded
-    // by the group, not the number of blocks.
-    for group in busy.chunks(cpu::balanced_chunk_len(busy.len(), TEMPLATE_GROUP)) {
-        let own_images: Vec<Option<Array2<f32>>> = group.iter().map(|&b| kept[b].take()).collect();
-        let own_templates: Vec<Option<TemplateLevel>> = group
-            .par_iter()
-            .zip(own_images)
-            .map(|(&b, own)| -> Result<Option<TemplateLevel>> {
-                if n_blocks > 1 {
-                    let own = match own {
-                        Some(image) => image,
-                        None => warped(b)?,
-                    };
-                    // (total − own) / (n − 1) in one pass, element by element.
-                    let others = ndarray::Zip::from(&total)
-                        .and(&own)
-                        .map_collect(|&t, &o| (t - o) / (n_blocks - 1) as f32);
-                    Ok(Some(template_level(&others, config.levels[last].sigma_px)))
-                } else {
-                    Ok(None)
-                }
-            })
-            .collect::<Result<_>>()?;
-        let templates: Vec<Vec<&TemplateLevel>> = own_templates
-            .iter()
-            .map(|own| match own {
-                Some(own) => shared.iter().map(|t| t.as_ref().unwrap_or(own)).collect(),
-                None => shared.iter().flatten().collect(),
-            })
-            .collect();
-        let members: Vec<(usize, usize)> = (0..motion.sub_blocks.len())
-            .filter_map(|k| {
-                group
-                    .iter()
-                    .position(|&b| b == motion.block_of[k])
-                    .map(|g| (k, g))
-            })
-            .collect();
-        let results: Vec<Option<(AffineMotion, Information)>> = members
-            .par_iter()
-            .with_max_len(1)
-            .map(|&(k, g)| {
-                let templates = &templates[g];
-                let range = motion.sub_blocks[k].clone();
-                let start = motion.camera[k];
-                let counts = frames.shared_sum(range.clone());
-                let result = start.inverse().and_then(|inverse_start| {
-                    fit_sub_block_with_information(
-                        &counts,
-                        range.len(),
-                        layouts,
-                        templates,
-                        inverse_start,
-                        centre,
-                        settings,
-                    )
-                    .and_then(|(inv, info)| inv.inverse().map(|fit| (fit, info)))
-                    .filter(|(fit, _)| fit.distance(&start, half) <= config.max_correction_px)
-                });
-                progress.advance(1);
-                result
-            })
-            .collect();
-        for (&(k, _), r) in members.iter().zip(results) {
-            fitted[k] = r;
-        }
-    }
-    progress.finish();
+    members
+        .par_iter()
+        .with_max_len(1)
+        .map(|&(k, g)| {
+            let range = motion.sub_blocks[k].clone();
+            let start = motion.camera[k];
+            let counts = frames.shared_sum(range.clone());
+            let result = start.inverse().and_then(|inverse_start| {
+                fit_sub_block_with_information(
+                    &counts,
+                    range.len(),
+                    layouts,
+                    &templates[g],
+                    inverse_start,
+                    centre,
+                    settings,
+                )
+                .and_then(|(inv, info)| inv.inverse().map(|fit| (fit, info)))
+                .filter(|(fit, _)| fit.distance(&start, half) <= config.max_correction_px)
+            });
+            progress.advance(1);
+            (k, result)
+        })
+        .collect()
+}
+
+/// Every sub-block's camera motion after the fits: the fit where there is one, the motion it
+/// started from otherwise, then smoothed in time when `config.smooth_radius` > 0.
+fn refined_camera(
+    fitted: &[Option<(AffineMotion, Information)>],
+    motion: &FrameMotion,
+    config: &RefineConfig,
+) -> Vec<AffineMotion> {
     let valid: Vec<bool> = fitted.iter().map(|f| f.is_some()).collect();
     let camera: Vec<AffineMotion> = fitted
         .iter()
         .zip(&motion.camera)
         .map(|(f, start)| f.map_or(*start, |(fit, _)| fit))
         .collect();
-    motion.camera = if config.smooth_radius > 0 {
+    if config.smooth_radius > 0 {
         smooth_in_time(
             &camera,
             &valid,
@@ -2436,11 +2499,7 @@ fn refine_pass(
         )
     } else {
         camera
-    };
-    Ok(fitted
-        .into_iter()
-        .map(|f| f.map(|(_, info)| info))
-        .collect())
+    }
 }
 
 #[cfg(test)]
