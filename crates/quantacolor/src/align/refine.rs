@@ -753,6 +753,18 @@ impl FrameMotion {
             .collect()
     }
 
+    /// Composes every sub-block camera with the inverse of the camera at the reference frame,
+    /// so that the motion there is zero (the convention of the flows); unchanged where that
+    /// camera cannot be inverted.
+    pub(crate) fn anchor_at_reference(&mut self) {
+        let anchor = self.camera_at(self.plan.reference_frame as f64);
+        if let Some(undo) = anchor.inverse() {
+            for camera in self.camera.iter_mut() {
+                *camera = camera.after(&undo);
+            }
+        }
+    }
+
     /// Camera motion at (fractional) frame `t`, linear between sub-block centres.
     pub fn camera_at(&self, t: f64) -> AffineMotion {
         interpolate(&self.sub_block_centres(), &self.camera, t)
@@ -2178,7 +2190,7 @@ pub fn refine_camera_motion(
         )?;
         // The templates are registered wherever the block motion put them; the convention is
         // zero motion at the reference frame.
-        anchor_at_reference(motion);
+        motion.anchor_at_reference();
         // Whether to run another pass is decided on the fits themselves: how far the photons
         // moved the cameras from the motion the templates were registered by (the prior's own
         // move is not evidence of misregistered templates; measured on the dark kodim02
@@ -2200,24 +2212,13 @@ pub fn refine_camera_motion(
                         similarity_posterior(camera, info, config.similarity_prior_px, radius);
                 }
             }
-            anchor_at_reference(motion);
+            motion.anchor_at_reference();
         }
         if median_change <= config.repeat_above_px {
             break;
         }
     }
     Ok(())
-}
-
-/// Composes every camera of `motion` with the inverse of its camera at the reference frame, so
-/// that the motion there is zero (the convention of the flows).
-fn anchor_at_reference(motion: &mut FrameMotion) {
-    let anchor = motion.camera_at(motion.plan.reference_frame as f64);
-    if let Some(undo) = anchor.inverse() {
-        for camera in motion.camera.iter_mut() {
-            *camera = camera.after(&undo);
-        }
-    }
 }
 
 /// The camera `camera` fitted with the photons' [`Information`] `information`, moved to the

@@ -271,6 +271,23 @@ struct Mosaic {
 }
 
 impl Mosaic {
+    /// An empty mosaic of `(h, w)` over the capture's W sites that are not hot.
+    fn of_w_sites(capture: &Capture, (h, w): (usize, usize)) -> Self {
+        let hot = capture.hot_pixels.as_ref();
+        let sites = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (y, x)))
+            .filter(|&(y, x)| {
+                capture.cfa.channel(y, x) == Channel::W && !hot.is_some_and(|m| m[[y, x]])
+            })
+            .collect();
+        Mosaic {
+            sum: Array2::zeros((h, w)),
+            frames: Array2::zeros((h, w)),
+            frame_count: 0,
+            sites,
+        }
+    }
+
     fn add(
         &mut self,
         counts: &Array2<u32>,
@@ -368,49 +385,95 @@ pub fn track_fast_camera_motion(
     {
         return Ok(false);
     }
-    let (h, w) = (motion.height, motion.width);
-    let centre = motion.centre();
-    let hot = capture.hot_pixels.as_ref();
-    let layouts: Vec<BinLayout> = config
-        .levels
-        .par_iter()
-        .map(|l| bin_layout(&capture.cfa, grey_method, hot, l.bin))
-        .collect();
-    let sites = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (y, x)))
-        .filter(|&(y, x)| {
-            capture.cfa.channel(y, x) == Channel::W && !hot.is_some_and(|m| m[[y, x]])
-        })
-        .collect();
-    let mut mosaic = Mosaic {
-        sum: Array2::zeros((h, w)),
-        frames: Array2::zeros((h, w)),
-        frame_count: 0,
-        sites,
-    };
+    let tracker = Tracker::new(capture, grey_method, motion, config);
     let n = motion.sub_blocks.len();
-    let reference_frame = motion.plan.reference_frame;
     let first = motion
         .sub_blocks
         .iter()
-        .position(|r| r.contains(&reference_frame))
+        .position(|r| r.contains(&motion.plan.reference_frame))
         .unwrap_or(0);
-    let centres = motion.sub_block_centres();
     let mut camera = vec![AffineMotion::default(); n];
+    let mut mosaic = Mosaic::of_w_sites(capture, (motion.height, motion.width));
     progress.start("fast motion tracking", n as u64);
-    let counts = |k: usize| capture.frames.sum_range(motion.sub_blocks[k].clone());
-    mosaic.add(
-        &counts(first),
-        motion.sub_blocks[first].len(),
-        &camera[first],
-        centre,
-    );
+    tracker.add_sub_block(&mut mosaic, first, &tracker.counts(first), &camera[first]);
     progress.advance(1);
+    // Outward from the reference's sub-block: forward in time, then backward, each direction
+    // fitted to the mosaic of every sub-block tracked before it.
     for forward in [true, false] {
-        // Each direction starts from a template of every sub-block tracked before it.
+        tracker.track_outward(first, forward, &mut camera, &mut mosaic, progress);
+    }
+    progress.finish();
+    if median_linear_part(&camera).is_some_and(|v| v > config.max_linear) {
+        return Ok(false);
+    }
+    motion.camera = camera;
+    motion.anchor_at_reference();
+    Ok(true)
+}
+
+/// What [`track_fast_camera_motion`] fits each sub-block with.
+struct Tracker<'a> {
+    capture: &'a Capture,
+    motion: &'a FrameMotion,
+    config: &'a TrackConfig,
+    layouts: Vec<BinLayout>,
+    centres: Vec<f64>,
+    centre: [f64; 2],
+}
+
+impl<'a> Tracker<'a> {
+    fn new(
+        capture: &'a Capture,
+        grey_method: GreyMethod,
+        motion: &'a FrameMotion,
+        config: &'a TrackConfig,
+    ) -> Self {
+        let hot = capture.hot_pixels.as_ref();
+        let layouts = config
+            .levels
+            .par_iter()
+            .map(|l| bin_layout(&capture.cfa, grey_method, hot, l.bin))
+            .collect();
+        Tracker {
+            capture,
+            motion,
+            config,
+            layouts,
+            centres: motion.sub_block_centres(),
+            centre: motion.centre(),
+        }
+    }
+
+    fn counts(&self, k: usize) -> Array2<u32> {
+        self.capture
+            .frames
+            .sum_range(self.motion.sub_blocks[k].clone())
+    }
+
+    fn add_sub_block(
+        &self,
+        mosaic: &mut Mosaic,
+        k: usize,
+        counts: &Array2<u32>,
+        camera: &AffineMotion,
+    ) {
+        mosaic.add(counts, self.motion.sub_blocks[k].len(), camera, self.centre);
+    }
+
+    /// Tracks the sub-blocks after `first` (`forward`) or before it, one at a time, each from
+    /// the motion extrapolated from the two tracked before it, fitted to the mosaic, then added
+    /// to it.
+    fn track_outward(
+        &self,
+        first: usize,
+        forward: bool,
+        camera: &mut [AffineMotion],
+        mosaic: &mut Mosaic,
+        progress: &dyn Progress,
+    ) {
+        let n = camera.len();
         let mut templates: Option<TemplateLevels> = None;
-        let mut k = first;
-        let mut previous: Option<usize> = None;
+        let (mut k, mut previous) = (first, None::<usize>);
         loop {
             let next = if forward { k + 1 } else { k.wrapping_sub(1) };
             if next >= n {
@@ -418,7 +481,8 @@ pub fn track_fast_camera_motion(
             }
             let prediction = match previous {
                 Some(p) => {
-                    let a = (centres[next] - centres[p]) / (centres[k] - centres[p]);
+                    let a = (self.centres[next] - self.centres[p])
+                        / (self.centres[k] - self.centres[p]);
                     camera[p].lerp(&camera[k], a)
                 }
                 None => camera[k],
@@ -428,59 +492,57 @@ pub fn track_fast_camera_motion(
             // before it, so the fits are in turn).
             let outgrown = templates
                 .as_ref()
-                .is_none_or(|t| t.outgrown_by(&mosaic, config.template_growth));
-            let (fresh, c) = rayon::join(
-                || outgrown.then(|| mosaic.levels(&config.levels)),
-                || counts(next),
+                .is_none_or(|t| t.outgrown_by(mosaic, self.config.template_growth));
+            let (fresh, counts) = rayon::join(
+                || outgrown.then(|| mosaic.levels(&self.config.levels)),
+                || self.counts(next),
             );
             if fresh.is_some() {
                 templates = fresh;
             }
-            let levels: Vec<&TemplateLevel> = templates
+            let templates = templates
                 .as_ref()
-                .expect("made on the first step of each direction")
-                .levels
-                .iter()
-                .collect();
-            let frames = motion.sub_blocks[next].len();
-            camera[next] = prediction
-                .inverse()
-                .and_then(|start| {
-                    fit_sub_block(
-                        &c,
-                        frames,
-                        &layouts,
-                        &levels,
-                        start,
-                        centre,
-                        FitSettings {
-                            iterations: config.iterations,
-                            fine_iterations: config.iterations,
-                            fine_information: 1.0,
-                            fine_thinning: 0,
-                        },
-                    )
-                })
-                .and_then(|inverse| inverse.inverse())
-                .unwrap_or(prediction);
-            mosaic.add(&c, frames, &camera[next], centre);
+                .expect("made on the first step of each direction");
+            camera[next] = self.fit(next, &counts, templates, prediction);
+            self.add_sub_block(mosaic, next, &counts, &camera[next]);
             progress.advance(1);
             previous = Some(k);
             k = next;
         }
     }
-    progress.finish();
-    if median_linear_part(&camera).is_some_and(|v| v > config.max_linear) {
-        return Ok(false);
+
+    /// Sub-block `k`'s camera fitted to `templates` from `prediction` (the prediction where
+    /// the fit fails).
+    fn fit(
+        &self,
+        k: usize,
+        counts: &Array2<u32>,
+        templates: &TemplateLevels,
+        prediction: AffineMotion,
+    ) -> AffineMotion {
+        let levels: Vec<&TemplateLevel> = templates.levels.iter().collect();
+        let settings = FitSettings {
+            iterations: self.config.iterations,
+            fine_iterations: self.config.iterations,
+            fine_information: 1.0,
+            fine_thinning: 0,
+        };
+        prediction
+            .inverse()
+            .and_then(|start| {
+                fit_sub_block(
+                    counts,
+                    self.motion.sub_blocks[k].len(),
+                    &self.layouts,
+                    &levels,
+                    start,
+                    self.centre,
+                    settings,
+                )
+            })
+            .and_then(|inverse| inverse.inverse())
+            .unwrap_or(prediction)
     }
-    // Zero motion at the reference frame, the convention of the flows.
-    motion.camera = camera;
-    if let Some(undo) = motion.camera_at(reference_frame as f64).inverse() {
-        for c in motion.camera.iter_mut() {
-            *c = c.after(&undo);
-        }
-    }
-    Ok(true)
 }
 
 /// Cuts every sub-block of `motion` so that its camera moves at most `max_motion_px` inside
