@@ -164,6 +164,52 @@ impl Pyramid {
     }
 }
 
+/// The offsets of the next coarser pyramid level that seed a level's tile search
+/// ([`parent_candidates`]): per tile of `grid`, in that level's pixels, `factor` times coarser.
+struct ParentLevel<'a> {
+    offsets: &'a Array3<f32>,
+    grid: &'a TileGrid,
+    factor: f32,
+}
+
+/// The seed of lowest patch cost among `seeds` rounded to whole pixels, each distinct offset
+/// scored once (the parent tiles often agree, and equal offsets cost the same); the first of
+/// equal minima wins (as `min_by`).
+fn best_seed(
+    reference: &Array2<f32>,
+    alternate: &Array2<f32>,
+    origin: (usize, usize),
+    ts: usize,
+    seeds: &[(f32, f32)],
+    norm: Norm,
+) -> (isize, isize) {
+    let mut rounded = [(0isize, 0isize); 4];
+    let mut distinct = 0;
+    for &(dy, dx) in seeds {
+        let d = (dy.round() as isize, dx.round() as isize);
+        if !rounded[..distinct].contains(&d) {
+            rounded[distinct] = d;
+            distinct += 1;
+        }
+    }
+    let mut seed_cost = [0.0f32; 4];
+    seed_costs(
+        reference,
+        alternate,
+        origin,
+        ts,
+        &rounded[..distinct],
+        norm,
+        &mut seed_cost[..distinct],
+    );
+    *seed_cost[..distinct]
+        .iter()
+        .zip(&rounded[..distinct])
+        .min_by(|a, b| a.0.total_cmp(b.0))
+        .expect("at least one seed")
+        .1
+}
+
 /// Mean patch distance between the reference tile at origin `(oy, ox)` (clipped to the image)
 /// and the alternate image displaced by `(dy, dx)`, over the tile pixels whose displaced
 /// position lies inside the image; infinite when fewer than a quarter of the tile's pixels
@@ -938,90 +984,15 @@ impl ReferenceAligner {
         let mut valid = Array2::from_elem((g0.tiles_y, g0.tiles_x), false);
         for level in (0..n_levels).rev() {
             let grid = &self.grids[level];
-            let r_img = &self.pyramid.levels[level];
-            let a_img = &alt.levels[level];
-            let norm = self.config.norms[level];
-            let radius = self.config.search_radii[level] as isize;
-            let ts = grid.tile_size;
-            let parent = coarse.as_ref().map(|c| {
-                (
-                    c,
-                    &self.grids[level + 1],
-                    self.config.downsample_factors[level + 1] as f32,
-                )
+            let parent = coarse.as_ref().map(|c| ParentLevel {
+                offsets: c,
+                grid: &self.grids[level + 1],
+                factor: self.config.downsample_factors[level + 1] as f32,
             });
             let offsets: Vec<(f32, f32, bool)> = (0..grid.tiles_y * grid.tiles_x)
                 .into_par_iter()
                 .map_init(LkScratch::default, |scratch, k| {
-                    let (i, j) = (k / grid.tiles_x, k % grid.tiles_x);
-                    let origin = (i * grid.tile_stride, j * grid.tile_stride);
-                    let parent_seeds;
-                    let seeds: &[(f32, f32)] = match parent {
-                        None => &[(0.0, 0.0)],
-                        Some((c, pgrid, f)) => {
-                            parent_seeds = parent_candidates(
-                                c,
-                                pgrid,
-                                f,
-                                grid.tile_centers_y[i],
-                                grid.tile_centers_x[j],
-                            );
-                            &parent_seeds
-                        }
-                    };
-                    // Each distinct seed's cost once (the parent tiles often agree, and equal
-                    // offsets cost the same); the first of equal minima wins (as `min_by`).
-                    let mut rounded = [(0isize, 0isize); 4];
-                    let mut distinct = 0;
-                    for &(dy, dx) in seeds {
-                        let d = (dy.round() as isize, dx.round() as isize);
-                        if !rounded[..distinct].contains(&d) {
-                            rounded[distinct] = d;
-                            distinct += 1;
-                        }
-                    }
-                    let mut seed_cost = [0.0f32; 4];
-                    seed_costs(
-                        r_img,
-                        a_img,
-                        origin,
-                        ts,
-                        &rounded[..distinct],
-                        norm,
-                        &mut seed_cost[..distinct],
-                    );
-                    let seed = seed_cost[..distinct]
-                        .iter()
-                        .zip(&rounded[..distinct])
-                        .min_by(|a, b| a.0.total_cmp(b.0))
-                        .expect("at least one seed")
-                        .1;
-                    let seed = *seed;
-                    let side = (2 * radius + 1) as usize;
-                    scratch.window.clear();
-                    scratch.window.resize(side * side, 0.0);
-                    let costs = &mut scratch.window;
-                    // The whole window: the same numbers as `cost` for each offset.
-                    window_costs(
-                        r_img,
-                        a_img,
-                        origin,
-                        ts,
-                        (seed.0 - radius, seed.1 - radius),
-                        norm,
-                        side,
-                        costs,
-                    );
-                    let best = best_offset(costs, side, seed, radius);
-                    let flow = (best.0 as f32, best.1 as f32);
-                    if level == 0 {
-                        match self.refine(k, a_img, origin, flow, scratch) {
-                            Some(f) => (f.0, f.1, true),
-                            None => (flow.0, flow.1, false),
-                        }
-                    } else {
-                        (flow.0, flow.1, false)
-                    }
+                    self.align_tile(level, k, &alt.levels[level], parent.as_ref(), scratch)
                 })
                 .collect();
             let mut arr = Array3::<f32>::zeros((grid.tiles_y, grid.tiles_x, 2));
@@ -1035,6 +1006,66 @@ impl ReferenceAligner {
             coarse = Some(arr);
         }
         Ok((coarse.expect("at least one level"), valid, alt))
+    }
+
+    /// Tile `k` of pyramid `level` aligned to the block's level image `a_img`: the best of the
+    /// seeds from the `parent` level's offsets (zero on the coarsest level), the best offset in
+    /// the level's search window around it, and on level 0 the Lucas–Kanade refinement
+    /// ([`ReferenceAligner::refine`]). Returns `(dy, dx, refined)` in the level's pixels.
+    fn align_tile(
+        &self,
+        level: usize,
+        k: usize,
+        a_img: &Array2<f32>,
+        parent: Option<&ParentLevel<'_>>,
+        scratch: &mut LkScratch,
+    ) -> (f32, f32, bool) {
+        let grid = &self.grids[level];
+        let r_img = &self.pyramid.levels[level];
+        let norm = self.config.norms[level];
+        let radius = self.config.search_radii[level] as isize;
+        let ts = grid.tile_size;
+        let (i, j) = (k / grid.tiles_x, k % grid.tiles_x);
+        let origin = (i * grid.tile_stride, j * grid.tile_stride);
+        let parent_seeds;
+        let seeds: &[(f32, f32)] = match parent {
+            None => &[(0.0, 0.0)],
+            Some(p) => {
+                parent_seeds = parent_candidates(
+                    p.offsets,
+                    p.grid,
+                    p.factor,
+                    grid.tile_centers_y[i],
+                    grid.tile_centers_x[j],
+                );
+                &parent_seeds
+            }
+        };
+        let seed = best_seed(r_img, a_img, origin, ts, seeds, norm);
+        let side = (2 * radius + 1) as usize;
+        scratch.window.clear();
+        scratch.window.resize(side * side, 0.0);
+        let costs = &mut scratch.window;
+        // The whole window: the same numbers as `cost` for each offset.
+        window_costs(
+            r_img,
+            a_img,
+            origin,
+            ts,
+            (seed.0 - radius, seed.1 - radius),
+            norm,
+            side,
+            costs,
+        );
+        let best = best_offset(costs, side, seed, radius);
+        let flow = (best.0 as f32, best.1 as f32);
+        if level > 0 {
+            return (flow.0, flow.1, false);
+        }
+        match self.refine(k, a_img, origin, flow, scratch) {
+            Some(f) => (f.0, f.1, true),
+            None => (flow.0, flow.1, false),
+        }
     }
 
     /// Lucas–Kanade refinement of tile `k` from the integer offset `start`: minimises
