@@ -119,6 +119,64 @@ pub struct DenoiseConfig {
 }
 
 impl DenoiseConfig {
+    /// Checks the gains (positive) and the given σs (non-negative); the error names the field.
+    pub fn validate_sigmas(&self) -> Result<()> {
+        for (name, gain) in [
+            ("luma_gain", self.luma_gain),
+            ("chroma_gain", self.chroma_gain),
+        ] {
+            if !(gain.is_finite() && gain > 0.0) {
+                return Err(Error::invalid(format!(
+                    "{name} must be positive, got {gain}"
+                )));
+            }
+        }
+        for (name, s) in [("sigma_y", self.sigma_y), ("sigma_c", self.sigma_c)] {
+            if let Some(s) = s {
+                if !(s.is_finite() && s >= 0.0) {
+                    return Err(Error::invalid(format!(
+                        "{name} must be a non-negative number, got {s}"
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The σ of each stabilised channel BM3D filters with, and where it came from: the
+    /// `modelled` σs times the luma and chroma gains (plain BM3D: one σ, the RMS over the
+    /// channels of the orthonormal transform, times the luma gain), or `sigma_y` / `sigma_c`
+    /// where given.
+    fn channel_sigmas(&self, modelled: [f32; 3], source: SigmaSource) -> ([f32; 3], SigmaSource) {
+        let mut sigmas = match self.method {
+            DenoiseMethod::Bm3d => {
+                let rms = (modelled.iter().map(|s| s * s).sum::<f32>() / 3.0).sqrt();
+                [rms * self.luma_gain; 3]
+            }
+            _ => [
+                modelled[0] * self.luma_gain,
+                modelled[1] * self.chroma_gain,
+                modelled[2] * self.chroma_gain,
+            ],
+        };
+        let mut source = source;
+        if let Some(sy) = self.sigma_y {
+            sigmas[0] = sy;
+            if self.method == DenoiseMethod::Bm3d {
+                sigmas = [sy; 3];
+            }
+            source = SigmaSource::Given;
+        }
+        if let Some(sc) = self.sigma_c {
+            if self.method == DenoiseMethod::ChromaBm3d {
+                sigmas[1] = sc;
+                sigmas[2] = sc;
+                source = SigmaSource::Given;
+            }
+        }
+        (sigmas, source)
+    }
+
     /// The BM3D settings the denoiser runs with: `bm3d` with `noise_correlation_px`.
     pub fn bm3d_config(&self) -> Bm3dConfig {
         Bm3dConfig {
@@ -273,25 +331,7 @@ fn denoise_on_pool(
         DenoiseMethod::Bm3d => ColorTransform::opponent(),
         DenoiseMethod::ChromaBm3d => ColorTransform::w_weighted_ycbcr(input.w_weights)?,
     };
-    for (name, gain) in [
-        ("luma_gain", config.luma_gain),
-        ("chroma_gain", config.chroma_gain),
-    ] {
-        if !(gain.is_finite() && gain > 0.0) {
-            return Err(Error::invalid(format!(
-                "{name} must be positive, got {gain}"
-            )));
-        }
-    }
-    for (name, s) in [("sigma_y", config.sigma_y), ("sigma_c", config.sigma_c)] {
-        if let Some(s) = s {
-            if !(s.is_finite() && s >= 0.0) {
-                return Err(Error::invalid(format!(
-                    "{name} must be a non-negative number, got {s}"
-                )));
-            }
-        }
-    }
+    config.validate_sigmas()?;
     let Stabilised {
         stabiliser,
         mut planes,
@@ -301,37 +341,37 @@ fn denoise_on_pool(
         ..
     } = stabilise(linear, input, transform)?;
     let relative_variance = relative_variance.filter(|_| config.sigma_map);
-    let mut sigmas = match config.method {
-        // Plain colour BM3D: one σ, the RMS over the channels (orthonormal transform).
-        DenoiseMethod::Bm3d => {
-            let rms = (modelled.iter().map(|s| s * s).sum::<f32>() / 3.0).sqrt();
-            [rms * config.luma_gain; 3]
-        }
-        _ => [
-            modelled[0] * config.luma_gain,
-            modelled[1] * config.chroma_gain,
-            modelled[2] * config.chroma_gain,
-        ],
-    };
-    let mut source = source;
-    if let Some(sy) = config.sigma_y {
-        sigmas[0] = sy;
-        if config.method == DenoiseMethod::Bm3d {
-            sigmas = [sy; 3];
-        }
-        source = SigmaSource::Given;
-    }
-    if let Some(sc) = config.sigma_c {
-        if config.method == DenoiseMethod::ChromaBm3d {
-            sigmas[1] = sc;
-            sigmas[2] = sc;
-            source = SigmaSource::Given;
-        }
-    }
-
+    let (sigmas, source) = config.channel_sigmas(modelled, source);
     // BM3D's published thresholds are for images on a 0–255 scale: map the luma range there.
-    let (lo, hi) = planes
-        .index_axis(Axis(0), 0)
+    let scale = scale_to_255(planes.index_axis(Axis(0), 0));
+    planes.par_mapv_inplace(|v| v * scale);
+    let chroma_scales = match config.method {
+        DenoiseMethod::ChromaBm3d => config.chroma_scales,
+        _ => 0,
+    };
+    let mut denoised = bm3d_multiscale(
+        planes.view(),
+        sigmas.map(|s| s * scale),
+        relative_variance.as_ref().map(|v| v.view()),
+        chroma_scales,
+        config.coarse_sigma_factor,
+        &config.bm3d_config(),
+    )?;
+    denoised.par_mapv_inplace(|v| v / scale);
+    Ok((
+        unstabilise(denoised.view(), &transform, &stabiliser, (h, w)),
+        Some(DenoiseReport {
+            method: config.method,
+            anscombe_trials: stabiliser.trials(),
+            sigmas,
+            sigma_source: source,
+        }),
+    ))
+}
+
+/// The factor that maps the range of `plane` onto 0–255 (1 for a constant plane).
+fn scale_to_255(plane: ndarray::ArrayView2<f32>) -> f32 {
+    let (lo, hi) = plane
         .as_slice()
         .expect("planes in standard layout")
         .par_iter()
@@ -343,25 +383,21 @@ fn denoise_on_pool(
             || (f32::INFINITY, f32::NEG_INFINITY),
             |(lo, hi), (l, h)| (lo.min(l), hi.max(h)),
         );
-    let scale = if hi > lo { 255.0 / (hi - lo) } else { 1.0 };
-    planes.par_mapv_inplace(|v| v * scale);
-    let scaled_sigmas: Vec<f32> = sigmas.iter().map(|s| s * scale).collect();
-    let scaled_sigmas: [f32; 3] = [scaled_sigmas[0], scaled_sigmas[1], scaled_sigmas[2]];
-    let chroma_scales = match config.method {
-        DenoiseMethod::ChromaBm3d => config.chroma_scales,
-        _ => 0,
-    };
-    let mut denoised = bm3d_multiscale(
-        planes.view(),
-        scaled_sigmas,
-        relative_variance.as_ref().map(|v| v.view()),
-        chroma_scales,
-        config.coarse_sigma_factor,
-        &config.bm3d_config(),
-    )?;
-    denoised.par_mapv_inplace(|v| v / scale);
+    if hi > lo {
+        255.0 / (hi - lo)
+    } else {
+        1.0
+    }
+}
 
-    // Back: inverse colour transform, unbiased inverse Anscombe, flux.
+/// Back from the denoised planes `(3, H, W)` to a linear image `(H, W, 3)`: the inverse colour
+/// transform, then the stabiliser's unbiased inverse to flux.
+fn unstabilise(
+    denoised: ArrayView3<f32>,
+    transform: &ColorTransform,
+    stabiliser: &Stabiliser,
+    (h, w): (usize, usize),
+) -> Array3<f32> {
     let mut out = Array3::<f32>::zeros((h, w, 3));
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
@@ -375,15 +411,7 @@ fn denoise_on_pool(
                 }
             }
         });
-    Ok((
-        out,
-        Some(DenoiseReport {
-            method: config.method,
-            anscombe_trials: stabiliser.trials(),
-            sigmas,
-            sigma_source: source,
-        }),
-    ))
+    out
 }
 
 /// BM3D of (Y, Cb, Cr) planes with grouping on Y, and the low frequencies of Cb and Cr taken
