@@ -133,6 +133,154 @@ fn toml_number(v: &toml::Value) -> Option<f64> {
     }
 }
 
+/// The top-level keys of a `capture.toml` being read (`path` names it in errors).
+struct MetaFields<'a> {
+    table: &'a toml::Table,
+    path: &'a Path,
+}
+
+impl MetaFields<'_> {
+    fn bad_type(&self, key: &str, want: &str, v: &toml::Value) -> Error {
+        Error::format(
+            self.path,
+            format!("`{key}` must be {want}, found {}", toml_type(v)),
+        )
+    }
+
+    fn number(&self, key: &str) -> Result<Option<f64>> {
+        self.table
+            .get(key)
+            .map(|v| toml_number(v).ok_or_else(|| self.bad_type(key, "a number", v)))
+            .transpose()
+    }
+
+    /// `dark_count_rate_hz` or its synonym `dark_current_e_per_s` (not both), 0 without either.
+    fn dark_count_rate_hz(&self) -> Result<f64> {
+        match (
+            self.number("dark_count_rate_hz")?,
+            self.number("dark_current_e_per_s")?,
+        ) {
+            (Some(_), Some(_)) => Err(Error::format(
+                self.path,
+                "give `dark_count_rate_hz` or `dark_current_e_per_s`, not both (they are \
+                 the same quantity: dark events per pixel per second)",
+            )),
+            (a, b) => Ok(a.or(b).unwrap_or(0.0)),
+        }
+    }
+
+    /// The multi-bit readout of a `bit_depth` of 2..=16 (`None` for binary frames, whose
+    /// capture must not give the multi-bit keys).
+    fn multibit(&self, bit_depth: Option<i64>) -> Result<Option<MultiBitReadout>> {
+        let path = self.path;
+        match bit_depth {
+            None | Some(1) => {
+                if let Some(key) = MULTIBIT_KEYS.iter().find(|k| self.table.contains_key(**k)) {
+                    return Err(Error::format(
+                        path,
+                        format!(
+                            "`{key}` is only for multi-bit frames; set `bit_depth` (2..=16) for \
+                             a conventional sensor's capture"
+                        ),
+                    ));
+                }
+                Ok(None)
+            }
+            Some(b) if !(2..=16).contains(&b) => Err(Error::format(
+                path,
+                format!(
+                    "`bit_depth` must be 1 (binary frames) or 2..=16 (multi-bit uint16 \
+                     frames), found {b}"
+                ),
+            )),
+            Some(b) => {
+                let bit_depth = b as u32;
+                let black_level_dn = self.number("black_level_dn")?.unwrap_or(0.0);
+                let full_scale = ((1u64 << bit_depth) - 1) as f64;
+                if !(black_level_dn.is_finite()
+                    && black_level_dn >= 0.0
+                    && black_level_dn < full_scale)
+                {
+                    return Err(Error::format(
+                        path,
+                        format!(
+                            "`black_level_dn` must be >= 0 and below full scale {full_scale}, \
+                             found {black_level_dn}"
+                        ),
+                    ));
+                }
+                let gain_e_per_dn = self.gain_e_per_dn(bit_depth, full_scale - black_level_dn)?;
+                Ok(Some(MultiBitReadout {
+                    bit_depth,
+                    gain_e_per_dn,
+                    black_level_dn,
+                }))
+            }
+        }
+    }
+
+    /// `gain_e_per_dn`, or `full_well_e` over the `range_dn` above the black level (one of
+    /// the two, not both).
+    fn gain_e_per_dn(&self, bit_depth: u32, range_dn: f64) -> Result<f64> {
+        let path = self.path;
+        match (self.number("gain_e_per_dn")?, self.number("full_well_e")?) {
+            (Some(g), None) => Ok(g),
+            (None, Some(fw)) => {
+                if !(fw.is_finite() && fw > 0.0) {
+                    return Err(Error::format(
+                        path,
+                        format!("`full_well_e` must be a finite number > 0, found {fw}"),
+                    ));
+                }
+                Ok(fw / range_dn)
+            }
+            (Some(_), Some(_)) => Err(Error::format(
+                path,
+                "give `gain_e_per_dn` or `full_well_e`, not both",
+            )),
+            (None, None) => Err(Error::format(
+                path,
+                format!(
+                    "missing `gain_e_per_dn` (electrons per digital number) or \
+                     `full_well_e`: a {bit_depth}-bit capture needs one to turn \
+                     digital numbers into photoelectrons"
+                ),
+            )),
+        }
+    }
+
+    /// `w_weights` as three numbers.
+    fn w_weights(&self, v: &toml::Value) -> Result<[f64; 3]> {
+        let want = "an array of three numbers [wR, wG, wB]";
+        let items = v
+            .as_array()
+            .ok_or_else(|| self.bad_type("w_weights", want, v))?;
+        let nums: Vec<f64> = items
+            .iter()
+            .map(|x| {
+                toml_number(x).ok_or_else(|| {
+                    Error::format(
+                        self.path,
+                        format!(
+                            "`w_weights` must hold numbers [wR, wG, wB], found {} in it",
+                            toml_type(x)
+                        ),
+                    )
+                })
+            })
+            .collect::<Result<_>>()?;
+        <[f64; 3]>::try_from(nums).map_err(|n| {
+            Error::format(
+                self.path,
+                format!(
+                    "`w_weights` must hold 3 numbers [wR, wG, wB], found {}",
+                    n.len()
+                ),
+            )
+        })
+    }
+}
+
 /// True for `[table]` and `[[array.of.tables]]` values, which `capture.toml` tolerates as
 /// extra data (e.g. the simulator's `[simulation]` table).
 fn is_table_like(v: &toml::Value) -> bool {
@@ -204,157 +352,39 @@ impl CaptureMeta {
                 ));
             }
         }
-        let bad_type = |key: &str, want: &str, v: &toml::Value| {
-            Error::format(
-                path,
-                format!("`{key}` must be {want}, found {}", toml_type(v)),
-            )
+        let fields = MetaFields {
+            table: &table,
+            path,
         };
-        let number = |key: &str| -> Result<Option<f64>> {
-            table
-                .get(key)
-                .map(|v| toml_number(v).ok_or_else(|| bad_type(key, "a number", v)))
-                .transpose()
-        };
-        let exposure_s = number("exposure_s")?.ok_or_else(|| {
+        let exposure_s = fields.number("exposure_s")?.ok_or_else(|| {
             Error::format(
                 path,
                 "missing required key `exposure_s` (exposure of one binary frame, seconds)",
             )
         })?;
-        let dark_count_rate_hz = match (
-            number("dark_count_rate_hz")?,
-            number("dark_current_e_per_s")?,
-        ) {
-            (Some(_), Some(_)) => {
-                return Err(Error::format(
-                    path,
-                    "give `dark_count_rate_hz` or `dark_current_e_per_s`, not both (they are \
-                     the same quantity: dark events per pixel per second)",
-                ))
-            }
-            (a, b) => a.or(b).unwrap_or(0.0),
-        };
+        let dark_count_rate_hz = fields.dark_count_rate_hz()?;
         let bit_depth = match table.get("bit_depth") {
             None => None,
             Some(toml::Value::Integer(i)) => Some(*i),
-            Some(v) => return Err(bad_type("bit_depth", "an integer", v)),
+            Some(v) => return Err(fields.bad_type("bit_depth", "an integer", v)),
         };
-        let read_noise_e = number("read_noise_e")?.unwrap_or(0.0);
-        let multibit = match bit_depth {
-            None | Some(1) => {
-                if let Some(key) = MULTIBIT_KEYS.iter().find(|k| table.contains_key(**k)) {
-                    return Err(Error::format(
-                        path,
-                        format!(
-                            "`{key}` is only for multi-bit frames; set `bit_depth` (2..=16) for \
-                             a conventional sensor's capture"
-                        ),
-                    ));
-                }
-                None
-            }
-            Some(b) if !(2..=16).contains(&b) => {
-                return Err(Error::format(
-                    path,
-                    format!(
-                        "`bit_depth` must be 1 (binary frames) or 2..=16 (multi-bit uint16 \
-                         frames), found {b}"
-                    ),
-                ))
-            }
-            Some(b) => {
-                let bit_depth = b as u32;
-                let black_level_dn = number("black_level_dn")?.unwrap_or(0.0);
-                let full_scale = ((1u64 << bit_depth) - 1) as f64;
-                if !(black_level_dn.is_finite()
-                    && black_level_dn >= 0.0
-                    && black_level_dn < full_scale)
-                {
-                    return Err(Error::format(
-                        path,
-                        format!(
-                            "`black_level_dn` must be >= 0 and below full scale {full_scale}, \
-                             found {black_level_dn}"
-                        ),
-                    ));
-                }
-                let gain_e_per_dn = match (number("gain_e_per_dn")?, number("full_well_e")?) {
-                    (Some(g), None) => g,
-                    (None, Some(fw)) => {
-                        if !(fw.is_finite() && fw > 0.0) {
-                            return Err(Error::format(
-                                path,
-                                format!("`full_well_e` must be a finite number > 0, found {fw}"),
-                            ));
-                        }
-                        fw / (full_scale - black_level_dn)
-                    }
-                    (Some(_), Some(_)) => {
-                        return Err(Error::format(
-                            path,
-                            "give `gain_e_per_dn` or `full_well_e`, not both",
-                        ))
-                    }
-                    (None, None) => {
-                        return Err(Error::format(
-                            path,
-                            format!(
-                                "missing `gain_e_per_dn` (electrons per digital number) or \
-                                 `full_well_e`: a {bit_depth}-bit capture needs one to turn \
-                                 digital numbers into photoelectrons"
-                            ),
-                        ))
-                    }
-                };
-                Some(MultiBitReadout {
-                    bit_depth,
-                    gain_e_per_dn,
-                    black_level_dn,
-                })
-            }
-        };
+        let read_noise_e = fields.number("read_noise_e")?.unwrap_or(0.0);
+        let multibit = fields.multibit(bit_depth)?;
         let w_weights = match table.get("w_weights") {
             None => default_w_weights(),
-            Some(v) => {
-                let want = "an array of three numbers [wR, wG, wB]";
-                let items = v.as_array().ok_or_else(|| bad_type("w_weights", want, v))?;
-                let nums: Vec<f64> = items
-                    .iter()
-                    .map(|x| {
-                        toml_number(x).ok_or_else(|| {
-                            Error::format(
-                                path,
-                                format!(
-                                    "`w_weights` must hold numbers [wR, wG, wB], found {} in it",
-                                    toml_type(x)
-                                ),
-                            )
-                        })
-                    })
-                    .collect::<Result<_>>()?;
-                <[f64; 3]>::try_from(nums).map_err(|n| {
-                    Error::format(
-                        path,
-                        format!(
-                            "`w_weights` must hold 3 numbers [wR, wG, wB], found {}",
-                            n.len()
-                        ),
-                    )
-                })?
-            }
+            Some(v) => fields.w_weights(v)?,
         };
         let hot_pixels = match table.get("hot_pixels") {
             None => None,
             Some(toml::Value::String(s)) => Some(s.clone()),
-            Some(v) => return Err(bad_type("hot_pixels", "a file name (string)", v)),
+            Some(v) => return Err(fields.bad_type("hot_pixels", "a file name (string)", v)),
         };
         let reference_frame = match table.get("reference_frame") {
             None => None,
             Some(toml::Value::Integer(i)) => Some(usize::try_from(*i).map_err(|_| {
                 Error::format(path, format!("`reference_frame` must be >= 0, found {i}"))
             })?),
-            Some(v) => return Err(bad_type("reference_frame", "an integer", v)),
+            Some(v) => return Err(fields.bad_type("reference_frame", "an integer", v)),
         };
         let meta = CaptureMeta {
             exposure_s,
