@@ -933,9 +933,6 @@ impl<'a> MergeAccumulator<'a> {
             &self.config,
             self.model.max_sample(),
         )?;
-        let u = self.bins_per_px as f32;
-        let margin = self.margin as f32;
-        let (bins_h, bins_w) = (self.bins_h, self.bins_w);
         let block_maps: Vec<_> = block_robustness
             .iter()
             .map(|m| m.as_standard_layout())
@@ -952,114 +949,137 @@ impl<'a> MergeAccumulator<'a> {
             cpu::resize_par(&mut targets, group_len * h * w, (u32::MAX, 0.0f32));
             row_bins = vec![(u32::MAX, 0u32); group_len * h];
         }
-        let stride = self.stride;
         // Sub-blocks are splatted a group at a time: the target bins of all sites of the group
-        // first, then the samples band of bin rows by band of bin rows, one band per task (a
-        // band, ~1 MB, stays in cache while every sub-block of the group adds to it). Within a
-        // band, sub-blocks come in order and each scans its sites in order, so each bin
-        // receives its samples in (sub-block, site) order whatever the number of threads: the
-        // same sums as one serial pass.
-        let band_floats = SPLAT_BAND_ROWS * SUMS * stride;
+        // first, then the samples band of bin rows by band of bin rows ([`Self::splat_group`]).
         for group in sub_blocks.chunks(SPLAT_GROUP) {
             for (k, sub) in group.iter().enumerate() {
-                let targets = &mut targets[k * h * w..(k + 1) * h * w];
-                // The range of target bins of every row of sites, made with the targets, so
-                // that a band skips the rows that cannot reach it.
-                let spans = &mut row_bins[k * h..(k + 1) * h];
-                let own = match &sub.robustness {
-                    SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
-                    _ => None,
-                };
-                let robust: Option<&[f32]> = match &sub.robustness {
-                    SubBlockRobustness::Full => None,
-                    SubBlockRobustness::Block(i) => block_maps[*i].as_slice(),
-                    SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
-                };
-                let grid = TargetGrid {
-                    h,
-                    w,
-                    u,
-                    margin,
-                    bins_h,
-                    bins_w,
-                    stride,
-                    excluded: self.excluded.as_deref(),
-                    robust,
-                };
-                match &sub.flow {
-                    SubBlockMotion::Affine { matrix, offset } => {
-                        grid.fill_affine(targets, spans, matrix, offset, None)
-                    }
-                    SubBlockMotion::CameraAndLocal {
-                        matrix,
-                        offset,
-                        flow,
-                        local,
-                    } => {
-                        let flow = flow.as_standard_layout();
-                        let flow = flow.as_slice().expect("standard layout");
-                        let mask = local.as_standard_layout();
-                        let mask = mask.as_slice().expect("standard layout");
-                        grid.fill_affine(targets, spans, matrix, offset, Some((mask, flow)))
-                    }
-                    SubBlockMotion::Dense(flow) => {
-                        let flow = flow.as_standard_layout();
-                        let flow = flow.as_slice().expect("standard layout");
-                        grid.fill(targets, spans, |q: [f32; 2]| {
-                            reference_position(flow, h, w, q)
-                        })
-                    }
-                }
+                let block_map = |i: usize| block_maps[i].as_slice();
+                self.fill_targets(
+                    sub,
+                    block_map,
+                    &mut targets[k * h * w..(k + 1) * h * w],
+                    &mut row_bins[k * h..(k + 1) * h],
+                );
             }
-            let counts: Vec<_> = group
-                .iter()
-                .map(|sub| sub.counts.as_standard_layout())
-                .collect();
-            let (targets, codes, row_bins) = (&targets, &self.codes, &row_bins);
-            self.bins
-                .par_chunks_mut(band_floats)
-                .enumerate()
-                .for_each(|(band, cells)| {
-                    // A local copy: read once, not after every store into the bins (the
-                    // closure otherwise reads the captured reference).
-                    #[allow(clippy::redundant_locals)]
-                    let stride = stride;
-                    let first = band * band_floats;
-                    let end = first + cells.len();
-                    for (k, sub) in group.iter().enumerate() {
-                        let frames = sub.frames as f32;
-                        let counts = counts[k].as_slice().expect("standard layout");
-                        let targets = &targets[k * h * w..(k + 1) * h * w];
-                        for (y, &(lo, hi)) in row_bins[k * h..(k + 1) * h].iter().enumerate() {
-                            if lo == u32::MAX || (hi as usize) < first || lo as usize >= end {
-                                continue;
-                            }
-                            let sites = y * w..(y + 1) * w;
-                            for ((&(bin, r), &count), &code) in targets[sites.clone()]
-                                .iter()
-                                .zip(&counts[sites.clone()])
-                                .zip(&codes[sites])
-                            {
-                                let bin = bin as usize;
-                                if bin < first || bin >= end {
-                                    continue;
-                                }
-                                // The three sums of the site's channel in one sub-slice (one
-                                // bounds check instead of three): the bins of a band are whole
-                                // bin rows of SUMS planes, so the slice is inside the band.
-                                let slot = bin - first + (code as usize & 3) * 3 * stride;
-                                let cell = &mut cells[slot..slot + 2 * stride + 1];
-                                cell[0] += r * count as f32;
-                                cell[stride] += r * frames;
-                                cell[2 * stride] += r * r * frames;
-                            }
-                        }
-                    }
-                });
+            self.splat_group(group, &targets, &row_bins);
         }
         self.targets = targets;
         self.row_bins = row_bins;
         Ok(())
+    }
+
+    /// The target bin and robustness weight of every site of sub-block `sub` (`block_map(i)`:
+    /// block `i`'s robustness map, row-major), and in `spans` the range of target bins of
+    /// every row of sites, so that a band skips the rows that cannot reach it.
+    fn fill_targets<'m>(
+        &self,
+        sub: &SubBlock,
+        block_map: impl Fn(usize) -> Option<&'m [f32]>,
+        targets: &mut [(u32, f32)],
+        spans: &mut [(u32, u32)],
+    ) {
+        let (h, w) = (self.cfa.height(), self.cfa.width());
+        let own = match &sub.robustness {
+            SubBlockRobustness::Map(m) => Some(m.as_standard_layout()),
+            _ => None,
+        };
+        let robust: Option<&[f32]> = match &sub.robustness {
+            SubBlockRobustness::Full => None,
+            SubBlockRobustness::Block(i) => block_map(*i),
+            SubBlockRobustness::Map(_) => own.as_ref().and_then(|m| m.as_slice()),
+        };
+        let grid = TargetGrid {
+            h,
+            w,
+            u: self.bins_per_px as f32,
+            margin: self.margin as f32,
+            bins_h: self.bins_h,
+            bins_w: self.bins_w,
+            stride: self.stride,
+            excluded: self.excluded.as_deref(),
+            robust,
+        };
+        match &sub.flow {
+            SubBlockMotion::Affine { matrix, offset } => {
+                grid.fill_affine(targets, spans, matrix, offset, None)
+            }
+            SubBlockMotion::CameraAndLocal {
+                matrix,
+                offset,
+                flow,
+                local,
+            } => {
+                let flow = flow.as_standard_layout();
+                let flow = flow.as_slice().expect("standard layout");
+                let mask = local.as_standard_layout();
+                let mask = mask.as_slice().expect("standard layout");
+                grid.fill_affine(targets, spans, matrix, offset, Some((mask, flow)))
+            }
+            SubBlockMotion::Dense(flow) => {
+                let flow = flow.as_standard_layout();
+                let flow = flow.as_slice().expect("standard layout");
+                grid.fill(targets, spans, |q: [f32; 2]| {
+                    reference_position(flow, h, w, q)
+                })
+            }
+        }
+    }
+
+    /// Adds the samples of the sub-blocks of `group` (their sites' `targets` and row spans
+    /// `row_bins` from [`Self::fill_targets`], one `h·w` and one `h` slice per sub-block) to the
+    /// bins, one band of bin rows per task (a band, ~1 MB, stays in cache while every
+    /// sub-block of the group adds to it). Within a band, sub-blocks come in order and each
+    /// scans its sites in order, so each bin receives its samples in (sub-block, site) order
+    /// whatever the number of threads: the same sums as one serial pass.
+    fn splat_group(&mut self, group: &[SubBlock], targets: &[(u32, f32)], row_bins: &[(u32, u32)]) {
+        let (h, w) = (self.cfa.height(), self.cfa.width());
+        let stride = self.stride;
+        let band_floats = SPLAT_BAND_ROWS * SUMS * stride;
+        let counts: Vec<_> = group
+            .iter()
+            .map(|sub| sub.counts.as_standard_layout())
+            .collect();
+        let codes = &self.codes;
+        self.bins
+            .par_chunks_mut(band_floats)
+            .enumerate()
+            .for_each(|(band, cells)| {
+                // A local copy: read once, not after every store into the bins (the
+                // closure otherwise reads the captured reference).
+                #[allow(clippy::redundant_locals)]
+                let stride = stride;
+                let first = band * band_floats;
+                let end = first + cells.len();
+                for (k, sub) in group.iter().enumerate() {
+                    let frames = sub.frames as f32;
+                    let counts = counts[k].as_slice().expect("standard layout");
+                    let targets = &targets[k * h * w..(k + 1) * h * w];
+                    for (y, &(lo, hi)) in row_bins[k * h..(k + 1) * h].iter().enumerate() {
+                        if lo == u32::MAX || (hi as usize) < first || lo as usize >= end {
+                            continue;
+                        }
+                        let sites = y * w..(y + 1) * w;
+                        for ((&(bin, r), &count), &code) in targets[sites.clone()]
+                            .iter()
+                            .zip(&counts[sites.clone()])
+                            .zip(&codes[sites])
+                        {
+                            let bin = bin as usize;
+                            if bin < first || bin >= end {
+                                continue;
+                            }
+                            // The three sums of the site's channel in one sub-slice (one
+                            // bounds check instead of three): the bins of a band are whole
+                            // bin rows of SUMS planes, so the slice is inside the band.
+                            let slot = bin - first + (code as usize & 3) * 3 * stride;
+                            let cell = &mut cells[slot..slot + 2 * stride + 1];
+                            cell[0] += r * count as f32;
+                            cell[stride] += r * frames;
+                            cell[2 * stride] += r * r * frames;
+                        }
+                    }
+                }
+            });
     }
 
     /// (Σ g·S0, Σ g·S1, Σ g²·S2) per channel (the sums of supplement Eq. 1–3 over the bins, g the
