@@ -152,13 +152,51 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
     }
     let range = (quantile(reference, 0.99) - quantile(reference, 0.01)).max(1e-6);
     let d_tr = config.d_tr * range;
+    let products = gradient_products(reference);
+    // Plain (y, x, product) slices for the 3x3 sums below.
+    let products = products.as_slice().expect("fresh array is contiguous");
+    let mut inv_cov = Array3::<f32>::zeros((h, w, 3));
+    let mut anisotropy = Array2::<f32>::zeros((h, w));
+    let mut flatness = Array2::<f32>::zeros((h, w));
+    let max_std = inv_cov
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(anisotropy.axis_iter_mut(Axis(0)))
+        .zip(flatness.axis_iter_mut(Axis(0)))
+        .enumerate()
+        .map(|(y, ((mut inv_row, mut a_row), mut d_row))| {
+            let mut row_max = 0.0f32;
+            for x in 0..w {
+                let tensor = structure_tensor_3x3(products, (h, w), y, x);
+                let kernel = PixelKernel::of(tensor, d_tr, config);
+                row_max = row_max.max(kernel.k_edge).max(kernel.k_grad);
+                for (c, v) in kernel.inv_cov.into_iter().enumerate() {
+                    inv_row[[x, c]] = v;
+                }
+                a_row[x] = kernel.anisotropy;
+                d_row[x] = kernel.flatness;
+            }
+            row_max
+        })
+        .reduce(|| 0.0, f32::max);
+    Ok(KernelField {
+        inv_cov,
+        anisotropy,
+        flatness,
+        max_std,
+    })
+}
+
+/// Per pixel of `reference`, the products (gy², gy·gx, gx²) of its central-difference
+/// gradient (edges replicated; non-finite differences count as 0), `(H, W, 3)`.
+fn gradient_products(reference: &Array2<f32>) -> Array3<f32> {
+    let (h, w) = reference.dim();
     let at = |y: isize, x: isize| -> f32 {
         reference[[
             y.clamp(0, h as isize - 1) as usize,
             x.clamp(0, w as isize - 1) as usize,
         ]]
     };
-    // Gradient products per pixel: (gy², gy·gx, gx²).
     let mut products = Array3::<f32>::zeros((h, w, 3));
     products
         .axis_iter_mut(Axis(0))
@@ -175,77 +213,84 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
                 row[[x as usize, 2]] = gx * gx;
             }
         });
+    products
+}
 
-    // Plain (y, x, product) slices for the 3x3 sums below.
-    let products = products.as_slice().expect("fresh array is contiguous");
-    let mut inv_cov = Array3::<f32>::zeros((h, w, 3));
-    let mut anisotropy = Array2::<f32>::zeros((h, w));
-    let mut flatness = Array2::<f32>::zeros((h, w));
-    let max_std = inv_cov
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(anisotropy.axis_iter_mut(Axis(0)))
-        .zip(flatness.axis_iter_mut(Axis(0)))
-        .enumerate()
-        .map(|(y, ((mut inv_row, mut a_row), mut d_row))| {
-            let mut row_max = 0.0f32;
-            for x in 0..w {
-                let mut t = [0.0f32; 3];
-                for yy in y.saturating_sub(1)..(y + 2).min(h) {
-                    let row = &products[yy * w * 3..(yy + 1) * w * 3];
-                    let window = &row[x.saturating_sub(1) * 3..(x + 2).min(w) * 3];
-                    for p in window.chunks_exact(3) {
-                        t[0] += p[0];
-                        t[1] += p[1];
-                        t[2] += p[2];
-                    }
-                }
-                let [syy, syx, sxx] = t;
-                let half_trace = 0.5 * (syy + sxx);
-                let disc = (0.25 * (syy - sxx) * (syy - sxx) + syx * syx).sqrt();
-                let l1 = (half_trace + disc).max(0.0);
-                let l2 = (half_trace - disc).max(0.0);
-                let a = if l1 <= f32::MIN_POSITIVE {
-                    1.0
-                } else if l2 <= l1 / (config.max_anisotropy * config.max_anisotropy) {
-                    config.max_anisotropy
-                } else {
-                    (l1 / l2).sqrt().min(config.max_anisotropy)
-                };
-                let d = (1.0 - l1.sqrt() / d_tr + config.d_th).clamp(0.0, 1.0);
-                // Gradient direction e_grad (eigenvector of λ1), in (y, x).
-                let (mut ey, mut ex) = (l1 - sxx, syx);
-                let norm = (ey * ey + ex * ex).sqrt();
-                if norm > 1e-12 {
-                    ey /= norm;
-                    ex /= norm;
-                } else if syy >= sxx {
-                    (ey, ex) = (1.0, 0.0);
-                } else {
-                    (ey, ex) = (0.0, 1.0);
-                }
-                let k_edge = config.k_detail * config.k_stretch * a;
-                let k_grad = config.k_detail / (config.k_shrink * a);
-                let k_edge = ((1.0 - d) * k_edge + d * config.k_denoise).max(config.min_std);
-                let k_grad = ((1.0 - d) * k_grad + d * config.k_denoise).max(config.min_std);
-                row_max = row_max.max(k_edge).max(k_grad);
-                // Ω⁻¹ = e_grad e_gradᵀ / k_grad² + e_edge e_edgeᵀ / k_edge², e_edge = (−ex, ey).
-                let (ig, ie) = (1.0 / (k_grad * k_grad), 1.0 / (k_edge * k_edge));
-                inv_row[[x, 0]] = ig * ey * ey + ie * ex * ex;
-                inv_row[[x, 1]] = ig * ey * ex - ie * ex * ey;
-                inv_row[[x, 2]] = ig * ex * ex + ie * ey * ey;
-                a_row[x] = a;
-                d_row[x] = d;
-            }
-            row_max
-        })
-        .reduce(|| 0.0, f32::max);
-    Ok(KernelField {
-        inv_cov,
-        anisotropy,
-        flatness,
-        max_std,
-    })
+/// The structure tensor (Σ gy², Σ gy·gx, Σ gx²) over the 3x3 window of pixel (y, x),
+/// truncated at the image's edges, from the `(H, W, 3)` row-major `products`.
+fn structure_tensor_3x3(products: &[f32], (h, w): (usize, usize), y: usize, x: usize) -> [f32; 3] {
+    let mut t = [0.0f32; 3];
+    for yy in y.saturating_sub(1)..(y + 2).min(h) {
+        let row = &products[yy * w * 3..(yy + 1) * w * 3];
+        let window = &row[x.saturating_sub(1) * 3..(x + 2).min(w) * 3];
+        for p in window.chunks_exact(3) {
+            t[0] += p[0];
+            t[1] += p[1];
+            t[2] += p[2];
+        }
+    }
+    t
+}
+
+/// One pixel's merge kernel from its structure tensor (Wronski et al. 2019 §5.1.2, see
+/// [`KernelConfig`]).
+struct PixelKernel {
+    /// Ω⁻¹ as (yy, yx, xx).
+    inv_cov: [f32; 3],
+    /// Std along the edge and along the gradient, px.
+    k_edge: f32,
+    k_grad: f32,
+    anisotropy: f32,
+    flatness: f32,
+}
+
+impl PixelKernel {
+    /// The kernel of a pixel whose 3x3 structure tensor is `[syy, syx, sxx]`: anisotropy
+    /// A = √(λ1/λ2) (capped at `max_anisotropy`), flatness D = clamp(1 − √λ1 / `d_tr` + D_th),
+    /// stds k_detail·k_stretch·A along the edge and k_detail / (k_shrink·A) along the
+    /// gradient, each blended with k_denoise by D and floored at `min_std`.
+    fn of([syy, syx, sxx]: [f32; 3], d_tr: f32, config: &KernelConfig) -> Self {
+        let half_trace = 0.5 * (syy + sxx);
+        let disc = (0.25 * (syy - sxx) * (syy - sxx) + syx * syx).sqrt();
+        let l1 = (half_trace + disc).max(0.0);
+        let l2 = (half_trace - disc).max(0.0);
+        let a = if l1 <= f32::MIN_POSITIVE {
+            1.0
+        } else if l2 <= l1 / (config.max_anisotropy * config.max_anisotropy) {
+            config.max_anisotropy
+        } else {
+            (l1 / l2).sqrt().min(config.max_anisotropy)
+        };
+        let d = (1.0 - l1.sqrt() / d_tr + config.d_th).clamp(0.0, 1.0);
+        // Gradient direction e_grad (eigenvector of λ1), in (y, x).
+        let (mut ey, mut ex) = (l1 - sxx, syx);
+        let norm = (ey * ey + ex * ex).sqrt();
+        if norm > 1e-12 {
+            ey /= norm;
+            ex /= norm;
+        } else if syy >= sxx {
+            (ey, ex) = (1.0, 0.0);
+        } else {
+            (ey, ex) = (0.0, 1.0);
+        }
+        let k_edge = config.k_detail * config.k_stretch * a;
+        let k_grad = config.k_detail / (config.k_shrink * a);
+        let k_edge = ((1.0 - d) * k_edge + d * config.k_denoise).max(config.min_std);
+        let k_grad = ((1.0 - d) * k_grad + d * config.k_denoise).max(config.min_std);
+        // Ω⁻¹ = e_grad e_gradᵀ / k_grad² + e_edge e_edgeᵀ / k_edge², e_edge = (−ex, ey).
+        let (ig, ie) = (1.0 / (k_grad * k_grad), 1.0 / (k_edge * k_edge));
+        PixelKernel {
+            inv_cov: [
+                ig * ey * ey + ie * ex * ex,
+                ig * ey * ex - ie * ex * ey,
+                ig * ex * ex + ie * ey * ey,
+            ],
+            k_edge,
+            k_grad,
+            anisotropy: a,
+            flatness: d,
+        }
+    }
 }
 
 fn finite(v: f32) -> f32 {
