@@ -158,106 +158,16 @@ impl HotPixelCorrector {
         // the block sum, which then finds the frames' pages mapped and partly cached (summed
         // first, they would be released and faulted in again for these few reads).
         let packed = frames.layout() == FrameLayout::Packed;
-        let row_bytes = frames.width().div_ceil(8);
         let replaced: Vec<Vec<u32>> = self
             .hot
             .par_chunks(HOT_GROUP)
             .zip(self.candidates.par_chunks(HOT_GROUP))
             .map(|(hot, candidates)| {
-                let mut counts = vec![0u32; hot.len()];
                 if packed {
-                    // Packed frames: the bit read straight from the frame's bytes, each
-                    // candidate as its bit's position in a frame (byte · 8 + shift), the
-                    // group's candidates in one flat list (`spans`: each hot pixel's start and
-                    // count). The draws of a chunk of frames are the ChaCha blocks of every
-                    // pixel's stream that hold them (eight blocks at a time, [`chacha8_blocks`]:
-                    // the words `next_u32` would give one by one), turned into bit positions
-                    // frame-major, so the reads of a frame are independent loads with no
-                    // generator work between them.
-                    let mut sites: Vec<u32> = Vec::new();
-                    let mut spans: Vec<(usize, u64)> = Vec::with_capacity(hot.len());
-                    for cands in candidates {
-                        spans.push((sites.len(), cands.len() as u64));
-                        sites.extend(
-                            cands
-                                .iter()
-                                .map(|&(y, x)| (y * row_bytes as u32 + x / 8) * 8 + 7 - x % 8),
-                        );
-                    }
-                    let g = hot.len();
-                    // The bytes of a frame that the group's candidates lie in (a few rows).
-                    let span = match (sites.iter().min(), sites.iter().max()) {
-                        (Some(&lo), Some(&hi)) => (lo >> 3) as usize..(hi >> 3) as usize + 1,
-                        _ => 0..0,
-                    };
-                    // With AVX2, every hot pixel having at most eight candidates (its sites
-                    // one vector) and the 4-byte loads of the group's bytes ending inside a
-                    // frame: the draws and reads fused, eight pixels at a time ([`HotSites`]).
-                    let frame_bytes = frames.height() * row_bytes;
-                    if let Some(sites8) = HotSites::new(&sites, &spans, hot, frame_bytes, &span) {
-                        sites8.count_drawn(&self.key, frames, range.clone(), &span, &mut counts);
-                        return counts;
-                    }
-                    // Per pixel, the DRAW_CHUNK / 16 blocks from the one holding the chunk's first
-                    // frame: pixel i's draw of frame t is word t − 16·(t0 / 16) of its run.
-                    let per_pixel = DRAW_CHUNK / BLOCK_WORDS;
-                    let mut blocks = vec![[0u32; BLOCK_WORDS]; per_pixel * g];
-                    let mut jobs: Vec<(u64, u64)> = Vec::with_capacity(per_pixel * g);
-                    let mut bits = vec![0u32; DRAW_CHUNK * g];
-                    let mut t0 = range.start;
-                    while t0 < range.end {
-                        let t1 = ((t0 / DRAW_CHUNK + 1) * DRAW_CHUNK).min(range.end);
-                        let c = t1 - t0;
-                        let first = t0 / BLOCK_WORDS;
-                        let count = (t1 - 1) / BLOCK_WORDS + 1 - first;
-                        jobs.clear();
-                        for &idx in hot {
-                            jobs.extend((first..first + count).map(|b| (idx as u64, b as u64)));
-                        }
-                        chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g]);
-                        let offset = t0 - first * BLOCK_WORDS;
-                        for (i, (run, &(start, n))) in blocks[..count * g]
-                            .chunks_exact(count)
-                            .zip(&spans)
-                            .enumerate()
-                        {
-                            let words = &run.as_flattened()[offset..][..c];
-                            let sites = &sites[start..];
-                            for (f, &r) in words.iter().enumerate() {
-                                bits[f * g + i] = sites[((r as u64 * n) >> 32) as usize];
-                            }
-                        }
-                        for (f, frame_bits) in bits.chunks_exact(g).take(c).enumerate() {
-                            let t = t0 + f;
-                            if t + PREFETCH_FRAMES < range.end {
-                                crate::cpu::prefetch(
-                                    &frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()],
-                                );
-                            }
-                            let frame = frames.raw_frame(t);
-                            for (count, &b) in counts.iter_mut().zip(frame_bits) {
-                                *count += ((frame[(b >> 3) as usize] >> (b & 7)) & 1) as u32;
-                            }
-                        }
-                        t0 = t1;
-                    }
+                    self.drawn_counts_packed(frames, range.clone(), hot, candidates)
                 } else {
-                    let mut rngs: Vec<ChaCha8Rng> = hot
-                        .iter()
-                        .map(|&idx| self.stream(idx, range.start))
-                        .collect();
-                    for t in range.clone() {
-                        for ((rng, cands), count) in
-                            rngs.iter_mut().zip(candidates).zip(counts.iter_mut())
-                        {
-                            let n = cands.len() as u64;
-                            let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
-                            let (y, x) = (cands[pick].0 as usize, cands[pick].1 as usize);
-                            *count += frames.sample(t, y, x);
-                        }
-                    }
+                    self.drawn_counts_unpacked(frames, range.clone(), hot, candidates)
                 }
-                counts
             })
             .collect();
         let mut sums = frames.shared_sum(range.clone());
@@ -266,6 +176,118 @@ impl HotPixelCorrector {
             sums[[idx / self.width, idx % self.width]] = c;
         }
         sums
+    }
+
+    /// The counts over `range` of the hot pixels `hot` (one group) with each frame's sample
+    /// drawn from the pixel's `candidates`, read from packed frames.
+    fn drawn_counts_packed(
+        &self,
+        frames: &BinaryFrames,
+        range: Range<usize>,
+        hot: &[usize],
+        candidates: &[Vec<(u32, u32)>],
+    ) -> Vec<u32> {
+        let row_bytes = frames.width().div_ceil(8);
+        let mut counts = vec![0u32; hot.len()];
+        // Packed frames: the bit read straight from the frame's bytes, each
+        // candidate as its bit's position in a frame (byte · 8 + shift), the
+        // group's candidates in one flat list (`spans`: each hot pixel's start and
+        // count). The draws of a chunk of frames are the ChaCha blocks of every
+        // pixel's stream that hold them (eight blocks at a time, [`chacha8_blocks`]:
+        // the words `next_u32` would give one by one), turned into bit positions
+        // frame-major, so the reads of a frame are independent loads with no
+        // generator work between them.
+        let mut sites: Vec<u32> = Vec::new();
+        let mut spans: Vec<(usize, u64)> = Vec::with_capacity(hot.len());
+        for cands in candidates {
+            spans.push((sites.len(), cands.len() as u64));
+            sites.extend(
+                cands
+                    .iter()
+                    .map(|&(y, x)| (y * row_bytes as u32 + x / 8) * 8 + 7 - x % 8),
+            );
+        }
+        let g = hot.len();
+        // The bytes of a frame that the group's candidates lie in (a few rows).
+        let span = match (sites.iter().min(), sites.iter().max()) {
+            (Some(&lo), Some(&hi)) => (lo >> 3) as usize..(hi >> 3) as usize + 1,
+            _ => 0..0,
+        };
+        // With AVX2, every hot pixel having at most eight candidates (its sites
+        // one vector) and the 4-byte loads of the group's bytes ending inside a
+        // frame: the draws and reads fused, eight pixels at a time ([`HotSites`]).
+        let frame_bytes = frames.height() * row_bytes;
+        if let Some(sites8) = HotSites::new(&sites, &spans, hot, frame_bytes, &span) {
+            sites8.count_drawn(&self.key, frames, range.clone(), &span, &mut counts);
+            return counts;
+        }
+        // Per pixel, the DRAW_CHUNK / 16 blocks from the one holding the chunk's first
+        // frame: pixel i's draw of frame t is word t − 16·(t0 / 16) of its run.
+        let per_pixel = DRAW_CHUNK / BLOCK_WORDS;
+        let mut blocks = vec![[0u32; BLOCK_WORDS]; per_pixel * g];
+        let mut jobs: Vec<(u64, u64)> = Vec::with_capacity(per_pixel * g);
+        let mut bits = vec![0u32; DRAW_CHUNK * g];
+        let mut t0 = range.start;
+        while t0 < range.end {
+            let t1 = ((t0 / DRAW_CHUNK + 1) * DRAW_CHUNK).min(range.end);
+            let c = t1 - t0;
+            let first = t0 / BLOCK_WORDS;
+            let count = (t1 - 1) / BLOCK_WORDS + 1 - first;
+            jobs.clear();
+            for &idx in hot {
+                jobs.extend((first..first + count).map(|b| (idx as u64, b as u64)));
+            }
+            chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g]);
+            let offset = t0 - first * BLOCK_WORDS;
+            for (i, (run, &(start, n))) in blocks[..count * g]
+                .chunks_exact(count)
+                .zip(&spans)
+                .enumerate()
+            {
+                let words = &run.as_flattened()[offset..][..c];
+                let sites = &sites[start..];
+                for (f, &r) in words.iter().enumerate() {
+                    bits[f * g + i] = sites[((r as u64 * n) >> 32) as usize];
+                }
+            }
+            for (f, frame_bits) in bits.chunks_exact(g).take(c).enumerate() {
+                let t = t0 + f;
+                if t + PREFETCH_FRAMES < range.end {
+                    crate::cpu::prefetch(&frames.raw_frame(t + PREFETCH_FRAMES)[span.clone()]);
+                }
+                let frame = frames.raw_frame(t);
+                for (count, &b) in counts.iter_mut().zip(frame_bits) {
+                    *count += ((frame[(b >> 3) as usize] >> (b & 7)) & 1) as u32;
+                }
+            }
+            t0 = t1;
+        }
+        counts
+    }
+
+    /// [`Self::drawn_counts_packed`] for frames that are not packed: one ChaCha8 stream per
+    /// pixel, a sample at a time.
+    fn drawn_counts_unpacked(
+        &self,
+        frames: &BinaryFrames,
+        range: Range<usize>,
+        hot: &[usize],
+        candidates: &[Vec<(u32, u32)>],
+    ) -> Vec<u32> {
+        let mut counts = vec![0u32; hot.len()];
+        let mut rngs: Vec<ChaCha8Rng> = hot
+            .iter()
+            .map(|&idx| self.stream(idx, range.start))
+            .collect();
+        for t in range.clone() {
+            for ((rng, cands), count) in rngs.iter_mut().zip(candidates).zip(counts.iter_mut()) {
+                let n = cands.len() as u64;
+                let pick = ((rng.next_u32() as u64 * n) >> 32) as usize;
+                let (y, x) = (cands[pick].0 as usize, cands[pick].1 as usize);
+                *count += frames.sample(t, y, x);
+            }
+        }
+        counts
     }
 
     /// The random stream of pixel `idx`, positioned so that its next 32-bit word is the draw of
