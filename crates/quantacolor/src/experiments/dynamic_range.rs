@@ -24,6 +24,7 @@ use super::{summary_markdown, Artifact, Claim, ExperimentOptions, ExperimentOutp
 use crate::error::{Error, Result};
 use crate::model::{self, DynamicRange};
 use crate::simulate::{SensorKind, SensorModel};
+use ndarray::Array3;
 
 /// Total exposure of the comparison, seconds (§7).
 pub const EXPOSURE_S: f64 = 1.0;
@@ -187,7 +188,38 @@ pub fn run(options: &ExperimentOptions) -> Result<ExperimentOutput> {
         }),
     );
 
-    let dr_plot = plot::render(&LinePlot {
+    let dr_plot = dr_plot(&rows)?;
+    let snr_plot = snr_plot(&snr_rows)?;
+    let claims = vec![gap_claim(&rows), dr_claim(&rows, &pixel, &conventional)];
+    let summary = summary_markdown(
+        "Dynamic range (paper §7, Eq. 9–10, Fig. 19)",
+        "Photon model only (crate::model): SPAD of Table 1 over 1 s (24,000 binary frames, \
+         2 cps), SNR >= 1 defines the range, saturation at ln(2n) detections/frame; conventional \
+         reference: Table 1 CMOS, 240 frames summed, 2.4 e- read noise, full well 1023 e-. \
+         Files: dynamic_range.csv / dynamic_range.png (DR against w), snr.csv / snr.png (SNR \
+         against photons/s per band for SPAD W, SPAD R and CMOS R pixels).",
+        &claims,
+        "For w < 1/3 the colour pixels see more light than W and the gap is 40·|log10(3w)| dB \
+         (the CSV covers w from 0.1). The 40·log10(3w) relation follows from the range of a \
+         colour pixel being the W pixel's range scaled by 3w, so it holds exactly for any \
+         single-pixel SNR model; the absolute DR values depend on the model's SNR (Eq. 9) and \
+         the saturation cap.",
+    );
+    Ok(ExperimentOutput {
+        files: vec![
+            ("dynamic_range.csv".into(), Artifact::Text(dr_csv)),
+            ("snr.csv".into(), Artifact::Text(snr_csv)),
+            ("dynamic_range.png".into(), Artifact::Png(dr_plot)),
+            ("snr.png".into(), Artifact::Png(snr_plot)),
+            ("summary.md".into(), Artifact::Text(summary)),
+        ],
+        claims,
+    })
+}
+
+/// Dynamic range against w (Fig. 19's axes) of the three readings.
+fn dr_plot(rows: &[DrRow]) -> Result<Array3<u8>> {
+    plot::render(&LinePlot {
         title: "DYNAMIC RANGE VS W - SPAD 1 S (24000 FRAMES), CMOS 1 S (240 FRAMES)".into(),
         x_label: "W (WR = WG = WB = W)".into(),
         y_label: "DR DB (SNR >= 1)".into(),
@@ -206,8 +238,12 @@ pub fn run(options: &ExperimentOptions) -> Result<ExperimentOutput> {
             },
         ],
         x_categories: None,
-    })?;
-    let snr_plot = plot::render(&LinePlot {
+    })
+}
+
+/// SNR against flux of the SPAD W and R pixels and the CMOS R pixel.
+fn snr_plot(snr_rows: &[SnrRow]) -> Result<Array3<u8>> {
+    plot::render(&LinePlot {
         title: "SNR VS FLUX - 1 S TOTAL EXPOSURE".into(),
         x_label: "LOG10 PHOTONS/S PER BAND".into(),
         y_label: "SNR DB".into(),
@@ -235,16 +271,19 @@ pub fn run(options: &ExperimentOptions) -> Result<ExperimentOutput> {
             },
         ],
         x_categories: None,
-    })?;
+    })
+}
 
-    // Claim 1: the gap is 40·log10(3w) for w >= 1/3.
+/// Claim 1: the gap between the extended and best-performance ranges is 40·log10(3w) dB for
+/// w >= 1/3 (§7, Eq. 10).
+fn gap_claim(rows: &[DrRow]) -> Claim {
     let worst = rows
         .iter()
         .filter(|r| r.w >= 1.0 / 3.0)
         .map(|r| (r.extended_db - r.best_performance_db - 40.0 * (3.0 * r.w).log10()).abs())
         .fold(0.0_f64, f64::max);
     let at_one = rows.last().expect("grid is not empty");
-    let gap_claim = Claim {
+    Claim {
         statement: "extended minus best-performance DR grows as 40·log10(3w) dB for w >= 1/3 \
                     (§7, Eq. 10)"
             .into(),
@@ -259,13 +298,17 @@ pub fn run(options: &ExperimentOptions) -> Result<ExperimentOutput> {
             at_one.extended_db - at_one.best_performance_db,
             40.0 * 3f64.log10()
         ),
-    };
-    // Claim 2: the single-photon burst's range exceeds the conventional burst's (Fig. 19).
+    }
+}
+
+/// Claim 2: the single-photon burst's range exceeds the conventional burst's (Fig. 19).
+fn dr_claim(rows: &[DrRow], pixel: &DynamicRange, conventional: &DynamicRange) -> Claim {
+    let at_one = rows.last().expect("grid is not empty");
     let third = rows
         .iter()
         .find(|r| (r.w - 1.0 / 3.0).abs() < 1e-12)
         .expect("grid holds 1/3");
-    let dr_claim = Claim {
+    Claim {
         statement: "single-photon (SPAD) bursts have a higher dynamic range than a conventional \
                     burst of the same total exposure (Fig. 19)"
             .into(),
@@ -285,30 +328,5 @@ pub fn run(options: &ExperimentOptions) -> Result<ExperimentOutput> {
             conventional.min_flux,
             conventional.max_flux
         ),
-    };
-    let claims = vec![gap_claim, dr_claim];
-    let summary = summary_markdown(
-        "Dynamic range (paper §7, Eq. 9–10, Fig. 19)",
-        "Photon model only (crate::model): SPAD of Table 1 over 1 s (24,000 binary frames, \
-         2 cps), SNR >= 1 defines the range, saturation at ln(2n) detections/frame; conventional \
-         reference: Table 1 CMOS, 240 frames summed, 2.4 e- read noise, full well 1023 e-. \
-         Files: dynamic_range.csv / dynamic_range.png (DR against w), snr.csv / snr.png (SNR \
-         against photons/s per band for SPAD W, SPAD R and CMOS R pixels).",
-        &claims,
-        "For w < 1/3 the colour pixels see more light than W and the gap is 40·|log10(3w)| dB \
-         (the CSV covers w from 0.1). The 40·log10(3w) relation follows from the range of a \
-         colour pixel being the W pixel's range scaled by 3w, so it holds exactly for any \
-         single-pixel SNR model; the absolute DR values depend on the model's SNR (Eq. 9) and \
-         the saturation cap.",
-    );
-    Ok(ExperimentOutput {
-        files: vec![
-            ("dynamic_range.csv".into(), Artifact::Text(dr_csv)),
-            ("snr.csv".into(), Artifact::Text(snr_csv)),
-            ("dynamic_range.png".into(), Artifact::Png(dr_plot)),
-            ("snr.png".into(), Artifact::Png(snr_plot)),
-            ("summary.md".into(), Artifact::Text(summary)),
-        ],
-        claims,
-    })
+    }
 }

@@ -140,6 +140,63 @@ fn setting(quick: bool) -> Setting {
 /// (night); `--scene` replaces both.
 pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<ExperimentOutput> {
     let st = setting(options.quick);
+    let Trials {
+        rows,
+        sheet,
+        settings_text,
+    } = run_trials(options, &st, progress)?;
+    let table = csv(
+        "scene,light,motion,sensor,cfa,psnr,ssim",
+        rows.iter().map(|r| {
+            format!(
+                "{},{},{},{},{},{:.4},{:.5}",
+                r.scene, r.light, r.motion, r.sensor, r.cfa, r.psnr, r.ssim
+            )
+        }),
+    );
+    let png = sensors_plot(&rows)?;
+    let sheet_refs: Vec<Vec<(&Array3<f32>, &Array3<f32>)>> = sheet
+        .iter()
+        .map(|pairs| pairs.iter().map(|(t, e)| (t, e)).collect())
+        .collect();
+    let contact = tone_mapped_sheet(&sheet_refs, st.crop)?;
+
+    let claims = claims(&rows);
+    let summary = summary_markdown(
+        "Sensors: conventional CMOS, SPAD and jot (paper Fig. 11, Fig. 12, supplement Fig. 4)",
+        &setup_text(options, &st, &settings_text),
+        &claims,
+        "Pass criteria (this project's reading of Fig. 11–12): \"beats\" = higher sRGB PSNR under \
+         both motions; \"matches\" = the mean PSNR difference over the two motions is within \
+         ±1 dB or in the SPAD's favour; the jot claims compare the jot with the SPAD behind the \
+         same RGBW CFA at night (in daylight a 1 kfps binary jot saturates: about 150 \
+         detections per frame on white).",
+    );
+    Ok(ExperimentOutput {
+        files: vec![
+            ("sensors.csv".into(), Artifact::Text(table)),
+            ("sensors.png".into(), Artifact::Png(png)),
+            ("contact_sheet.png".into(), Artifact::Png(contact)),
+            ("summary.md".into(), Artifact::Text(summary)),
+        ],
+        claims,
+    })
+}
+
+/// What the simulations of [`run`] give: a row per capture, (truth, estimate) of every sensor
+/// per light and motion, and each sensor's frames and flux per light.
+struct Trials {
+    rows: Vec<SensorRow>,
+    sheet: Vec<Vec<(Array3<f32>, Array3<f32>)>>,
+    settings_text: Vec<String>,
+}
+
+/// Simulates and reconstructs every sensor under every light and motion.
+fn run_trials(
+    options: &ExperimentOptions,
+    st: &Setting,
+    progress: &dyn Progress,
+) -> Result<Trials> {
     let mut rows = Vec::new();
     // (truth, estimate) of every sensor, per light and motion.
     let mut sheet: Vec<Vec<(Array3<f32>, Array3<f32>)>> = Vec::new();
@@ -191,20 +248,20 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
         }
     }
 
-    let table = csv(
-        "scene,light,motion,sensor,cfa,psnr,ssim",
-        rows.iter().map(|r| {
-            format!(
-                "{},{},{},{},{},{:.4},{:.5}",
-                r.scene, r.light, r.motion, r.sensor, r.cfa, r.psnr, r.ssim
-            )
-        }),
-    );
+    Ok(Trials {
+        rows,
+        sheet,
+        settings_text,
+    })
+}
+
+/// sRGB PSNR of every sensor per light and motion.
+fn sensors_plot(rows: &[SensorRow]) -> Result<Array3<u8>> {
     let conditions: Vec<(String, String)> = LIGHTS
         .iter()
         .flat_map(|(l, _, _)| motions().map(|(m, _)| (l.to_string(), m.to_string())))
         .collect();
-    let png = plot::render(&LinePlot {
+    plot::render(&LinePlot {
         title: "SENSORS AT EQUAL LIGHT AND EXPOSURE (FIG. 11-12)".into(),
         x_label: "LIGHT / MOTION".into(),
         y_label: "SRGB PSNR DB".into(),
@@ -215,7 +272,7 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
                 points: conditions
                     .iter()
                     .enumerate()
-                    .filter_map(|(i, (l, m))| find(&rows, l, m, s, c).map(|r| (i as f64, r.psnr)))
+                    .filter_map(|(i, (l, m))| find(rows, l, m, s, c).map(|r| (i as f64, r.psnr)))
                     .collect(),
             })
             .collect(),
@@ -225,18 +282,13 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
                 .map(|(l, m)| format!("{l} {m}").to_uppercase())
                 .collect(),
         ),
-    })?;
-    let sheet_refs: Vec<Vec<(&Array3<f32>, &Array3<f32>)>> = sheet
-        .iter()
-        .map(|pairs| pairs.iter().map(|(t, e)| (t, e)).collect())
-        .collect();
-    let contact = tone_mapped_sheet(&sheet_refs, st.crop)?;
+    })
+}
 
-    let claims = claims(&rows);
-    let summary = summary_markdown(
-        "Sensors: conventional CMOS, SPAD and jot (paper Fig. 11, Fig. 12, supplement Fig. 4)",
-        &format!(
-            "{}x{} px, {} s total exposure for every sensor (Table 1 frame rates, quantum \
+/// The setup paragraph of the summary.
+fn setup_text(options: &ExperimentOptions, st: &Setting, settings_text: &[String]) -> String {
+    format!(
+        "{}x{} px, {} s total exposure for every sensor (Table 1 frame rates, quantum \
              efficiencies, dark counts, read noise; CMOS 10 bits, 1 e-/DN, 16 DN black level), \
              seed {}; light: a white pixel receives {:.0} photons/s per colour band in daylight \
              (scene `{}`) and {:.0} at night (scene `{}`); motion: slow hand shake (peak 2 px, \
@@ -247,34 +299,18 @@ pub fn run(options: &ExperimentOptions, progress: &dyn Progress) -> Result<Exper
              motion (daylight slow, daylight fast, night slow, night fast), columns truth, \
              CMOS Bayer, SPAD Bayer, SPAD RGBW, jot RGBW (centre {} px crops, global tone map \
              at the truth's exposure).",
-            st.width,
-            st.height,
-            st.exposure_s,
-            options.seed,
-            LIGHTS[0].2,
-            options.scene.as_deref().unwrap_or(LIGHTS[0].1),
-            LIGHTS[1].2,
-            options.scene.as_deref().unwrap_or(LIGHTS[1].1),
-            st.border,
-            settings_text.join("; "),
-            st.crop,
-        ),
-        &claims,
-        "Pass criteria (this project's reading of Fig. 11–12): \"beats\" = higher sRGB PSNR under \
-         both motions; \"matches\" = the mean PSNR difference over the two motions is within \
-         ±1 dB or in the SPAD's favour; the jot claims compare the jot with the SPAD behind the \
-         same RGBW CFA at night (in daylight a 1 kfps binary jot saturates: about 150 \
-         detections per frame on white).",
-    );
-    Ok(ExperimentOutput {
-        files: vec![
-            ("sensors.csv".into(), Artifact::Text(table)),
-            ("sensors.png".into(), Artifact::Png(png)),
-            ("contact_sheet.png".into(), Artifact::Png(contact)),
-            ("summary.md".into(), Artifact::Text(summary)),
-        ],
-        claims,
-    })
+        st.width,
+        st.height,
+        st.exposure_s,
+        options.seed,
+        LIGHTS[0].2,
+        options.scene.as_deref().unwrap_or(LIGHTS[0].1),
+        LIGHTS[1].2,
+        options.scene.as_deref().unwrap_or(LIGHTS[1].1),
+        st.border,
+        settings_text.join("; "),
+        st.crop,
+    )
 }
 
 fn find<'a>(
