@@ -259,25 +259,9 @@ fn to_detection_planes(raster: SceneRaster, qe: [f64; 3]) -> SceneRaster {
 }
 
 fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepared> {
+    check_size(config, cfa)?;
     let (h, w, t) = (config.height, config.width, config.frames);
-    if h == 0 || w == 0 || t == 0 {
-        return Err(Error::invalid(format!(
-            "simulation size must be non-zero, got {w}x{h} pixels and {t} frames"
-        )));
-    }
-    if (cfa.height(), cfa.width()) != (h, w) {
-        return Err(Error::invalid(format!(
-            "CFA is {}x{}, the sensor is {w}x{h}",
-            cfa.width(),
-            cfa.height()
-        )));
-    }
     let ss = config.pixel_supersampling;
-    if ss == 0 || ss > 16 {
-        return Err(Error::invalid(format!(
-            "pixel supersampling must be 1..=16, got {ss}"
-        )));
-    }
     let footprint = 1.0 / ss as f64; // sensor px: the box the rasters are pre-filtered by
     let sensor = SensorModel::table1(config.sensor);
     let reference = config.reference_frame.unwrap_or(t / 2);
@@ -293,21 +277,10 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
     let qe = sensor.quantum_efficiency;
     let mut background =
         to_detection_planes(scene.rasterise_with_footprint(h, w, margin, footprint), qe);
-    let mut object = motion.object.as_ref().map(|track| {
-        let r = track.radius;
-        let step = 0.5 * footprint;
-        let n = ((2.0 * r + 4.0) / step).ceil() as usize + 1;
-        let origin = [-(n as f64 - 1.0) * step / 2.0; 2];
-        let planes = scene::supersample(n, n, origin, step, |y, x| {
-            let a = if y * y + x * x < r * r { 1.0 } else { 0.0 };
-            let c = chart::object_texture(y, x);
-            [c[0] * a, c[1] * a, c[2] * a, a]
-        });
-        to_detection_planes(
-            SceneRaster::new_filtered_footprint(planes, origin, step, footprint),
-            qe,
-        )
-    });
+    let mut object = motion
+        .object
+        .as_ref()
+        .map(|track| object_raster(track.radius, footprint, qe));
 
     // Flux gain from the unscaled ground truth, then the ground truth from the scaled rasters.
     let field = FluxField {
@@ -316,12 +289,7 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
         motion: &motion,
         supersampling: ss,
     };
-    let unscaled = field.rgb(reference, h, w);
-    let w_values: Vec<f32> = unscaled
-        .outer_iter()
-        .flat_map(|row| row.outer_iter().map(|v| v.sum()).collect::<Vec<_>>())
-        .collect();
-    let gain = config.flux.gain(&w_values)? as f32;
+    let gain = config.flux.gain(&w_values(&field.rgb(reference, h, w)))? as f32;
     background.planes.mapv_inplace(|v| v * gain);
     if let Some(obj) = object.as_mut() {
         obj.planes
@@ -348,19 +316,7 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
     )?;
     let exposure_s = sensor.exposure_s();
     let dark_per_frame = dark.rates_hz.mapv(|r| (r * exposure_s) as f32);
-    let meta = CaptureMeta {
-        exposure_s,
-        dark_count_rate_hz: dark.mean_normal_rate(),
-        w_weights: [1.0, 1.0, 1.0],
-        hot_pixels: Some("hot_pixels.npy".into()),
-        reference_frame: Some(reference),
-        read_noise_e: sensor.read_noise_e,
-        multibit: (sensor.bit_depth > 1).then_some(MultiBitReadout {
-            bit_depth: sensor.bit_depth,
-            gain_e_per_dn: sensor.gain_e_per_dn,
-            black_level_dn: sensor.black_level_dn,
-        }),
-    };
+    let meta = capture_meta(&sensor, &dark, reference);
     Ok(Prepared {
         sensor,
         motion,
@@ -373,6 +329,72 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
         dark_per_frame,
         meta,
     })
+}
+
+/// Checks the simulation's size, the CFA's agreement with it and the pixel supersampling.
+fn check_size(config: &SimulationConfig, cfa: &Cfa) -> Result<()> {
+    let (h, w, t) = (config.height, config.width, config.frames);
+    if h == 0 || w == 0 || t == 0 {
+        return Err(Error::invalid(format!(
+            "simulation size must be non-zero, got {w}x{h} pixels and {t} frames"
+        )));
+    }
+    if (cfa.height(), cfa.width()) != (h, w) {
+        return Err(Error::invalid(format!(
+            "CFA is {}x{}, the sensor is {w}x{h}",
+            cfa.width(),
+            cfa.height()
+        )));
+    }
+    let ss = config.pixel_supersampling;
+    if ss == 0 || ss > 16 {
+        return Err(Error::invalid(format!(
+            "pixel supersampling must be 1..=16, got {ss}"
+        )));
+    }
+    Ok(())
+}
+
+/// The moving object's raster: a disc of `radius` px with the chart's object texture, in
+/// detection planes of quantum efficiency `qe`, pre-filtered by the pixel `footprint`.
+fn object_raster(radius: f64, footprint: f64, qe: [f64; 3]) -> SceneRaster {
+    let r = radius;
+    let step = 0.5 * footprint;
+    let n = ((2.0 * r + 4.0) / step).ceil() as usize + 1;
+    let origin = [-(n as f64 - 1.0) * step / 2.0; 2];
+    let planes = scene::supersample(n, n, origin, step, |y, x| {
+        let a = if y * y + x * x < r * r { 1.0 } else { 0.0 };
+        let c = chart::object_texture(y, x);
+        [c[0] * a, c[1] * a, c[2] * a, a]
+    });
+    to_detection_planes(
+        SceneRaster::new_filtered_footprint(planes, origin, step, footprint),
+        qe,
+    )
+}
+
+/// The W value (R + G + B) of every pixel of an `(H, W, 3)` image, row-major.
+fn w_values(rgb: &Array3<f32>) -> Vec<f32> {
+    rgb.outer_iter()
+        .flat_map(|row| row.outer_iter().map(|v| v.sum()).collect::<Vec<_>>())
+        .collect()
+}
+
+/// The `capture.toml` metadata of a simulated capture of `sensor` with dark counts `dark`.
+fn capture_meta(sensor: &SensorModel, dark: &DarkCountMap, reference: usize) -> CaptureMeta {
+    CaptureMeta {
+        exposure_s: sensor.exposure_s(),
+        dark_count_rate_hz: dark.mean_normal_rate(),
+        w_weights: [1.0, 1.0, 1.0],
+        hot_pixels: Some("hot_pixels.npy".into()),
+        reference_frame: Some(reference),
+        read_noise_e: sensor.read_noise_e,
+        multibit: (sensor.bit_depth > 1).then_some(MultiBitReadout {
+            bit_depth: sensor.bit_depth,
+            gain_e_per_dn: sensor.gain_e_per_dn,
+            black_level_dn: sensor.black_level_dn,
+        }),
+    }
 }
 
 /// The CFA named by `config.cfa` at the configured size.
