@@ -29,7 +29,7 @@
 use crate::align::{
     align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, shortest_sub_block,
     split_for_merge, steady_block_smear, track_fast_camera_motion, AlignConfig, Alignment,
-    BlockConfig, FrameMotion, RefineConfig, TrackConfig, TrajectoryConfig,
+    BlockConfig, FrameMotion, GreyMethod, RefineConfig, TrackConfig, TrajectoryConfig,
 };
 use crate::capture::Capture;
 use crate::error::{Error, Result};
@@ -211,19 +211,8 @@ pub(crate) fn estimate_motion(
             "[burst.align.blocks] max_steady_smear_px must be a non-negative number, got {max_smear}"
         )));
     }
-    let (mut alignment, mut motion) =
-        align_blocks(capture, reference_frame, &config.align, config, progress)?;
-    let steady_smear = steady_block_smear(&motion, config.track.steady_px);
-    if let Some(block_size) =
-        shorter_block_size(steady_smear, motion.plan.block_size, &config.align.blocks)
-    {
-        let mut align_config = config.align.clone();
-        align_config.blocks.block_size = Some(block_size);
-        // The first alignment's grey blocks are not needed while the second is made.
-        drop((alignment, motion));
-        (alignment, motion) =
-            align_blocks(capture, reference_frame, &align_config, config, progress)?;
-    }
+    let (alignment, mut motion) =
+        align_blocks_replanned(capture, reference_frame, config, progress)?;
     laps.lap("align");
 
     let grey_blocks = &alignment.grey;
@@ -238,31 +227,16 @@ pub(crate) fn estimate_motion(
         / shortest_sub_block(detections_per_frame, &config.refine) as f64;
     let tracked = oracle.is_none()
         && config.refine.enabled
-        && track_fast_camera_motion(
+        && follow_fast_motion(
             capture,
             alignment.grey_method,
             &mut motion,
-            &config.track,
+            config,
             followable_px_per_frame,
+            laps,
             progress,
         )?;
-    if tracked {
-        // Block alignment under fast motion matched streaks: its local residual is not motion.
-        motion.drop_local_motion();
-        laps.lap("fast motion tracking");
-        if fit_photon_trajectory(
-            capture,
-            alignment.grey_method,
-            &mut motion,
-            &config.trajectory,
-            config.refine.max_sub_block_motion_px,
-            progress,
-        )? {
-            laps.lap("photon trajectory");
-        } else {
-            split_for_merge(&mut motion, config.refine.max_sub_block_motion_px);
-        }
-    } else if oracle.is_none() && config.refine.enabled {
+    if !tracked && oracle.is_none() && config.refine.enabled {
         refine_camera_motion(
             capture,
             alignment.grey_method,
@@ -278,6 +252,70 @@ pub(crate) fn estimate_motion(
         motion,
         tracked,
     })
+}
+
+/// Stage 1 ([`align_blocks`]), made again in shorter blocks when a steady camera smears each
+/// block by more than `max_steady_smear_px` ([`shorter_block_size`]).
+fn align_blocks_replanned(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &BurstConfig,
+    progress: &dyn Progress,
+) -> Result<(Alignment, FrameMotion)> {
+    let (mut alignment, mut motion) =
+        align_blocks(capture, reference_frame, &config.align, config, progress)?;
+    let steady_smear = steady_block_smear(&motion, config.track.steady_px);
+    if let Some(block_size) =
+        shorter_block_size(steady_smear, motion.plan.block_size, &config.align.blocks)
+    {
+        let mut align_config = config.align.clone();
+        align_config.blocks.block_size = Some(block_size);
+        // The first alignment's grey blocks are not needed while the second is made.
+        drop((alignment, motion));
+        (alignment, motion) =
+            align_blocks(capture, reference_frame, &align_config, config, progress)?;
+    }
+    Ok((alignment, motion))
+}
+
+/// Stage 2 under fast motion: when [`track_fast_camera_motion`] finds the camera too fast for
+/// the refinement and tracks it, the block flows' local residual is dropped (streak matching,
+/// not motion) and the photon trajectory is fitted (or the sub-blocks split for the merge);
+/// returns whether it tracked. Each stage's time is recorded in `laps`.
+fn follow_fast_motion(
+    capture: &Capture,
+    grey_method: GreyMethod,
+    motion: &mut FrameMotion,
+    config: &BurstConfig,
+    followable_px_per_frame: f64,
+    laps: &mut Laps,
+    progress: &dyn Progress,
+) -> Result<bool> {
+    if !track_fast_camera_motion(
+        capture,
+        grey_method,
+        motion,
+        &config.track,
+        followable_px_per_frame,
+        progress,
+    )? {
+        return Ok(false);
+    }
+    motion.drop_local_motion();
+    laps.lap("fast motion tracking");
+    if fit_photon_trajectory(
+        capture,
+        grey_method,
+        motion,
+        &config.trajectory,
+        config.refine.max_sub_block_motion_px,
+        progress,
+    )? {
+        laps.lap("photon trajectory");
+    } else {
+        split_for_merge(motion, config.refine.max_sub_block_motion_px);
+    }
+    Ok(true)
 }
 
 /// Stage 1: the block alignment of `align_config` and the block motion it gives (camera and
