@@ -156,6 +156,116 @@ fn type_name(obj: &Bound<'_, PyAny>) -> String {
         .unwrap_or_else(|_| "?".into())
 }
 
+/// The `cfa` argument: uint8 (H, W), codes 0=R 1=G 2=B 3=W.
+fn cfa_arg(py: Python<'_>, cfa: &Bound<'_, PyAny>) -> PyResult<Cfa> {
+    let cfa_arr = as_ndarray("cfa", cfa)?;
+    if !cfa_arr.dtype().is_equiv_to(&dtype::<u8>(py)) {
+        return Err(PyTypeError::new_err(format!(
+            "cfa must be uint8 codes 0=R 1=G 2=B 3=W, got dtype {}",
+            dtype_str(&cfa_arr)
+        )));
+    }
+    check_ndim("cfa", &cfa_arr, 2, "(H, W)")?;
+    let codes: Array2<u8> = cfa_arr
+        .downcast::<PyArray2<u8>>()?
+        .readonly()
+        .as_array()
+        .to_owned();
+    Cfa::new(codes).map_err(|e| lib_err("cfa", e))
+}
+
+/// The `frames` argument as packed frames: uint8 (T, H, ceil(W/8)) packed MSB first as it is,
+/// or bool / uint8 0/1 (T, H, W) unpacked, packed here; `(h, w)` is the CFA's size.
+fn packed_frames_arg(
+    py: Python<'_>,
+    frames: &Bound<'_, PyAny>,
+    h: usize,
+    w: usize,
+) -> PyResult<Array3<u8>> {
+    let fr = as_ndarray("frames", frames)?;
+    check_ndim("frames", &fr, 3, "(T, H, ceil(W/8)) packed or (T, H, W)")?;
+    let shape = fr.shape().to_vec();
+    if shape[0] == 0 {
+        return Err(PyValueError::new_err(
+            "frames holds no frames (T = 0); a capture needs at least one",
+        ));
+    }
+    if shape[1] != h {
+        return Err(PyValueError::new_err(format!(
+            "frames has height {} (shape {shape:?}), cfa has height {h} (shape ({h}, {w}))",
+            shape[1]
+        )));
+    }
+    if fr.dtype().is_equiv_to(&dtype::<bool>(py)) {
+        if shape[2] != w {
+            return Err(PyValueError::new_err(format!(
+                "frames (bool, unpacked) has width {}, cfa has width {w}",
+                shape[2]
+            )));
+        }
+        let bits = fr
+            .downcast::<PyArray3<bool>>()?
+            .readonly()
+            .as_array()
+            .mapv(u8::from);
+        Ok(quantacolor::capture::frames::pack_bits(&bits))
+    } else if fr.dtype().is_equiv_to(&dtype::<u8>(py)) {
+        let arr = fr.downcast::<PyArray3<u8>>()?.readonly();
+        let view = arr.as_array();
+        if shape[2] == w && (w != 1 || view.iter().all(|&b| b <= 1)) {
+            if let Some(&bad) = view.iter().find(|&&b| b > 1) {
+                return Err(PyValueError::new_err(format!(
+                    "frames (uint8, unpacked (T, H, W)) must hold 0 or 1, found {bad}; \
+                     packed frames have ceil(W/8) = {} bytes per row",
+                    w.div_ceil(8)
+                )));
+            }
+            Ok(quantacolor::capture::frames::pack_bits(&view.to_owned()))
+        } else if shape[2] == w.div_ceil(8) {
+            Ok(view.to_owned())
+        } else {
+            Err(PyValueError::new_err(format!(
+                "frames has shape {shape:?}: for cfa width {w} its last axis must be {} \
+                 (packed) or {w} (unpacked)",
+                w.div_ceil(8)
+            )))
+        }
+    } else {
+        Err(PyTypeError::new_err(format!(
+            "frames must be uint8 (packed or 0/1) or bool, got dtype {}",
+            dtype_str(&fr)
+        )))
+    }
+}
+
+/// The `hot_pixels` argument: a bool (H, W) mask.
+fn hot_pixels_arg(py: Python<'_>, obj: &Bound<'_, PyAny>) -> PyResult<Array2<bool>> {
+    let a = as_ndarray("hot_pixels", obj)?;
+    if !a.dtype().is_equiv_to(&dtype::<bool>(py)) {
+        return Err(PyTypeError::new_err(format!(
+            "hot_pixels must be a bool (H, W) mask, got dtype {}",
+            dtype_str(&a)
+        )));
+    }
+    check_ndim("hot_pixels", &a, 2, "(H, W)")?;
+    Ok(a.downcast::<PyArray2<bool>>()?
+        .readonly()
+        .as_array()
+        .to_owned())
+}
+
+/// The `ground_truth` argument: a float32 (h, w, 3) linear image.
+fn ground_truth_arg(obj: &Bound<'_, PyAny>, h: usize, w: usize) -> PyResult<Array3<f32>> {
+    let t = linear_image("ground_truth", obj)?;
+    if t.dim() != (h, w, 3) {
+        return Err(PyValueError::new_err(format!(
+            "ground_truth has shape {:?}, expected ({h}, {w}, 3)",
+            t.dim()
+        )));
+    }
+    Ok(t)
+}
+
 /// `obj` as a numpy array, or a `TypeError` naming `arg`.
 fn as_ndarray<'py>(arg: &str, obj: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyUntypedArray>> {
     obj.downcast::<PyUntypedArray>().cloned().map_err(|_| {
@@ -495,111 +605,17 @@ impl PyCapture {
         reference_frame: Option<i64>,
         ground_truth: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<Self> {
-        // cfa: uint8 (H, W), codes 0..3.
-        let cfa_arr = as_ndarray("cfa", cfa)?;
-        if !cfa_arr.dtype().is_equiv_to(&dtype::<u8>(py)) {
-            return Err(PyTypeError::new_err(format!(
-                "cfa must be uint8 codes 0=R 1=G 2=B 3=W, got dtype {}",
-                dtype_str(&cfa_arr)
-            )));
-        }
-        check_ndim("cfa", &cfa_arr, 2, "(H, W)")?;
-        let codes: Array2<u8> = cfa_arr
-            .downcast::<PyArray2<u8>>()?
-            .readonly()
-            .as_array()
-            .to_owned();
-        let (h, w) = codes.dim();
-        let cfa = Cfa::new(codes).map_err(|e| lib_err("cfa", e))?;
-
-        // frames: packed uint8 (T, H, ceil(W/8)) or unpacked bool/uint8 (T, H, W).
-        let fr = as_ndarray("frames", frames)?;
-        check_ndim("frames", &fr, 3, "(T, H, ceil(W/8)) packed or (T, H, W)")?;
-        let shape = fr.shape().to_vec();
-        if shape[0] == 0 {
-            return Err(PyValueError::new_err(
-                "frames holds no frames (T = 0); a capture needs at least one",
-            ));
-        }
-        if shape[1] != h {
-            return Err(PyValueError::new_err(format!(
-                "frames has height {} (shape {shape:?}), cfa has height {h} (shape ({h}, {w}))",
-                shape[1]
-            )));
-        }
-        let packed = if fr.dtype().is_equiv_to(&dtype::<bool>(py)) {
-            if shape[2] != w {
-                return Err(PyValueError::new_err(format!(
-                    "frames (bool, unpacked) has width {}, cfa has width {w}",
-                    shape[2]
-                )));
-            }
-            let bits = fr
-                .downcast::<PyArray3<bool>>()?
-                .readonly()
-                .as_array()
-                .mapv(u8::from);
-            quantacolor::capture::frames::pack_bits(&bits)
-        } else if fr.dtype().is_equiv_to(&dtype::<u8>(py)) {
-            let arr = fr.downcast::<PyArray3<u8>>()?.readonly();
-            let view = arr.as_array();
-            if shape[2] == w && (w != 1 || view.iter().all(|&b| b <= 1)) {
-                if let Some(&bad) = view.iter().find(|&&b| b > 1) {
-                    return Err(PyValueError::new_err(format!(
-                        "frames (uint8, unpacked (T, H, W)) must hold 0 or 1, found {bad}; \
-                         packed frames have ceil(W/8) = {} bytes per row",
-                        w.div_ceil(8)
-                    )));
-                }
-                quantacolor::capture::frames::pack_bits(&view.to_owned())
-            } else if shape[2] == w.div_ceil(8) {
-                view.to_owned()
-            } else {
-                return Err(PyValueError::new_err(format!(
-                    "frames has shape {shape:?}: for cfa width {w} its last axis must be {} \
-                     (packed) or {w} (unpacked)",
-                    w.div_ceil(8)
-                )));
-            }
-        } else {
-            return Err(PyTypeError::new_err(format!(
-                "frames must be uint8 (packed or 0/1) or bool, got dtype {}",
-                dtype_str(&fr)
-            )));
-        };
-
-        let hot = match hot_pixels.filter(|o| !o.is_none()) {
-            None => None,
-            Some(obj) => {
-                let a = as_ndarray("hot_pixels", obj)?;
-                if !a.dtype().is_equiv_to(&dtype::<bool>(py)) {
-                    return Err(PyTypeError::new_err(format!(
-                        "hot_pixels must be a bool (H, W) mask, got dtype {}",
-                        dtype_str(&a)
-                    )));
-                }
-                check_ndim("hot_pixels", &a, 2, "(H, W)")?;
-                Some(
-                    a.downcast::<PyArray2<bool>>()?
-                        .readonly()
-                        .as_array()
-                        .to_owned(),
-                )
-            }
-        };
-        let truth = match ground_truth.filter(|o| !o.is_none()) {
-            None => None,
-            Some(obj) => {
-                let t = linear_image("ground_truth", obj)?;
-                if t.dim() != (h, w, 3) {
-                    return Err(PyValueError::new_err(format!(
-                        "ground_truth has shape {:?}, expected ({h}, {w}, 3)",
-                        t.dim()
-                    )));
-                }
-                Some(t)
-            }
-        };
+        let cfa = cfa_arg(py, cfa)?;
+        let (h, w) = (cfa.height(), cfa.width());
+        let packed = packed_frames_arg(py, frames, h, w)?;
+        let hot = hot_pixels
+            .filter(|o| !o.is_none())
+            .map(|obj| hot_pixels_arg(py, obj))
+            .transpose()?;
+        let truth = ground_truth
+            .filter(|o| !o.is_none())
+            .map(|obj| ground_truth_arg(obj, h, w))
+            .transpose()?;
         let mut meta = CaptureMeta::new(exposure_s);
         meta.dark_count_rate_hz = dark_count_rate_hz;
         if let Some(wobj) = w_weights.filter(|o| !o.is_none()) {
