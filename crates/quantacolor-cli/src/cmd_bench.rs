@@ -962,8 +962,26 @@ fn write_summary(
     means: &[(f64, f64, f64)],
     sr_rows: &[(&Row, &SuperResolution)],
 ) -> Result<()> {
+    writeln!(
+        md,
+        "\nSummary ({}, {} captures):\n",
+        title.to_lowercase(),
+        rows.len()
+    )?;
+    write_merge_summary(md, cases, rows, means, sr_rows)?;
+    write_denoise_summary(md, rows, means)
+}
+
+/// The summary's lines on the merge: against the true-motion merge and the naive baselines,
+/// SSIM wins, motion errors and super-resolution.
+fn write_merge_summary(
+    md: &mut String,
+    cases: &[Case],
+    rows: &[&Row],
+    means: &[(f64, f64, f64)],
+    sr_rows: &[(&Row, &SuperResolution)],
+) -> Result<()> {
     let n = rows.len();
-    writeln!(md, "\nSummary ({}, {n} captures):\n", title.to_lowercase())?;
     let gap = |r: &Row| r.scores[BURST].psnr_srgb - r.scores[TRUE_MOTION].psnr_srgb;
     let worst = rows
         .iter()
@@ -1024,6 +1042,13 @@ fn write_summary(
             diffs.len()
         )?;
     }
+    Ok(())
+}
+
+/// The summary's lines on denoising: chroma-BM3D against the merge it runs on, the default
+/// merge, plain colour BM3D, and every method's LPIPS.
+fn write_denoise_summary(md: &mut String, rows: &[&Row], means: &[(f64, f64, f64)]) -> Result<()> {
+    let n = rows.len();
     writeln!(
         md,
         "- chroma-BM3D − the same merge without denoising: {:+.2} dB (target >= +1.5 dB)",
@@ -1392,93 +1417,128 @@ fn denoise_grid(
     denoise: &DenoiseConfig,
     progress: &dyn Progress,
 ) -> Result<()> {
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
-    let mut settings: Vec<DenoiseSetting> = Vec::new();
-    for &merge_k_denoise in &grid.merge_k_denoise {
-        for &luma_gain in &grid.luma_gains {
-            for &chroma_gain in &grid.chroma_gains {
-                for &chroma_scales in &grid.chroma_scales {
-                    for &coarse_sigma_factor in &grid.coarse_sigma_factors {
-                        settings.push(DenoiseSetting {
-                            merge_k_denoise,
-                            luma_gain,
-                            chroma_gain,
-                            chroma_scales,
-                            coarse_sigma_factor,
-                        });
-                        if chroma_scales == 0 {
-                            break;
+    let settings = grid.settings();
+    let mut scores: Vec<Vec<Scores>> = vec![Vec::new(); settings.len()];
+    let mut baseline: Vec<Scores> = Vec::new();
+    progress.start("denoising grid", captures.len() as u64);
+    for (name, sim) in captures {
+        let (base, capture_scores) =
+            score_denoise_settings(name, sim, grid, &settings, burst_config, denoise)?;
+        baseline.push(base);
+        for (i, s) in capture_scores {
+            scores[i].push(s);
+        }
+        progress.advance(1);
+    }
+    progress.finish();
+    print_denoise_table(&settings, &scores, &baseline);
+    Ok(())
+}
+
+/// The scores of the grid's captures' evaluation: 16-px border, the truth's 99.5th percentile.
+const DENOISE_EVAL: EvalOptions = EvalOptions {
+    border: 16,
+    normalize_percentile: Some(99.5),
+};
+
+impl DenoiseGrid {
+    /// Every setting of the grid (one coarse σ factor only where there are no coarse scales).
+    fn settings(&self) -> Vec<DenoiseSetting> {
+        let mut settings: Vec<DenoiseSetting> = Vec::new();
+        for &merge_k_denoise in &self.merge_k_denoise {
+            for &luma_gain in &self.luma_gains {
+                for &chroma_gain in &self.chroma_gains {
+                    for &chroma_scales in &self.chroma_scales {
+                        for &coarse_sigma_factor in &self.coarse_sigma_factors {
+                            settings.push(DenoiseSetting {
+                                merge_k_denoise,
+                                luma_gain,
+                                chroma_gain,
+                                chroma_scales,
+                                coarse_sigma_factor,
+                            });
+                            if chroma_scales == 0 {
+                                break;
+                            }
                         }
                     }
                 }
             }
         }
+        settings
     }
-    let mut scores: Vec<Vec<Scores>> = vec![Vec::new(); settings.len()];
-    let mut baseline: Vec<Scores> = Vec::new();
-    progress.start("denoising grid", captures.len() as u64);
-    for (name, sim) in captures {
-        let capture = sim.to_capture()?;
-        let reference = capture.reference_frame();
-        let gt = sim.ground_truth.view();
-        // End to end: the default merge without denoising.
-        let plain = reconstruct_burst(&capture, reference, burst_config, &Silent)?;
-        let base = evaluate(plain.merged.linear.view(), gt, &opts)?;
-        eprintln!(
-            "{name}: no denoising {:.2} dB / {:.4}",
-            base.psnr_srgb, base.ssim_srgb
-        );
-        baseline.push(base);
-        for &k in &grid.merge_k_denoise {
-            let config = ReconstructConfig {
-                burst: burst_config.clone(),
-                denoise: DenoiseConfig {
-                    merge_k_denoise: k,
-                    ..denoise.clone()
-                },
-                ..ReconstructConfig::default()
+}
+
+/// One capture of the grid: the scores of the default merge without denoising (end to end),
+/// and `(index in settings, scores)` of every setting (one merge per flat-area kernel, every
+/// σ setting denoising it).
+fn score_denoise_settings(
+    name: &str,
+    sim: &SimulatedCapture,
+    grid: &DenoiseGrid,
+    settings: &[DenoiseSetting],
+    burst_config: &BurstConfig,
+    denoise: &DenoiseConfig,
+) -> Result<(Scores, Vec<(usize, Scores)>)> {
+    let capture = sim.to_capture()?;
+    let reference = capture.reference_frame();
+    let gt = sim.ground_truth.view();
+    let plain = reconstruct_burst(&capture, reference, burst_config, &Silent)?;
+    let base = evaluate(plain.merged.linear.view(), gt, &DENOISE_EVAL)?;
+    eprintln!(
+        "{name}: no denoising {:.2} dB / {:.4}",
+        base.psnr_srgb, base.ssim_srgb
+    );
+    let mut scores = Vec::new();
+    for &k in &grid.merge_k_denoise {
+        let config = ReconstructConfig {
+            burst: burst_config.clone(),
+            denoise: DenoiseConfig {
+                merge_k_denoise: k,
+                ..denoise.clone()
+            },
+            ..ReconstructConfig::default()
+        };
+        let burst = reconstruct_burst(&capture, reference, &burst_config_for(&config), &Silent)?;
+        let input = denoise_input(&capture, Some(&burst), capture.frames.frame_count());
+        for (i, setting) in settings
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| s.merge_k_denoise == k)
+        {
+            let config = DenoiseConfig {
+                luma_gain: setting.luma_gain,
+                chroma_gain: setting.chroma_gain,
+                chroma_scales: setting.chroma_scales,
+                coarse_sigma_factor: setting.coarse_sigma_factor,
+                ..config.denoise.clone()
             };
-            let burst =
-                reconstruct_burst(&capture, reference, &burst_config_for(&config), &Silent)?;
-            let input = denoise_input(&capture, Some(&burst), capture.frames.frame_count());
-            for (i, setting) in settings
-                .iter()
-                .enumerate()
-                .filter(|(_, s)| s.merge_k_denoise == k)
-            {
-                let config = DenoiseConfig {
-                    luma_gain: setting.luma_gain,
-                    chroma_gain: setting.chroma_gain,
-                    chroma_scales: setting.chroma_scales,
-                    coarse_sigma_factor: setting.coarse_sigma_factor,
-                    ..config.denoise.clone()
-                };
-                let start = Instant::now();
-                let (out, report) = denoise_linear(burst.merged.linear.view(), &input, &config)?;
-                let s = evaluate(out.view(), gt, &opts)?;
-                eprintln!(
-                    "{name}: {setting:?}: {:.2} dB / {:.4} ({:+.2} dB; {:.2} s, σ {:?})",
-                    s.psnr_srgb,
-                    s.ssim_srgb,
-                    s.psnr_srgb - base.psnr_srgb,
-                    start.elapsed().as_secs_f64(),
-                    report.map(|r| r.sigmas)
-                );
-                scores[i].push(s);
-            }
+            let start = Instant::now();
+            let (out, report) = denoise_linear(burst.merged.linear.view(), &input, &config)?;
+            let s = evaluate(out.view(), gt, &DENOISE_EVAL)?;
+            eprintln!(
+                "{name}: {setting:?}: {:.2} dB / {:.4} ({:+.2} dB; {:.2} s, σ {:?})",
+                s.psnr_srgb,
+                s.ssim_srgb,
+                s.psnr_srgb - base.psnr_srgb,
+                start.elapsed().as_secs_f64(),
+                report.map(|r| r.sigmas)
+            );
+            scores.push((i, s));
         }
-        progress.advance(1);
     }
-    progress.finish();
-    let n = captures.len() as f64;
+    Ok((base, scores))
+}
+
+/// The grid's table: per setting the mean PSNR / SSIM over the captures, the mean gain over no
+/// denoising and the smallest gain.
+fn print_denoise_table(settings: &[DenoiseSetting], scores: &[Vec<Scores>], baseline: &[Scores]) {
+    let n = baseline.len() as f64;
     let base_psnr = baseline.iter().map(|s| s.psnr_srgb).sum::<f64>() / n;
     let base_ssim = baseline.iter().map(|s| s.ssim_srgb).sum::<f64>() / n;
     println!(
         "{} captures; no denoising (default merge): {base_psnr:.2} dB / {base_ssim:.4}",
-        captures.len()
+        baseline.len()
     );
     println!(
         "{:>9} {:>6} {:>7} {:>7} {:>7} {:>10} {:>10} {:>10} {:>10}",
@@ -1497,7 +1557,7 @@ fn denoise_grid(
         let ssim = scores[k].iter().map(|s| s.ssim_srgb).sum::<f64>() / n;
         let min_gain = scores[k]
             .iter()
-            .zip(&baseline)
+            .zip(baseline)
             .map(|(s, b)| s.psnr_srgb - b.psnr_srgb)
             .fold(f64::INFINITY, f64::min);
         println!(
@@ -1515,7 +1575,6 @@ fn denoise_grid(
             min_gain
         );
     }
-    Ok(())
 }
 
 #[cfg(test)]
