@@ -339,30 +339,65 @@ pub fn write_report_files(
             config.tonemap
         )));
     }
+    let rows = score_rows(results, truth, config.border)?;
+    let panels = report_panels(results, truth, config, progress)?;
+    let data = PageData {
+        title: &config.title,
+        tonemap: &config.tonemap,
+        reference: 0,
+        panels,
+    };
+    let html = page_html(results, &rows, truth.is_some(), config);
+    write_text(dir, "report-data.js", &js_assignment("QC_DATA", &data)?)?;
+    write_text(dir, "render.js", RENDER_JS)?;
+    write_text(dir, "report.js", REPORT_JS)?;
+    write_text(dir, "report.css", REPORT_CSS)?;
+    write_text(dir, "index.html", &html)?;
+    Ok(rows)
+}
+
+/// Each result's label and, with a `truth`, its scores as `quantacolor eval --border`.
+fn score_rows(
+    results: &[ResultDir],
+    truth: Option<ArrayView3<f32>>,
+    border: usize,
+) -> Result<Vec<ReportRow>> {
+    let opts = EvalOptions {
+        border,
+        normalize_percentile: Some(99.5),
+    };
+    results
+        .iter()
+        .map(|r| {
+            let scores = match truth {
+                Some(t) => Some(
+                    evaluate(r.linear.view(), t, &opts)
+                        .map_err(|e| Error::format(r.dir.join("linear.npy"), format!("{e}")))?,
+                ),
+                None => None,
+            };
+            Ok(ReportRow {
+                label: r.label.clone(),
+                scores,
+            })
+        })
+        .collect()
+}
+
+/// The page's panels: the ground truth first where given (at the first result's frames and W
+/// weights), then every result, each through the configured colour matrix.
+fn report_panels(
+    results: &[ResultDir],
+    truth: Option<ArrayView3<f32>>,
+    config: &ReportConfig,
+    progress: &dyn Progress,
+) -> Result<Vec<PanelData>> {
     let corrected = |linear: ArrayView3<f32>| -> Result<Array3<f32>> {
         match &config.color_matrix {
             Some(m) => m.apply(linear),
             None => Ok(linear.to_owned()),
         }
     };
-    let opts = EvalOptions {
-        border: config.border,
-        normalize_percentile: Some(99.5),
-    };
-    let mut rows = Vec::new();
-    for r in results {
-        let scores = match truth {
-            Some(t) => Some(
-                evaluate(r.linear.view(), t, &opts)
-                    .map_err(|e| Error::format(r.dir.join("linear.npy"), format!("{e}")))?,
-            ),
-            None => None,
-        };
-        rows.push(ReportRow {
-            label: r.label.clone(),
-            scores,
-        });
-    }
     progress.start("report", (results.len() + truth.is_some() as usize) as u64);
     let mut panels = Vec::new();
     if let Some(t) = truth {
@@ -387,18 +422,23 @@ pub fn write_report_files(
         progress.advance(1);
     }
     progress.finish();
-    let data = PageData {
-        title: &config.title,
-        tonemap: &config.tonemap,
-        reference: 0,
-        panels,
-    };
+    Ok(panels)
+}
+
+/// `index.html`: the page template with the title, the score table, the notes on exposure and
+/// scoring, and every result's `report.toml`.
+fn page_html(
+    results: &[ResultDir],
+    rows: &[ReportRow],
+    with_truth: bool,
+    config: &ReportConfig,
+) -> String {
     let mut notes = String::from(
         "Exposure: 0 EV is the automatic exposure of <code>quantacolor display</code> for each panel; the caption gives the scale to pass to <code>display --exposure</code>. \
          The low-light view is the noise-aware blend of supplement Eq. 9&ndash;10 (L0 as <code>display --mesopic L0</code>, T = frames_used of each report). \
          Mantiuk06 is pre-rendered (automatic exposure, no low-light view); exposure and L0 do not apply to it.",
     );
-    if truth.is_some() {
+    if with_truth {
         let _ = write!(
             notes,
             " Scores as <code>quantacolor eval --border {}</code>: both images scaled so that the ground truth&rsquo;s 99.5th percentile is 1, clipped to [0, 1]. The ground truth panel&rsquo;s low-light view uses the first result&rsquo;s frame count.",
@@ -414,25 +454,19 @@ pub fn write_report_files(
             html_escape(&r.report_text)
         );
     }
-    let html = REPORT_HTML
+    REPORT_HTML
         .replace("{{title}}", &html_escape(&config.title))
         .replace(
             "{{reference}}",
-            if truth.is_some() {
+            if with_truth {
                 "ground truth"
             } else {
                 "first panel"
             },
         )
-        .replace("{{table}}", &table_html(results, &rows))
+        .replace("{{table}}", &table_html(results, rows))
         .replace("{{notes}}", &notes)
-        .replace("{{details}}", &details);
-    write_text(dir, "report-data.js", &js_assignment("QC_DATA", &data)?)?;
-    write_text(dir, "render.js", RENDER_JS)?;
-    write_text(dir, "report.js", REPORT_JS)?;
-    write_text(dir, "report.css", REPORT_CSS)?;
-    write_text(dir, "index.html", &html)?;
-    Ok(rows)
+        .replace("{{details}}", &details)
 }
 
 /// Writes the comparison page into `out` (staged: nothing is left on error; other files in
