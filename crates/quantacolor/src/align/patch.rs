@@ -1984,6 +1984,55 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
+    #[test]
+    fn rejected_components_are_the_large_sets_far_from_the_camera() {
+        // 4x6 tiles, camera flow zero; a 2x2 set 3 px off (rejected), one tile 3 px off
+        // elsewhere (too small), one tile 1 px off (within the tolerance).
+        let camera = Array3::<f32>::zeros((4, 6, 2));
+        let mut flow = camera.clone();
+        for (i, j) in [(0, 0), (0, 1), (1, 0), (1, 1), (3, 5)] {
+            flow[[i, j, 1]] = 3.0;
+        }
+        flow[[2, 3, 0]] = 1.0;
+        let components = rejected_components(&flow, &camera, 2.0, 2);
+        assert_eq!(components.len(), 1);
+        let mut tiles = components[0].clone();
+        tiles.sort();
+        assert_eq!(tiles, vec![(0, 0), (0, 1), (1, 0), (1, 1)]);
+        // min_tiles 0 counts as 1: the lone tile is a component too.
+        assert_eq!(rejected_components(&flow, &camera, 2.0, 0).len(), 2);
+    }
+
+    #[test]
+    fn ambiguous_tiles_take_their_decided_neighbours_majority_inside_the_region() {
+        // One row of five tiles, all in the region: decided ends, ambiguous middle.
+        let region = TileMask(Array2::from_elem((1, 5), true));
+        let mut label =
+            Array2::from_shape_vec((1, 5), vec![Some(true), None, None, None, Some(false)])
+                .unwrap();
+        fill_ambiguous_labels(&mut label, &region);
+        // Round 1: tile 1 sees one `true`, tile 3 one `false`, tile 2 none (it waits);
+        // round 2: tile 2 sees one of each, a tie, which goes to the camera.
+        assert_eq!(
+            label.into_raw_vec_and_offset().0,
+            vec![
+                Some(true),
+                Some(true),
+                Some(false),
+                Some(false),
+                Some(false)
+            ]
+        );
+        // Neighbours outside the region do not vote, and tiles outside it are left alone.
+        let region = TileMask(Array2::from_shape_vec((1, 3), vec![false, true, true]).unwrap());
+        let mut label = Array2::from_shape_vec((1, 3), vec![Some(true), None, None]).unwrap();
+        fill_ambiguous_labels(&mut label, &region);
+        assert_eq!(
+            label.into_raw_vec_and_offset().0,
+            vec![Some(true), None, None]
+        );
+    }
+
     /// Lucas–Kanade's Σ g·e equals a plain f64 sum of the bilinear samples' errors, for an
     /// interior tile (contiguous taps), tiles clamped at the left and right edges, and a tile
     /// narrower than the eight lanes.

@@ -848,6 +848,78 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Distribution, Normal};
 
+    #[test]
+    fn channel_sigmas_take_the_gains_or_the_given_sigmas() {
+        let modelled = [1.0, 2.0, 2.0];
+        let chroma = DenoiseConfig {
+            luma_gain: 1.5,
+            chroma_gain: 3.0,
+            ..DenoiseConfig::default()
+        };
+        assert_eq!(
+            chroma.channel_sigmas(modelled, SigmaSource::BinomialModel),
+            ([1.5, 6.0, 6.0], SigmaSource::BinomialModel)
+        );
+        // Plain BM3D: one σ, the RMS over the channels (√3 here) times the luma gain.
+        let plain = DenoiseConfig {
+            method: DenoiseMethod::Bm3d,
+            ..chroma.clone()
+        };
+        let (sigmas, _) = plain.channel_sigmas(modelled, SigmaSource::BinomialModel);
+        assert!(sigmas.iter().all(|&s| (s - 3f32.sqrt() * 1.5).abs() < 1e-6));
+        // Given σs replace the modelled ones (σ_c only for chroma-BM3D), and say so.
+        let given = DenoiseConfig {
+            sigma_y: Some(0.5),
+            sigma_c: Some(4.0),
+            ..chroma
+        };
+        assert_eq!(
+            given.channel_sigmas(modelled, SigmaSource::BinomialModel),
+            ([0.5, 4.0, 4.0], SigmaSource::Given)
+        );
+        let given_plain = DenoiseConfig {
+            method: DenoiseMethod::Bm3d,
+            ..given
+        };
+        assert_eq!(
+            given_plain
+                .channel_sigmas(modelled, SigmaSource::BinomialModel)
+                .0,
+            [0.5; 3]
+        );
+    }
+
+    #[test]
+    fn scale_to_255_maps_the_plane_range_and_leaves_a_constant_plane() {
+        let ramp = Array2::from_shape_fn((2, 3), |(y, x)| 10.0 + (3 * y + x) as f32 * 2.0);
+        assert_eq!(scale_to_255(ramp.view()), 25.5);
+        assert_eq!(scale_to_255(Array2::from_elem((2, 2), 7.0f32).view()), 1.0);
+    }
+
+    #[test]
+    fn sigma_settings_are_checked_by_name() {
+        for (config, name) in [
+            (
+                DenoiseConfig {
+                    chroma_gain: 0.0,
+                    ..DenoiseConfig::default()
+                },
+                "chroma_gain",
+            ),
+            (
+                DenoiseConfig {
+                    sigma_y: Some(f32::NAN),
+                    ..DenoiseConfig::default()
+                },
+                "sigma_y",
+            ),
+        ] {
+            let err = config.validate_sigmas().unwrap_err().to_string();
+            assert!(err.contains(name), "{err}");
+        }
+        assert!(DenoiseConfig::default().validate_sigmas().is_ok());
+    }
+
     fn matmul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
         let mut out = [[0.0; 3]; 3];
         for i in 0..3 {

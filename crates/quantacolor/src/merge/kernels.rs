@@ -300,3 +300,74 @@ fn finite(v: f32) -> f32 {
         0.0
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_flat_pixel_gets_the_isotropic_denoising_kernel() {
+        let config = KernelConfig::default();
+        let kernel = PixelKernel::of([0.0; 3], 0.5, &config);
+        // No gradient: flatness 1 (clamped from 1 + D_th), anisotropy 1, both stds k_denoise.
+        assert_eq!((kernel.flatness, kernel.anisotropy), (1.0, 1.0));
+        assert_eq!((kernel.k_edge, kernel.k_grad), (1.0, 1.0));
+        assert_eq!(kernel.inv_cov, [1.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn a_strong_horizontal_edge_stretches_the_kernel_along_x() {
+        // Gradient along y only (a horizontal edge), far above the flatness threshold.
+        let config = KernelConfig::default();
+        let kernel = PixelKernel::of([100.0, 0.0, 0.0], 0.5, &config);
+        assert_eq!(kernel.flatness, 0.0);
+        assert_eq!(kernel.anisotropy, config.max_anisotropy);
+        // Along the edge (x): k_detail·k_stretch·A; across it (y): k_detail / (k_shrink·A),
+        // floored at min_std.
+        assert!(
+            (kernel.k_edge - 0.3 * 5.0).abs() < 1e-6,
+            "{}",
+            kernel.k_edge
+        );
+        assert_eq!(kernel.k_grad, config.min_std);
+        let [yy, yx, xx] = kernel.inv_cov;
+        assert!((yy - 1.0 / (0.25 * 0.25)).abs() < 1e-3, "{yy}");
+        assert!((xx - 1.0 / (1.5 * 1.5)).abs() < 1e-5, "{xx}");
+        assert_eq!(yx, 0.0);
+    }
+
+    #[test]
+    fn the_structure_tensor_sums_the_window_inside_the_image() {
+        // 3x4 image of products (p, 2p, 3p) with p = 1 + index.
+        let (h, w) = (3, 4);
+        let products: Vec<f32> = (0..h * w)
+            .flat_map(|i| {
+                let p = 1.0 + i as f32;
+                [p, 2.0 * p, 3.0 * p]
+            })
+            .collect();
+        // Corner (0, 0): pixels (0,0), (0,1), (1,0), (1,1) = 1 + 2 + 5 + 6.
+        assert_eq!(
+            structure_tensor_3x3(&products, (h, w), 0, 0),
+            [14.0, 28.0, 42.0]
+        );
+        // Interior (1, 1): rows 0..3, columns 0..3: (1+2+3) + (5+6+7) + (9+10+11).
+        assert_eq!(
+            structure_tensor_3x3(&products, (h, w), 1, 1),
+            [54.0, 108.0, 162.0]
+        );
+    }
+
+    #[test]
+    fn gradient_products_are_central_differences_with_replicated_edges() {
+        // A ramp along x: gx = 1 inside, 0.5 at the replicated edges; gy = 0.
+        let reference = Array2::from_shape_fn((2, 4), |(_, x)| x as f32);
+        let products = gradient_products(&reference);
+        let gx2: Vec<f32> = (0..4).map(|x| products[[0, x, 2]]).collect();
+        assert_eq!(gx2, vec![0.25, 1.0, 1.0, 0.25]);
+        assert!(products
+            .slice(ndarray::s![.., .., 0..2])
+            .iter()
+            .all(|&v| v == 0.0));
+    }
+}
