@@ -1529,21 +1529,7 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
         .collect();
     let rows = dys.len();
     let mut main_span = vec![[0.0f64; 2]; rows];
-    // The channels that take their own, narrower ellipse: only where it is markedly narrower
-    // than the main one (a nearly equal one, e.g. R and G against B of a CFA with one site
-    // fewer of B, would skip about no group for the cost of its spans), made once per distinct
-    // limit: own[ch] is the channel whose spans channel ch uses. Groups outside a channel's
-    // ellipse add exact zeros to its sums, so which ellipses are used changes no bit.
-    let mut own: [Option<usize>; 4] = [None; 4];
-    for ch in 0..4 {
-        if let (Some(limit), Some(main)) = (g.channel_limit[ch], g.ellipse_limit) {
-            if limit < OWN_ELLIPSE_RATIO * main {
-                let same =
-                    (0..ch).find(|&l| own[l] == Some(l) && g.channel_limit[l] == Some(limit));
-                own[ch] = Some(same.unwrap_or(ch));
-            }
-        }
-    }
+    let own = own_ellipses(g);
     let mut channel_span: [Vec<[f64; 2]>; 4] = std::array::from_fn(|ch| {
         if own[ch] == Some(ch) {
             vec![[0.0f64; 2]; rows]
@@ -1607,86 +1593,18 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
             }
             let groups = ((hi - lo) as usize) / LANES + 1;
             debug_assert!(groups <= max_groups);
-            // Each channel's own bins (a narrower ellipse: fewer); a group of lanes outside them
-            // would add exact zeros to the channel's sums, so it is skipped. Channels that
-            // share weights share the factor, hence the span. (Plain functions, not closures,
-            // so that they are compiled with the caller's instruction set: no libm calls for
-            // `floor` and `ceil`.)
-            let mut span = [(lo, hi); 4];
-            for ch in 0..4 {
-                match own[ch] {
-                    Some(o) if o == ch => {
-                        let (l, h) = cols.of(channel_span[ch][row]);
-                        span[ch] = (l.max(lo), h.min(hi));
-                    }
-                    Some(o) => span[ch] = span[o],
-                    None => {}
-                }
-            }
-            // The groups of every channel: those overlapping its span.
-            let mut ranges = [(0usize, 0usize); 4];
-            for ch in plan.present() {
-                let (l, h) = span[ch];
-                // First group whose last lane reaches l, last group starting at or before h.
-                let first = if l <= lo {
-                    0
-                } else {
-                    ((l - lo) as usize)
-                        .saturating_sub(LANES - 1)
-                        .div_ceil(LANES)
-                };
-                let end = if h < lo {
-                    0
-                } else {
-                    (((h - lo) as usize) / LANES + 1).min(groups)
-                };
-                ranges[ch] = (first, end);
-            }
-            // The quadratic form of every bin of the groups: bin lo + k at dx = (lo + k)/u −
-            // margin − px, with lo + k made in f32 as the sum of two exact integers (below
-            // 2^24), so the same value as converting the integer bin index.
-            let lo_f = lo as f32;
-            for (quad, &k) in quads[..groups * LANES]
-                .iter_mut()
-                .zip(&lane_index[..groups * LANES])
-            {
-                let dx = (lo_f + k) * inv_u - margin - px;
-                *quad = ady2 + dx * (bdy + c * dx);
-            }
-            // Lanes past the row segment: a form no factor brings below the cutoff (weight 0).
-            quads[(hi - lo) as usize + 1..groups * LANES].fill(f32::INFINITY);
-            for &ch in plan.makers() {
-                let (first, end) = ranges[ch];
-                let factor = g.inv_scale[ch];
-                let weights = &mut weights[ch];
-                for group in first..end {
-                    let at = group * LANES;
-                    // Local lanes, so that the compiler sees eight independent values.
-                    let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
-                    let mut lanes = [0.0f32; LANES];
-                    for i in 0..LANES {
-                        let q = quad[i] * factor;
-                        let e = fastmath::exp(-0.5 * q);
-                        lanes[i] = if q < g.cutoff { e } else { 0.0 };
-                    }
-                    weights[at..at + LANES].copy_from_slice(&lanes);
-                }
-            }
-            // The channels whose factor is a multiple of the base's: powers of its weights,
-            // which cover every group (the base's ellipse is the widest).
-            for &(ch, k) in plan.powered() {
-                let (first, end) = ranges[ch];
-                let mut own = std::mem::take(&mut weights[ch]);
-                let base = &weights[g.base];
-                for group in first..end {
-                    let at = group * LANES;
-                    let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
-                    let w: [f32; LANES] = base[at..at + LANES].try_into().expect("lanes");
-                    let lanes = power_weights(g, ch, &quad, w, k);
-                    own[at..at + LANES].copy_from_slice(&lanes);
-                }
-                weights[ch] = own;
-            }
+            // Per bin row: each channel's groups, the kernel's quadratic form of their bins,
+            // the channels' weights, then the sums.
+            let ranges =
+                channel_group_ranges(&plan, &own, &cols, &channel_span, row, (lo, hi), groups);
+            fill_quads(
+                &mut quads[..groups * LANES],
+                &lane_index[..groups * LANES],
+                (lo, hi),
+                (inv_u, margin, px),
+                (ady2, bdy, c),
+            );
+            make_weights(g, &plan, &ranges, &quads, &mut weights);
             let row_start = by as usize * SUMS * stride;
             // The channels that share weights and groups (R, G and B of most CFAs) run over
             // the groups together: one pass with all their partial sums in registers (more
@@ -1714,6 +1632,139 @@ fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
                 out[ch * 3 + sum] = lane_sum(lanes);
             }
         }
+    }
+}
+
+/// Which channels of [`gather_row_generic`] take their own, narrower ellipse: only where it is
+/// markedly narrower than the main one (a nearly equal one, e.g. R and G against B of a CFA
+/// with one site fewer of B, would skip about no group for the cost of its spans), made once
+/// per distinct limit: `own[ch]` is the channel whose spans channel `ch` uses. Groups outside
+/// a channel's ellipse add exact zeros to its sums, so which ellipses are used changes no bit.
+fn own_ellipses(g: &Gather) -> [Option<usize>; 4] {
+    let mut own: [Option<usize>; 4] = [None; 4];
+    for ch in 0..4 {
+        if let (Some(limit), Some(main)) = (g.channel_limit[ch], g.ellipse_limit) {
+            if limit < OWN_ELLIPSE_RATIO * main {
+                let same =
+                    (0..ch).find(|&l| own[l] == Some(l) && g.channel_limit[l] == Some(limit));
+                own[ch] = Some(same.unwrap_or(ch));
+            }
+        }
+    }
+    own
+}
+
+/// The groups of eight bins of a bin row (from bin `lo`, `groups` of them) that each present
+/// channel of `plan` runs over: those overlapping its own bins `(lo, hi)` or, for a channel
+/// with its own ellipse ([`own_ellipses`]), those of that ellipse's dx interval in `row`
+/// (`channel_span`); a group of lanes outside them would add exact zeros to the channel's
+/// sums, so it is skipped. Channels that share weights share the factor, hence the span.
+/// (Plain functions, not closures, so that they are compiled with the caller's instruction
+/// set: no libm calls for `floor` and `ceil`.)
+#[inline(always)]
+fn channel_group_ranges(
+    plan: &ChannelPlan,
+    own: &[Option<usize>; 4],
+    cols: &BinSpan,
+    channel_span: &[Vec<[f64; 2]>; 4],
+    row: usize,
+    (lo, hi): (isize, isize),
+    groups: usize,
+) -> [(usize, usize); 4] {
+    let mut span = [(lo, hi); 4];
+    for ch in 0..4 {
+        match own[ch] {
+            Some(o) if o == ch => {
+                let (l, h) = cols.of(channel_span[ch][row]);
+                span[ch] = (l.max(lo), h.min(hi));
+            }
+            Some(o) => span[ch] = span[o],
+            None => {}
+        }
+    }
+    let mut ranges = [(0usize, 0usize); 4];
+    for ch in plan.present() {
+        let (l, h) = span[ch];
+        // First group whose last lane reaches l, last group starting at or before h.
+        let first = if l <= lo {
+            0
+        } else {
+            ((l - lo) as usize)
+                .saturating_sub(LANES - 1)
+                .div_ceil(LANES)
+        };
+        let end = if h < lo {
+            0
+        } else {
+            (((h - lo) as usize) / LANES + 1).min(groups)
+        };
+        ranges[ch] = (first, end);
+    }
+    ranges
+}
+
+/// The kernel's quadratic form a·dy² + dx·(2b·dy + c·dx) of every bin of a row segment's
+/// groups (`quads`, whole groups of eight): bin lo + k at dx = (lo + k)/u − margin − px, with
+/// lo + k made in f32 as the sum of two exact integers (below 2^24), so the same value as
+/// converting the integer bin index; lanes past the segment's last bin `hi` get a form no
+/// factor brings below the cutoff (weight 0).
+#[inline(always)]
+fn fill_quads(
+    quads: &mut [f32],
+    lane_index: &[f32],
+    (lo, hi): (isize, isize),
+    (inv_u, margin, px): (f32, f32, f32),
+    (ady2, bdy, c): (f32, f32, f32),
+) {
+    let lo_f = lo as f32;
+    for (quad, &k) in quads.iter_mut().zip(lane_index) {
+        let dx = (lo_f + k) * inv_u - margin - px;
+        *quad = ady2 + dx * (bdy + c * dx);
+    }
+    quads[(hi - lo) as usize + 1..].fill(f32::INFINITY);
+}
+
+/// The kernel weights of every channel that makes its own (`plan.makers()`: exp(−q·factor/2)
+/// below the cutoff) over its groups `ranges`, then of the channels whose factor is a multiple
+/// of the base's (powers of the base's weights, which cover every group: the base's ellipse is
+/// the widest).
+#[inline(always)]
+fn make_weights(
+    g: &Gather,
+    plan: &ChannelPlan,
+    ranges: &[(usize, usize); 4],
+    quads: &[f32],
+    weights: &mut [Vec<f32>; 4],
+) {
+    for &ch in plan.makers() {
+        let (first, end) = ranges[ch];
+        let factor = g.inv_scale[ch];
+        let weights = &mut weights[ch];
+        for group in first..end {
+            let at = group * LANES;
+            // Local lanes, so that the compiler sees eight independent values.
+            let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
+            let mut lanes = [0.0f32; LANES];
+            for i in 0..LANES {
+                let q = quad[i] * factor;
+                let e = fastmath::exp(-0.5 * q);
+                lanes[i] = if q < g.cutoff { e } else { 0.0 };
+            }
+            weights[at..at + LANES].copy_from_slice(&lanes);
+        }
+    }
+    for &(ch, k) in plan.powered() {
+        let (first, end) = ranges[ch];
+        let mut own = std::mem::take(&mut weights[ch]);
+        let base = &weights[g.base];
+        for group in first..end {
+            let at = group * LANES;
+            let quad: [f32; LANES] = quads[at..at + LANES].try_into().expect("lanes");
+            let w: [f32; LANES] = base[at..at + LANES].try_into().expect("lanes");
+            let lanes = power_weights(g, ch, &quad, w, k);
+            own[at..at + LANES].copy_from_slice(&lanes);
+        }
+        weights[ch] = own;
     }
 }
 
