@@ -1648,11 +1648,8 @@ fn fit_sub_block_generic(
         let mut converging = false;
         for iteration in 0..iterations {
             // Every `group_step`-th run group: thinned iterations of the finest level.
-            let group_step = if level == last && iteration + 1 < iterations && !converging {
-                1 << settings
-                    .fine_thinning
-                    .min(iterations - 1 - iteration)
-                    .min(8)
+            let group_step = if level == last && !converging {
+                settings.thinned_group_step(iteration, iterations)
             } else {
                 1
             };
@@ -1695,35 +1692,9 @@ fn fit_sub_block_generic(
                     };
                     run_sums(template, &motion, centre, &bins)
                 };
-                let y = layout.centroid[run.start][0];
-                let y_power = [1.0, y, y * y];
-                for p in 0..6 {
-                    let (gp, bp) = (PARAM_GRADIENT[p], PARAM_BASIS[p]);
-                    for q in p..6 {
-                        let (gq, bq) = (PARAM_GRADIENT[q], PARAM_BASIS[q]);
-                        let pair = gp + gq;
-                        let py = (bp == 1) as usize + (bq == 1) as usize;
-                        let px = (bp == 2) as usize + (bq == 2) as usize;
-                        normal[p][q] += y_power[py] * sums[pair + 3 * px];
-                    }
-                    let py = (bp == 1) as usize;
-                    let px = (bp == 2) as usize;
-                    rhs[p] += y_power[py] * sums[9 + gp + 2 * px];
-                }
+                add_run(&mut normal, &mut rhs, layout.centroid[run.start][0], &sums);
             }
-            // The symmetric matrix from its upper triangle, the diagonal raised by 1e-6.
-            let upper = normal;
-            let normal: Vec<Vec<f64>> = (0..6)
-                .map(|r| {
-                    (0..6)
-                        .map(|c| match r.cmp(&c) {
-                            std::cmp::Ordering::Less => upper[r][c],
-                            std::cmp::Ordering::Equal => upper[r][r] * (1.0 + 1e-6),
-                            std::cmp::Ordering::Greater => upper[c][r],
-                        })
-                        .collect()
-                })
-                .collect();
+            let normal = symmetric_from_upper(&normal);
             for (row, values) in information.iter_mut().zip(&normal) {
                 row.copy_from_slice(values);
             }
@@ -1739,9 +1710,7 @@ fn fit_sub_block_generic(
             }
             previous = Some(step);
             params.iter_mut().zip(&step).for_each(|(p, s)| *p += s);
-            let shift = (step[0].powi(2) + step[1].powi(2)).sqrt()
-                + centre[0].max(centre[1]) * step[2..].iter().map(|v| v.abs()).sum::<f64>();
-            if shift < 0.002 && iteration > 0 {
+            if step_size_px(&step, centre) < 0.002 && iteration > 0 {
                 if group_step == 1 {
                     break;
                 }
@@ -1750,6 +1719,64 @@ fn fit_sub_block_generic(
         }
     }
     Some((AffineMotion::from_params(params), information))
+}
+
+impl FitSettings {
+    /// The run-group step of iteration `iteration` of `iterations` at the finest level before
+    /// it converges: every 2^k-th group, k = min(`fine_thinning`, iterations left after this
+    /// one, 8), so the last iteration sums every group.
+    fn thinned_group_step(&self, iteration: usize, iterations: usize) -> usize {
+        if iteration + 1 < iterations {
+            1 << self.fine_thinning.min(iterations - 1 - iteration).min(8)
+        } else {
+            1
+        }
+    }
+}
+
+/// Adds a run's sums to the Gauss–Newton normal equations' upper triangle `normal` and
+/// right-hand side `rhs`: the run at bin row `y` with, per gradient pair (yy, yx, xx) and power
+/// of x (0, 1, 2), Σ w·g·g'·xᵖ at `sums[pair + 3·p]` and, per gradient (y, x) and power of x
+/// (0, 1), Σ w·g·r·xᵖ at `sums[9 + g + 2·p]`; each parameter's basis function brings its
+/// power of y ([`PARAM_GRADIENT`], [`PARAM_BASIS`]).
+#[inline(always)]
+fn add_run(normal: &mut [[f64; 6]; 6], rhs: &mut [f64; 6], y: f64, sums: &[f64; 13]) {
+    let y_power = [1.0, y, y * y];
+    for p in 0..6 {
+        let (gp, bp) = (PARAM_GRADIENT[p], PARAM_BASIS[p]);
+        for q in p..6 {
+            let (gq, bq) = (PARAM_GRADIENT[q], PARAM_BASIS[q]);
+            let pair = gp + gq;
+            let py = (bp == 1) as usize + (bq == 1) as usize;
+            let px = (bp == 2) as usize + (bq == 2) as usize;
+            normal[p][q] += y_power[py] * sums[pair + 3 * px];
+        }
+        let py = (bp == 1) as usize;
+        let px = (bp == 2) as usize;
+        rhs[p] += y_power[py] * sums[9 + gp + 2 * px];
+    }
+}
+
+/// The symmetric matrix from its upper triangle `upper`, the diagonal raised by 1e-6.
+fn symmetric_from_upper(upper: &[[f64; 6]; 6]) -> Vec<Vec<f64>> {
+    (0..6)
+        .map(|r| {
+            (0..6)
+                .map(|c| match r.cmp(&c) {
+                    std::cmp::Ordering::Less => upper[r][c],
+                    std::cmp::Ordering::Equal => upper[r][r] * (1.0 + 1e-6),
+                    std::cmp::Ordering::Greater => upper[c][r],
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// How far a parameter `step` moves the image, px: the translation's length plus the linear
+/// part's entries at the distance of the farther image edge from the `centre`.
+fn step_size_px(step: &[f64; 6], centre: [f64; 2]) -> f64 {
+    (step[0].powi(2) + step[1].powi(2)).sqrt()
+        + centre[0].max(centre[1]) * step[2..].iter().map(|v| v.abs()).sum::<f64>()
 }
 
 /// Mean bit rate and number of trials (sites x frames) of every bin of `layout` over `frames`
