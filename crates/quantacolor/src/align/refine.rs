@@ -2533,6 +2533,51 @@ fn refined_camera(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_run_adds_its_sums_at_each_parameters_gradient_and_basis() {
+        // sums[k] = k + 1, bin row y = 2. Parameters (b_y, b_x, m_yy, m_yx, m_xy, m_xx).
+        let sums: [f64; 13] = std::array::from_fn(|k| k as f64 + 1.0);
+        let (mut normal, mut rhs) = ([[0.0; 6]; 6], [0.0; 6]);
+        add_run(&mut normal, &mut rhs, 2.0, &sums);
+        // (b_y, b_y): Σ gy·gy = sums[0]; (b_y, b_x): Σ gy·gx = sums[1]; (b_x, b_x): sums[2].
+        assert_eq!((normal[0][0], normal[0][1], normal[1][1]), (1.0, 2.0, 3.0));
+        // (m_yy, m_yy): gy·gy with y² = 4·sums[0]; (m_yx, m_yx): gy·gy with x² = sums[6].
+        assert_eq!((normal[2][2], normal[3][3]), (4.0, 7.0));
+        // (m_yy, m_xx): gy·gx with y·x = 2·sums[4]; (b_x, m_xy): gx·gx with y = 2·sums[2].
+        assert_eq!((normal[2][5], normal[1][4]), (10.0, 6.0));
+        // Right-hand side: Σ g·r at [9 + g + 2·p], times y for the y basis.
+        assert_eq!(rhs, [10.0, 11.0, 20.0, 12.0, 22.0, 13.0]);
+        // The lower triangle is left to `symmetric_from_upper`.
+        assert_eq!(normal[1][0], 0.0);
+        let full = symmetric_from_upper(&normal);
+        assert_eq!(full[1][0], 2.0);
+        assert_eq!(full[0][0], 1.0 + 1e-6);
+    }
+
+    #[test]
+    fn thinned_iterations_sum_fewer_groups_until_the_last() {
+        let settings = FitSettings {
+            iterations: 3,
+            fine_iterations: 3,
+            fine_information: 1.0,
+            fine_thinning: 2,
+        };
+        let steps: Vec<usize> = (0..3).map(|i| settings.thinned_group_step(i, 3)).collect();
+        assert_eq!(steps, vec![4, 2, 1]);
+        let plain = FitSettings {
+            fine_thinning: 0,
+            ..settings
+        };
+        assert_eq!(plain.thinned_group_step(0, 3), 1);
+    }
+
+    #[test]
+    fn a_steps_size_is_its_translation_plus_its_linear_part_at_the_far_edge() {
+        let step = [3.0, 4.0, 0.001, -0.002, 0.0, 0.0];
+        // 5 px of translation, 0.003 at 100 px (the farther of 50 and 100).
+        assert!((step_size_px(&step, [50.0, 100.0]) - 5.3).abs() < 1e-12);
+    }
     use crate::cfa::colorspad_cfa;
     use crate::merge::warp_to_reference;
     use rand::{Rng, SeedableRng};
