@@ -672,69 +672,47 @@ impl Transforms {
     /// `out = D · block · Dᵀ` (row-major `n × n`); `tmp` is scratch of `n²`.
     #[inline(always)]
     pub(crate) fn forward(&self, block: &[f32], tmp: &mut [f32], out: &mut [f32]) {
-        let n = self.n;
-        if n == 8 {
-            // The default block size, with sizes known to the compiler (unrolled and
-            // vectorised): the same products summed in the same order.
-            let d: &[f32; 64] = self.dct[..64].try_into().expect("8 x 8");
-            let dt: &[f32; 64] = self.dct_t[..64].try_into().expect("8 x 8");
-            let block: &[f32; 64] = block[..64].try_into().expect("8 x 8 block");
-            let out: &mut [f32; 64] = (&mut out[..64]).try_into().expect("8 x 8 block");
-            let mut t = [0.0f32; 64];
-            matmul8(d, block, &mut t);
-            // The second product reads `t` back from memory (see [`matmul8_avx2`]).
-            std::hint::black_box(&mut t);
-            matmul8(&t, dt, out);
-            return;
-        }
-        // tmp[k][·] = Σ_i D[k][i] · block[i][·]
-        tmp[..n * n].fill(0.0);
-        for k in 0..n {
-            let row = &mut tmp[k * n..(k + 1) * n];
-            for i in 0..n {
-                axpy(row, self.dct[k * n + i], &block[i * n..(i + 1) * n]);
-            }
-        }
-        // out[k][·] = Σ_j tmp[k][j] · Dᵀ[j][·]
-        out[..n * n].fill(0.0);
-        for k in 0..n {
-            let dst = &mut out[k * n..(k + 1) * n];
-            for j in 0..n {
-                axpy(dst, tmp[k * n + j], &self.dct_t[j * n..(j + 1) * n]);
-            }
-        }
+        self.sandwich(&self.dct, block, &self.dct_t, tmp, out);
     }
 
     /// `out = Dᵀ · coeffs · D`, the inverse of [`Transforms::forward`].
     #[inline(always)]
     pub(crate) fn inverse(&self, coeffs: &[f32], tmp: &mut [f32], out: &mut [f32]) {
+        self.sandwich(&self.dct_t, coeffs, &self.dct, tmp, out);
+    }
+
+    /// `out = left · x · right` for row-major `n × n` matrices: `tmp[r][·] = Σ_i left[r][i] ·
+    /// x[i][·]`, then `out[r][·] = Σ_j tmp[r][j] · right[j][·]`, each row accumulated from zero
+    /// in index order ([`axpy`]); `tmp` is scratch of `n²`.
+    #[inline(always)]
+    fn sandwich(&self, left: &[f32], x: &[f32], right: &[f32], tmp: &mut [f32], out: &mut [f32]) {
         let n = self.n;
         if n == 8 {
-            // As in `forward`: Dᵀ·coeffs is Σ_k D[k][i]·coeffs[k][·], then (·)·D.
-            let d: &[f32; 64] = self.dct[..64].try_into().expect("8 x 8");
-            let dt: &[f32; 64] = self.dct_t[..64].try_into().expect("8 x 8");
-            let coeffs: &[f32; 64] = coeffs[..64].try_into().expect("8 x 8 block");
+            // The default block size, with sizes known to the compiler (unrolled and
+            // vectorised): the same products summed in the same order.
+            let left: &[f32; 64] = left[..64].try_into().expect("8 x 8");
+            let right: &[f32; 64] = right[..64].try_into().expect("8 x 8");
+            let x: &[f32; 64] = x[..64].try_into().expect("8 x 8 block");
             let out: &mut [f32; 64] = (&mut out[..64]).try_into().expect("8 x 8 block");
             let mut t = [0.0f32; 64];
-            matmul8(dt, coeffs, &mut t);
+            matmul8(left, x, &mut t);
+            // The second product reads `t` back from memory (see [`matmul8_avx2`]).
             std::hint::black_box(&mut t);
-            matmul8(&t, d, out);
+            matmul8(&t, right, out);
             return;
         }
-        // tmp[i][·] = Σ_k D[k][i] · coeffs[k][·]
         tmp[..n * n].fill(0.0);
-        for i in 0..n {
-            let row = &mut tmp[i * n..(i + 1) * n];
-            for k in 0..n {
-                axpy(row, self.dct[k * n + i], &coeffs[k * n..(k + 1) * n]);
+        for r in 0..n {
+            let row = &mut tmp[r * n..(r + 1) * n];
+            for i in 0..n {
+                axpy(row, left[r * n + i], &x[i * n..(i + 1) * n]);
             }
         }
-        // out[i][·] = Σ_l tmp[i][l] · D[l][·]
         out[..n * n].fill(0.0);
-        for i in 0..n {
-            let dst = &mut out[i * n..(i + 1) * n];
-            for l in 0..n {
-                axpy(dst, tmp[i * n + l], &self.dct[l * n..(l + 1) * n]);
+        for r in 0..n {
+            let dst = &mut out[r * n..(r + 1) * n];
+            for j in 0..n {
+                axpy(dst, tmp[r * n + j], &right[j * n..(j + 1) * n]);
             }
         }
     }
