@@ -116,6 +116,10 @@ pub enum BenchCommand {
         /// scheduler).
         #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
         runs: u32,
+        /// TOML with a full or partial reconstruction config (as `reconstruct --config`) to
+        /// time instead of the default pipeline: how far a speed setting moves the ratio.
+        #[arg(long)]
+        config: Option<PathBuf>,
     },
     /// Video: `reconstruct --video` (motion estimated once, composed to every reference frame)
     /// against a full reconstruction per reference frame, in the same process, on a simulated
@@ -151,7 +155,20 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             let burst = read_burst_config(burst_config.as_deref())?;
             quality(scenes, out, *set, only.as_deref(), &burst, progress)
         }
-        BenchCommand::Speed { frames, runs } => speed(*frames, *runs as usize, progress),
+        BenchCommand::Speed {
+            frames,
+            runs,
+            config,
+        } => {
+            let (pipeline, name) = match config {
+                Some(path) => (
+                    crate::cmd_reconstruct::read_config(path)?,
+                    format!("pipeline of {}", path.display()),
+                ),
+                None => (ReconstructConfig::default(), "default pipeline".to_string()),
+            };
+            speed(*frames, *runs as usize, (&pipeline, &name), progress)
+        }
         BenchCommand::Video {
             frames,
             stride,
@@ -1117,7 +1134,12 @@ fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(f64, T)> {
     Ok((start.elapsed().as_secs_f64(), out))
 }
 
-fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
+fn speed(
+    frames: usize,
+    runs: usize,
+    (pipeline, name): (&ReconstructConfig, &str),
+    progress: &dyn Progress,
+) -> Result<()> {
     let config = SimulationConfig {
         frames,
         flux: FluxSpec::Mean { flux: 0.1 },
@@ -1133,7 +1155,6 @@ fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
     )?;
     let capture = sim.to_capture()?;
     let reference = capture.reference_frame();
-    let pipeline = ReconstructConfig::default();
     // Rounds of NAIVE_RUNS_PER_ROUND naive sums and one run of the default pipeline (its merge
     // takes the denoiser's kernel settings, as `reconstruct`), so that a slow spell of the
     // machine slows both sides of the ratio.
@@ -1156,7 +1177,7 @@ fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
                 Ok(reconstruct_burst(
                     &capture,
                     reference,
-                    &burst_config_for(&pipeline),
+                    &burst_config_for(pipeline),
                     &Silent,
                 )?)
             })?;
@@ -1210,11 +1231,11 @@ fn speed(frames: usize, runs: usize, progress: &dyn Progress) -> Result<()> {
     }
     println!(
         "  {:<32} {denoise_s:.3} s ({:.1}x the naive sum)",
-        "denoise (chroma-bm3d)",
+        format!("denoise ({})", pipeline.denoise.method),
         denoise_s / naive_s
     );
     println!(
-        "whole default pipeline (align, merge, denoise): {whole_s:.3} s ({:.3}-{:.3} s), ratio \
+        "whole {name} (align, merge, denoise): {whole_s:.3} s ({:.3}-{:.3} s), ratio \
          {:.1}x the naive sum",
         whole_range.0,
         whole_range.1,

@@ -138,23 +138,7 @@ pub fn preview_options(
 /// The reconstruction config: defaults, then `--config`, then the other options.
 pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
     let mut config = match &args.config {
-        Some(path) => {
-            let config: ReconstructConfig = crate::config_file::read(path)?;
-            // Before any work: a bad denoiser setting would otherwise surface after the merge.
-            config
-                .denoise
-                .bm3d_config()
-                .validate()
-                .map_err(|e| anyhow::anyhow!("{}: [denoise]: {e}", path.display()))?;
-            let burst = &config.burst;
-            burst
-                .refine
-                .validate()
-                .and_then(|()| burst.track.validate())
-                .and_then(|()| burst.trajectory.validate())
-                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-            config
-        }
+        Some(path) => read_config(path)?,
         None => ReconstructConfig::default(),
     };
     ReconstructOverrides {
@@ -169,6 +153,26 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
         max_sub_block_motion: args.max_sub_block_motion,
     }
     .apply(&mut config, &|key| format!("--{}", key.replace('_', "-")))?;
+    Ok(config)
+}
+
+/// A full or partial reconstruction config from the TOML file `path`, every stage's settings
+/// checked before any work (a bad denoiser setting would otherwise surface after the merge);
+/// errors name the file.
+pub fn read_config(path: &Path) -> Result<ReconstructConfig> {
+    let config: ReconstructConfig = crate::config_file::read(path)?;
+    config
+        .denoise
+        .bm3d_config()
+        .validate()
+        .map_err(|e| anyhow::anyhow!("{}: [denoise]: {e}", path.display()))?;
+    let burst = &config.burst;
+    burst
+        .refine
+        .validate()
+        .and_then(|()| burst.track.validate())
+        .and_then(|()| burst.trajectory.validate())
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     Ok(config)
 }
 

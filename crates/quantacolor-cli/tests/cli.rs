@@ -215,6 +215,13 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     let err = reconstruct_with_config("[burst.refine]\npases = 1\n");
     assert!(err.contains("`burst.refine.pases`"), "{err}");
     assert!(!out.exists(), "partial output left behind");
+    // `bench speed --config` reads the same file the same way, before it simulates anything.
+    std::fs::write(&bad_config, "[denoise.bm3d]\nsearch_window = 0\n").unwrap();
+    let err = expect_failure(
+        &["bench", "speed", "--config", bad_config.to_str().unwrap()],
+        "bad.toml",
+    );
+    assert!(err.contains("search_window"), "{err}");
 
     // Reference frame outside the capture.
     expect_failure(
