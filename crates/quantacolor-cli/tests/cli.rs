@@ -394,6 +394,25 @@ fn reconstruct_denoise_and_preview_options() {
     assert!(report["preview"]["mesopic"]["frames"].as_float().unwrap() > 0.0);
     assert_ne!(none, chroma);
     assert_ne!(chroma, plain);
+    // The speed settings of docs/speed.md load and reach the stages they name.
+    let fast_config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/fast.toml");
+    let (fast, report) = run("fast", &["--config", fast_config.to_str().unwrap()]);
+    let config = &report["config"];
+    assert_eq!(
+        config["denoise"]["bm3d"]["search_window"].as_integer(),
+        Some(25)
+    );
+    assert_eq!(config["denoise"]["bm3d"]["step"].as_integer(), Some(6));
+    assert_eq!(config["burst"]["refine"]["passes"].as_integer(), Some(1));
+    assert_eq!(
+        config["burst"]["refine"]["max_sub_block_motion_px"].as_float(),
+        Some(0.7)
+    );
+    assert_eq!(
+        config["burst"]["align"]["blocks"]["target_counts"].as_float(),
+        Some(60.0)
+    );
+    assert_ne!(fast, chroma);
     expect_failure(
         &[
             "reconstruct",
