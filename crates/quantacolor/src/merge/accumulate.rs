@@ -194,7 +194,10 @@ pub struct AccumulateConfig {
     /// +0.99, ScanLines_Cannon HDR 2,000 +1.10, MultiResolution_Bonita HDR 2,000 +0.57, kodim12
     /// 10,000 +2.21 dB (the fringes outlast the photon noise); handheld kodim04 +0.02, pan
     /// kodim22 0.00. Cost: a second regression of R, G and B, about 0.035 s on the 10,000-frame
-    /// chart of `bench speed` (4 % of the pipeline).
+    /// chart of `bench speed` (4 % of the pipeline). Not applied without W: Bayer's G as the
+    /// guide gained on static captures (+0.55 to +1.7 dB with chroma-BM3D) but lost 0.54 dB
+    /// on a handheld one (kodim04, 512 frames), because without Eq. 8's normalisation G's
+    /// pixel noise enters R and B, which the denoiser's noise model does not know of.
     pub colour_ratios: bool, // true
 }
 
