@@ -1119,26 +1119,21 @@ impl<'a> MergeAccumulator<'a> {
         let inv_cov = self.kernels.inv_cov.as_standard_layout();
         let inv_cov = inv_cov.as_slice().expect("standard layout");
         let mut sums = cpu::zeroed_par::<[f32; SUMS]>(hs * ws);
-        let sparse: [bool; 4] =
-            std::array::from_fn(|ch| self.sparse_channels()[ch] && channels[ch]);
-        if !sparse.contains(&true) {
-            let gather = self.gather(self.fine_grid(), channels, inv_cov);
+        let gather_rows = |sums: &mut [[f32; SUMS]], gather: &Gather| {
             sums.par_chunks_mut(ws)
                 .enumerate()
-                .for_each(|(oy, row)| gather_row(&gather, oy, row));
+                .for_each(|(oy, row)| gather_row(gather, oy, row))
+        };
+        let all_sparse = self.sparse_channels();
+        let sparse: [bool; 4] = std::array::from_fn(|ch| all_sparse[ch] && channels[ch]);
+        if !sparse.contains(&true) {
+            gather_rows(&mut sums, &self.gather(self.fine_grid(), channels, inv_cov));
             return sums;
         }
         let coarse = self.coarse_bins(sparse);
         let dense: [bool; 4] = std::array::from_fn(|ch| channels[ch] && !sparse[ch]);
-        if !dense
-            .iter()
-            .zip(&self.channel_scale)
-            .any(|(&d, &s)| d && s > 0.0)
-        {
-            let coarse = self.gather(coarse.grid(), sparse, inv_cov);
-            sums.par_chunks_mut(ws)
-                .enumerate()
-                .for_each(|(oy, row)| gather_row(&coarse, oy, row));
+        if !(0..4).any(|ch| dense[ch] && self.channel_scale[ch] > 0.0) {
+            gather_rows(&mut sums, &self.gather(coarse.grid(), sparse, inv_cov));
             return sums;
         }
         let fine = self.gather(self.fine_grid(), dense, inv_cov);
