@@ -176,9 +176,9 @@ pub struct AccumulateConfig {
     /// `bins_per_output_px`; equal to it, every channel takes the same bins. This project's
     /// speed trade-off ([`MergeAccumulator::finish`]).
     pub sparse_bins_per_output_px: usize, // 1
-    /// Colour from ratios to W (this project's own step, not the paper's; the principle of
-    /// colour-ratio demosaicking, Kimmel 1999, and of guided filtering, He et al. 2013): where
-    /// the CFA has W and R, G, B, each colour's flux is divided by the merged W seen through
+    /// Colour from ratios to W, or to G without W (this project's own step, not the paper's;
+    /// the principle of colour-ratio demosaicking, Kimmel 1999, and of guided filtering, He et
+    /// al. 2013): where the CFA has W and R, G, B, each colour's flux is divided by the merged W seen through
     /// that colour's own kernel and sample weights (the same regression over the same bins with
     /// every sample's counts replaced by the merged W at its position), and multiplied by the
     /// merged W at the pixel. A colour kernel is several pixels wide (its sites are sparse), so
@@ -194,10 +194,12 @@ pub struct AccumulateConfig {
     /// +0.99, ScanLines_Cannon HDR 2,000 +1.10, MultiResolution_Bonita HDR 2,000 +0.57, kodim12
     /// 10,000 +2.21 dB (the fringes outlast the photon noise); handheld kodim04 +0.02, pan
     /// kodim22 0.00. Cost: a second regression of R, G and B, about 0.035 s on the 10,000-frame
-    /// chart of `bench speed` (4 % of the pipeline). Not applied without W: Bayer's G as the
-    /// guide gained on static captures (+0.55 to +1.7 dB with chroma-BM3D) but lost 0.54 dB
-    /// on a handheld one (kodim04, 512 frames), because without Eq. 8's normalisation G's
-    /// pixel noise enters R and B, which the denoiser's noise model does not know of.
+    /// chart of `bench speed` (4 % of the pipeline). Without W (Bayer) the densest colour, G,
+    /// guides R and B, its noise gated ([`COLOUR_GUIDE_NOISE_GATE`]): `bench quality`'s Bayer
+    /// captures kodim07 handheld burst +1.29, chroma-BM3D +0.33 dB (tuning), kodim04 handheld
+    /// +0.28 and +0.07 (validation); other Bayer captures, default pipeline: kodim02 static
+    /// 2,000 frames +0.96, kodim15 handheld 2,000 +0.57, MultiResolution_Bonita HDR static
+    /// +0.74, kodim22 fast handheld 512 +0.01, ScanLines_Cannon HDR pan +0.71 dB.
     pub colour_ratios: bool, // true
 }
 
@@ -312,6 +314,27 @@ const OWN_ELLIPSE_RATIO: f64 = 0.8;
 /// twice G's, and stay on the phase bins: with them on coarser bins (ratio 2) the quality
 /// suite's Bayer capture lost 0.11 dB (burst) and 0.14 dB (true motion).
 const SPARSE_SCALE_RATIO: f32 = 2.25;
+
+/// Without W, the colour ratios' guide is a colour (G of Bayer) whose pixel noise the ratio
+/// would carry into the other colours (Eq. 8 cancels W's, not G's): the factor's departure
+/// from 1 is shrunk by the non-negative garrote (Breiman 1995) at this many standard deviations
+/// of the guide's flux at the pixel (relative to the guide seen by the colour), so flat areas
+/// keep their colour noise and
+/// edges get the correction ([`MergeAccumulator::colour_from_ratios`]). Measured on Bayer
+/// captures (default pipeline, sRGB PSNR against no ratios): kodim07 static 2,000 frames +1.74
+/// / +1.72 / +1.41 dB at 0 / 1 / 2 standard deviations, kodim12 static +0.57 / +0.72 / +0.54,
+/// kodim22 static 512 +0.55 / +0.70 / +0.53, kodim04 handheld 512 −0.54 / +0.12 / +0.01.
+const COLOUR_GUIDE_NOISE_GATE: f32 = 1.0;
+
+/// The non-negative garrote of `value` at `threshold`: `value·(1 − threshold²/value²)` beyond
+/// the threshold, 0 within it.
+fn garrote(value: f32, threshold: f32) -> f32 {
+    if value * value > threshold * threshold {
+        value - threshold * threshold / value
+    } else {
+        0.0
+    }
+}
 
 /// Relative difference between a channel's kernel factor and a whole multiple of the sparsest
 /// channel's within which the channel takes that multiple ([`snap_scales`]).
@@ -1416,8 +1439,16 @@ impl<'a> MergeAccumulator<'a> {
                     }
                 });
         }
-        if self.config.colour_ratios && channel_scale.iter().all(|&s| s > 0.0) {
-            self.colour_from_ratios_to_w(&mut flux, &effective_frames);
+        if self.config.colour_ratios && channel_scale[..3].iter().all(|&s| s > 0.0) {
+            // W guides where the CFA has it; otherwise the densest colour (G of Bayer).
+            let guide = if channel_scale[3] > 0.0 {
+                3
+            } else {
+                (0..3)
+                    .min_by(|&a, &b| channel_scale[a].total_cmp(&channel_scale[b]))
+                    .expect("three colours")
+            };
+            self.colour_from_ratios(guide, &mut flux, &effective_frames);
         }
         MergedPlanes {
             flux,
@@ -1427,16 +1458,27 @@ impl<'a> MergeAccumulator<'a> {
         }
     }
 
-    /// `AccumulateConfig::colour_ratios`: R, G and B of `flux` times W / W̄_c, W̄_c the merged W
-    /// (`flux`'s W plane, after hole filling and the saturation fallback) at the positions of
+    /// `AccumulateConfig::colour_ratios`: every colour c of `flux` but the `guide` (W, or the
+    /// densest colour without W) times G / Ḡ_c, G the guide's merged flux (`flux`'s plane,
+    /// after hole filling and the saturation fallback) and Ḡ_c the guide at the positions of
     /// channel c's samples, regressed with c's kernel and weights. The phase bins already hold
-    /// each bin's Σ r·F per channel; a bin's samples all lie within half a bin of it, so W at
-    /// the bin stands for W at each of them, and Σ g·W(bin)·Σ r·F over the bins, divided by
-    /// Σ g·Σ r·F, is W̄_c. Both W and W̄_c are floored at one detection over the pixel's
-    /// effective W frames: where W says nothing (the dark), the factor is 1.
-    fn colour_from_ratios_to_w(&mut self, flux: &mut Array3<f32>, effective_frames: &Array3<f32>) {
+    /// each bin's Σ r·F per channel; a bin's samples all lie within half a bin of it, so the
+    /// guide at the bin stands for the guide at each of them, and Σ g·G(bin)·Σ r·F over the
+    /// bins, divided by Σ g·Σ r·F, is Ḡ_c. Both G and Ḡ_c are floored at one detection over
+    /// the pixel's effective guide frames: where the guide says nothing (the dark), the factor
+    /// is 1. A colour guide's pixel noise would enter c (Eq. 8 cancels W's, not G's), so there
+    /// the factor's departure from 1 is shrunk by [`COLOUR_GUIDE_NOISE_GATE`].
+    fn colour_from_ratios(
+        &mut self,
+        guide: usize,
+        flux: &mut Array3<f32>,
+        effective_frames: &Array3<f32>,
+    ) {
         let scale = self.config.scale as f32;
-        let white = flux.index_axis(Axis(0), 3).to_owned();
+        let model = self.model;
+        let gate = (guide != Channel::W.index()).then_some(COLOUR_GUIDE_NOISE_GATE);
+        let guided: [bool; 4] = std::array::from_fn(|ch| ch < 3 && ch != guide);
+        let white = flux.index_axis(Axis(0), guide).to_owned();
         let (u, margin, stride, bins_w) = (
             self.bins_per_px as f32,
             self.margin as f32,
@@ -1453,18 +1495,17 @@ impl<'a> MergeAccumulator<'a> {
                 for bx in 0..bins_w {
                     let w_at_bin = bilinear(white.view(), oy, output_position(bx));
                     let w_at_bin = if w_at_bin.is_finite() { w_at_bin } else { 0.0 };
-                    for ch in 0..3 {
+                    for ch in (0..3).filter(|&ch| guided[ch]) {
                         let frames = row[(ch * 3 + 1) * stride + bx];
                         row[ch * 3 * stride + bx] = w_at_bin * frames;
                     }
                 }
             });
-        let sums = self.regression([true, true, true, false]);
-        let frames_w = effective_frames.index_axis(Axis(0), 3);
+        let sums = self.regression(guided);
+        let frames_w = effective_frames.index_axis(Axis(0), guide).to_owned();
         let ws = white.ncols();
-        let (mut rgb, _) = flux.view_mut().split_at(Axis(0), 3);
-        for ch in 0..3 {
-            rgb.index_axis_mut(Axis(0), ch)
+        for ch in (0..3).filter(|&ch| guided[ch]) {
+            flux.index_axis_mut(Axis(0), ch)
                 .axis_iter_mut(Axis(0))
                 .into_par_iter()
                 .zip(sums.par_chunks(ws))
@@ -1476,7 +1517,18 @@ impl<'a> MergeAccumulator<'a> {
                         if n.is_finite() && n > 0.0 && s[1] > 1e-6 {
                             let floor = 1.0 / n;
                             let w_seen_by_colour = (s[0] / s[1]).max(floor);
-                            *value *= white[[oy, ox]].max(floor) / w_seen_by_colour;
+                            let guide_here = white[[oy, ox]];
+                            let factor = guide_here.max(floor) / w_seen_by_colour;
+                            *value *= match gate {
+                                None => factor,
+                                Some(sigmas) => {
+                                    let variance =
+                                        model.flux_variance(guide_here.max(0.0) as f64, n as f64);
+                                    let noise =
+                                        sigmas * (variance as f32).sqrt() / w_seen_by_colour;
+                                    1.0 + garrote(factor - 1.0, noise)
+                                }
+                            };
                         }
                     }
                 });
@@ -2777,6 +2829,15 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn garrote_is_zero_within_the_threshold_and_shrinks_beyond_it() {
+        assert_eq!(garrote(0.5, 1.0), 0.0);
+        assert_eq!(garrote(-1.0, 1.0), 0.0);
+        assert_eq!(garrote(2.0, 1.0), 1.5);
+        assert_eq!(garrote(-4.0, 2.0), -3.0);
+        assert_eq!(garrote(0.3, 0.0), 0.3);
     }
 
     #[test]
