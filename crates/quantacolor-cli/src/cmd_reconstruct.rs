@@ -166,12 +166,9 @@ pub fn read_config(path: &Path) -> Result<ReconstructConfig> {
         .bm3d_config()
         .validate()
         .map_err(|e| anyhow::anyhow!("{}: [denoise]: {e}", path.display()))?;
-    let burst = &config.burst;
-    burst
-        .refine
+    config
+        .burst
         .validate()
-        .and_then(|()| burst.track.validate())
-        .and_then(|()| burst.trajectory.validate())
         .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     Ok(config)
 }

@@ -212,6 +212,9 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     let err = reconstruct_with_config("[burst.trajectory]\nearly_row_step = 0\n");
     assert!(err.contains("early_row_step"), "{err}");
     assert!(!out.exists(), "partial output left behind");
+    let err = reconstruct_with_config("[burst.align.blocks]\nmax_steady_smear_px = -1\n");
+    assert!(err.contains("max_steady_smear_px"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
     let err = reconstruct_with_config("[burst.refine]\npases = 1\n");
     assert!(err.contains("`burst.refine.pases`"), "{err}");
     assert!(!out.exists(), "partial output left behind");

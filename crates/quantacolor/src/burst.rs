@@ -58,6 +58,26 @@ pub struct BurstConfig {
     pub merge: MergeConfig,
 }
 
+impl BurstConfig {
+    /// Checks the settings that motion estimation would otherwise reject only after the
+    /// frames are read: refinement, tracking, the trajectory (when on) and the steady-pan
+    /// smear bound.
+    pub fn validate(&self) -> Result<()> {
+        self.refine.validate()?;
+        self.track.validate()?;
+        if self.trajectory.enabled {
+            self.trajectory.validate()?;
+        }
+        let max_smear = self.align.blocks.max_steady_smear_px;
+        if !(max_smear.is_finite() && max_smear >= 0.0) {
+            return Err(Error::invalid(format!(
+                "[burst.align.blocks] max_steady_smear_px must be a non-negative number, got {max_smear}"
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// Result of the burst reconstruction with its intermediate stages.
 #[derive(Debug, Clone)]
 pub struct BurstReconstruction {
@@ -199,18 +219,9 @@ pub(crate) fn estimate_motion(
     laps: &mut Laps,
     progress: &dyn Progress,
 ) -> Result<EstimatedMotion> {
-    // Checked before alignment: the sub-block plan uses it even with the refinement off.
-    config.refine.validate()?;
-    config.track.validate()?;
-    if config.trajectory.enabled {
-        config.trajectory.validate()?;
-    }
-    let max_smear = config.align.blocks.max_steady_smear_px;
-    if !(max_smear.is_finite() && max_smear >= 0.0) {
-        return Err(Error::invalid(format!(
-            "[burst.align.blocks] max_steady_smear_px must be a non-negative number, got {max_smear}"
-        )));
-    }
+    // Checked before alignment: the sub-block plan uses the refinement's settings even with
+    // the refinement off.
+    config.validate()?;
     let (alignment, mut motion) =
         align_blocks_replanned(capture, reference_frame, config, progress)?;
     laps.lap("align");
