@@ -1478,7 +1478,7 @@ impl<'a> MergeAccumulator<'a> {
         let model = self.model;
         let gate = (guide != Channel::W.index()).then_some(COLOUR_GUIDE_NOISE_GATE);
         let guided: [bool; 4] = std::array::from_fn(|ch| ch < 3 && ch != guide);
-        let white = flux.index_axis(Axis(0), guide).to_owned();
+        let guide_flux = flux.index_axis(Axis(0), guide).to_owned();
         let (u, margin, stride, bins_w) = (
             self.bins_per_px as f32,
             self.margin as f32,
@@ -1493,17 +1493,17 @@ impl<'a> MergeAccumulator<'a> {
             .for_each(|(by, row)| {
                 let oy = output_position(by);
                 for bx in 0..bins_w {
-                    let w_at_bin = bilinear(white.view(), oy, output_position(bx));
-                    let w_at_bin = if w_at_bin.is_finite() { w_at_bin } else { 0.0 };
+                    let at_bin = bilinear(guide_flux.view(), oy, output_position(bx));
+                    let at_bin = if at_bin.is_finite() { at_bin } else { 0.0 };
                     for ch in (0..3).filter(|&ch| guided[ch]) {
                         let frames = row[(ch * 3 + 1) * stride + bx];
-                        row[ch * 3 * stride + bx] = w_at_bin * frames;
+                        row[ch * 3 * stride + bx] = at_bin * frames;
                     }
                 }
             });
         let sums = self.regression(guided);
-        let frames_w = effective_frames.index_axis(Axis(0), guide).to_owned();
-        let ws = white.ncols();
+        let guide_frames = effective_frames.index_axis(Axis(0), guide);
+        let ws = guide_flux.ncols();
         for ch in (0..3).filter(|&ch| guided[ch]) {
             flux.index_axis_mut(Axis(0), ch)
                 .axis_iter_mut(Axis(0))
@@ -1512,20 +1512,20 @@ impl<'a> MergeAccumulator<'a> {
                 .enumerate()
                 .for_each(|(oy, (mut plane_row, sums_row))| {
                     for (ox, (value, s)) in plane_row.iter_mut().zip(sums_row).enumerate() {
-                        let n = frames_w[[oy, ox]];
+                        let n = guide_frames[[oy, ox]];
                         let s = &s[ch * 3..ch * 3 + 2];
                         if n.is_finite() && n > 0.0 && s[1] > 1e-6 {
                             let floor = 1.0 / n;
-                            let w_seen_by_colour = (s[0] / s[1]).max(floor);
-                            let guide_here = white[[oy, ox]];
-                            let factor = guide_here.max(floor) / w_seen_by_colour;
+                            let guide_seen_by_colour = (s[0] / s[1]).max(floor);
+                            let guide_here = guide_flux[[oy, ox]];
+                            let factor = guide_here.max(floor) / guide_seen_by_colour;
                             *value *= match gate {
                                 None => factor,
                                 Some(sigmas) => {
                                     let variance =
                                         model.flux_variance(guide_here.max(0.0) as f64, n as f64);
                                     let noise =
-                                        sigmas * (variance as f32).sqrt() / w_seen_by_colour;
+                                        sigmas * (variance as f32).sqrt() / guide_seen_by_colour;
                                     1.0 + garrote(factor - 1.0, noise)
                                 }
                             };
