@@ -1,5 +1,95 @@
 //! CPU hints and parallel helpers shared by the hot kernels (this project's own engineering,
-//! not a paper stage).
+//! not a paper stage), and the one place the instruction set is chosen ([`Isa`]).
+
+use std::sync::OnceLock;
+
+/// The instruction set the hot kernels run on: detected once per process (as rav1e's
+/// `cpu_features`) and passed down as a value, so every kernel takes the same decision.
+/// `QUANTACOLOR_ISA=generic` forces the portable paths (so CI runs them too); `native` or
+/// unset takes what the CPU offers. A level the CPU lacks can never be constructed, which is
+/// what makes the `unsafe` calls of the AVX2 kernels sound.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct Isa(Level);
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+enum Level {
+    Generic,
+    /// AVX2 without FMA (rare: some early or emulated CPUs).
+    Avx2,
+    /// AVX2 and FMA (every x86-64 CPU with AVX2 since 2013 in practice).
+    Avx2Fma,
+}
+
+/// The environment variable that lowers the instruction set ([`Isa::current`]).
+pub const ISA_ENV: &str = "QUANTACOLOR_ISA";
+
+impl Isa {
+    /// The portable paths: plain Rust that any CPU runs.
+    pub const fn generic() -> Self {
+        Isa(Level::Generic)
+    }
+
+    /// What this CPU offers, ignoring the environment.
+    pub fn native() -> Self {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                return if std::arch::is_x86_feature_detected!("fma") {
+                    Isa(Level::Avx2Fma)
+                } else {
+                    Isa(Level::Avx2)
+                };
+            }
+        }
+        Isa(Level::Generic)
+    }
+
+    /// The instruction set of this process: [`Isa::native`] lowered by `QUANTACOLOR_ISA`,
+    /// decided on the first call and the same ever after. An unknown value of the variable is
+    /// ignored here (the command line rejects it up front with [`Isa::from_env_value`]).
+    pub fn current() -> Self {
+        static CURRENT: OnceLock<Isa> = OnceLock::new();
+        *CURRENT.get_or_init(|| {
+            let native = Isa::native();
+            match std::env::var(ISA_ENV) {
+                Ok(value) => Isa::from_env_value(&value).map_or(native, |wanted| wanted.min(native)),
+                Err(_) => native,
+            }
+        })
+    }
+
+    /// The level a value of `QUANTACOLOR_ISA` asks for (before it is capped at what the CPU
+    /// offers): `generic`, `avx2` or `native`, in any case. `None` for anything else.
+    pub fn from_env_value(value: &str) -> Option<Self> {
+        match value.trim().to_ascii_lowercase().as_str() {
+            "generic" => Some(Isa(Level::Generic)),
+            "avx2" => Some(Isa(Level::Avx2Fma)),
+            "native" | "" => Some(Isa::native()),
+            _ => None,
+        }
+    }
+
+    /// Whether the AVX2 kernels may run.
+    #[inline]
+    pub fn avx2(self) -> bool {
+        self.0 >= Level::Avx2
+    }
+
+    /// Whether the AVX2 kernels that also use FMA may run.
+    #[inline]
+    pub fn avx2_fma(self) -> bool {
+        self.0 >= Level::Avx2Fma
+    }
+
+    /// A short name for reports: `generic`, `avx2` or `avx2+fma`.
+    pub fn name(self) -> &'static str {
+        match self.0 {
+            Level::Generic => "generic",
+            Level::Avx2 => "avx2",
+            Level::Avx2Fma => "avx2+fma",
+        }
+    }
+}
 
 /// Asks the CPU to bring every 64-byte cache line of `items` into cache. A hint only: no value
 /// depends on it. Used where the next reads lie at strides the hardware prefetchers do not follow
@@ -118,6 +208,25 @@ const PAR_FILL_ITEMS: usize = 1 << 14;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn isa_is_never_above_the_cpu_and_the_variable_only_lowers_it() {
+        let native = Isa::native();
+        assert!(Isa::current() <= native);
+        assert!(Isa::generic() <= native);
+        assert!(!Isa::generic().avx2() && !Isa::generic().avx2_fma());
+        assert_eq!(Isa::from_env_value(" Generic "), Some(Isa::generic()));
+        assert_eq!(Isa::from_env_value("native"), Some(native));
+        assert_eq!(Isa::from_env_value("sse9"), None);
+        let avx2 = Isa::from_env_value("avx2").expect("a known level");
+        assert!(avx2.avx2() && avx2.avx2_fma());
+        if std::env::var(ISA_ENV).is_err() {
+            assert_eq!(Isa::current(), native);
+        } else if std::env::var(ISA_ENV).as_deref() == Ok("generic") {
+            assert_eq!(Isa::current(), Isa::generic());
+        }
+        assert_eq!(Isa::generic().name(), "generic");
+    }
 
     #[test]
     fn balanced_chunks_are_as_few_as_max_gives_and_as_short_as_that_allows() {
