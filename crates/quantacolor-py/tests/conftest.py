@@ -10,6 +10,23 @@ import quantacolor as qc
 
 REPO = Path(__file__).resolve().parents[3]
 
+# Set by .ci/run: a test that would skip (a missing CLI binary or dask) fails instead, and a
+# session with any skipped test fails, so CI never counts a skip as a pass.
+REQUIRE_ALL = os.environ.get("QUANTACOLOR_REQUIRE_ALL_TESTS", "") not in ("", "0")
+
+
+def skip_or_fail(why):
+    if REQUIRE_ALL:
+        pytest.fail(f"{why} (QUANTACOLOR_REQUIRE_ALL_TESTS is set, so it may not skip)")
+    pytest.skip(why)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if REQUIRE_ALL and reporter is not None and reporter.stats.get("skipped"):
+        print("\nQUANTACOLOR_REQUIRE_ALL_TESTS is set: skipped tests fail the run")
+        session.exitstatus = 1
+
 
 def cli_binary():
     """The `quantacolor` CLI: $QUANTACOLOR_CLI, else the workspace's release build."""
@@ -24,7 +41,7 @@ def cli_binary():
 def cli():
     path = cli_binary()
     if path is None:
-        pytest.skip("CLI binary not built (cargo build --release) and QUANTACOLOR_CLI unset")
+        skip_or_fail("CLI binary not built (cargo build --release) and QUANTACOLOR_CLI unset")
     return path
 
 

@@ -137,7 +137,8 @@ def test_stages(capture):
     truth = capture.ground_truth
     assert qc.psnr(truth, truth) == np.inf or qc.psnr(truth, truth) > 90
     assert qc.ssim(truth, truth) == pytest.approx(1.0)
-    assert qc.psnr(lin, truth) < qc.psnr(qc.reconstruct(capture), truth) + 10
+    # The default reconstruction (chroma-BM3D) scores above the bare merge (+0.6 dB here).
+    assert qc.psnr(qc.reconstruct(capture), truth) > qc.psnr(lin, truth) > 10
     scores = qc.evaluate(lin, truth, border=4)
     assert set(scores) == {"psnr_linear", "ssim_linear", "psnr_srgb", "ssim_srgb"}
     assert scores["psnr_srgb"] == qc.psnr(lin, truth, border=4, space="srgb")

@@ -198,22 +198,36 @@ fn diagnose() {
     }
 }
 
+/// Linear motion passes `block_centre_flow` unchanged but for the shift that makes the flow at
+/// the reference frame zero (the function's contract in `align::motion`).
 #[test]
-fn centre_flow_quick() {
+fn centre_flow_keeps_linear_motion_up_to_the_reference_shift() {
     use quantacolor::align::{block_centre_flow, BlockPlan};
     let plan = BlockPlan::new(512, 64, 256).unwrap();
     let n = plan.len();
+    let centres = plan.center_frames();
+    // dy moves 1/64 px per frame (linear in time, so a block's mean is its centre frame's
+    // position; the first block is shorter than the others), dx is constant.
+    let per_frame = 1.0 / 64.0;
     let mut f = ndarray::Array4::<f32>::zeros((n, 1, 1, 2));
     for k in 0..n {
-        f[[k, 0, 0, 0]] = k as f32;
+        f[[k, 0, 0, 0]] = (centres[k] * per_frame) as f32;
         f[[k, 0, 0, 1]] = 1.0;
     }
     let o = block_centre_flow(&f, &plan);
-    println!(
-        "{:?}\n{:?}",
-        f.iter().collect::<Vec<_>>(),
-        o.iter().collect::<Vec<_>>()
-    );
+    for k in 0..n {
+        let dy = ((centres[k] - plan.reference_frame as f64) * per_frame) as f32;
+        assert!(
+            (o[[k, 0, 0, 0]] - dy).abs() < 1e-4,
+            "block {k}: dy {} want {dy}",
+            o[[k, 0, 0, 0]]
+        );
+        assert!(
+            o[[k, 0, 0, 1]].abs() < 1e-5,
+            "block {k}: dx {}",
+            o[[k, 0, 0, 1]]
+        );
+    }
 }
 
 #[test]

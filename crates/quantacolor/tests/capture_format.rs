@@ -1,6 +1,9 @@
 //! Capture directories: write/open round trips, one test per malformed input, atomic
 //! replacement, and the real colour-SPAD CFA image.
 
+#[path = "common/skip.rs"]
+mod skip;
+
 use ndarray::{s, Array2, Array3, Axis};
 use ndarray_npy::write_npy;
 use quantacolor::capture::frames::{pack_bits, FrameLayout};
@@ -707,7 +710,7 @@ fn colorspad_png() -> Option<PathBuf> {
         .map(|a| a.join(rel))
         .find(|p| p.exists());
     if found.is_none() {
-        println!("skipping: {rel} not found beside any parent of the project");
+        skip::skip(rel, "not found beside any parent of the project");
     }
     found
 }

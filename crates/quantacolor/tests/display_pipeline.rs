@@ -13,7 +13,6 @@ use rand::Rng;
 use rand_chacha::rand_core::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use std::time::Instant;
 
 const LUMA: [f32; 3] = [0.2126, 0.7152, 0.0722];
 
@@ -228,18 +227,12 @@ fn mantiuk06_keeps_the_order_of_an_hdr_step_and_is_scale_invariant() {
 }
 
 #[test]
-fn mantiuk06_speed_on_a_chart_sized_image() {
+fn mantiuk06_converges_on_a_chart_sized_image() {
     let img = Array3::from_shape_fn((254, 496, 3), |(y, x, c)| {
         chart_value(y as f64, x as f64, 254, 496, true)[c] * 0.02
     });
-    let t = Instant::now();
-    let out = tone_map(
-        img.view(),
-        None,
-        &ToneMap::Mantiuk06(Mantiuk06Config::default()),
-    )
-    .unwrap();
-    let secs = t.elapsed().as_secs_f64();
+    let config = Mantiuk06Config::default();
+    let out = tone_map(img.view(), None, &ToneMap::Mantiuk06(config)).unwrap();
     let log_lum = ndarray::Array2::from_shape_fn((254, 496), |(y, x)| {
         (0..3)
             .map(|c| LUMA[c] * img[[y, x, c]])
@@ -247,12 +240,37 @@ fn mantiuk06_speed_on_a_chart_sized_image() {
             .max(1e-6)
             .log10()
     });
-    let sol = process_log_luminance(log_lum.view(), &Mantiuk06Config::default());
-    println!(
-        "mantiuk06 on 496x254: {secs:.3} s (this build profile); CG {} iterations, relative residual {:.2e}",
-        sol.iterations, sol.relative_residual
+    let sol = process_log_luminance(log_lum.view(), &config);
+    // At the sensor's size conjugate gradients end near the tolerance (at or close to the
+    // iteration cap), and what the cap leaves unsolved moves the display by under two 8-bit
+    // levels (1.3 measured).
+    assert!(
+        sol.relative_residual <= 2.0 * config.tolerance as f64,
+        "relative residual {:.2e} after {} iterations, tolerance {:.0e}",
+        sol.relative_residual,
+        sol.iterations,
+        config.tolerance
     );
-    assert!(out.iter().all(|v| v.is_finite()));
+    let converged = Mantiuk06Config {
+        max_iterations: 1500,
+        tolerance: 1e-4,
+        ..config
+    };
+    let reference = tone_map(img.view(), None, &ToneMap::Mantiuk06(converged)).unwrap();
+    let worst = out
+        .iter()
+        .zip(reference.iter())
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 2.0 / 255.0, "capped vs converged solve: {worst}");
+    // A display image: every value in [0, 1], and the HDR chart's range is not collapsed.
+    assert!(out.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v)));
+    let (lo, hi) = out
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    assert!(hi - lo > 0.5, "display range {lo}..{hi}");
 }
 
 #[test]

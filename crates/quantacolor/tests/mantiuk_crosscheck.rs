@@ -303,7 +303,7 @@ fn mantiuk06_matches_pfstmo_mantiuk06() {
         .ok()
         .map(PathBuf::from);
     let ours_op = ToneMap::Mantiuk06(Mantiuk06Config::default());
-    let mut worst = f64::INFINITY;
+    let (mut worst_psnr, mut worst_ssim) = (f64::INFINITY, f64::INFINITY);
     println!(
         "{:<40} {:>7} {:>6} | {:>28} | {:>28}",
         "input", "PSNR", "SSIM", "ours range/detail/global/sat", "pfs range/detail/global/sat"
@@ -320,7 +320,8 @@ fn mantiuk06_matches_pfstmo_mantiuk06() {
             "{name:<40} {p:>7.2} {q:>6.3} | {:>6.2} {:>6.3} {:>6.3} {:>6.3} | {:>6.2} {:>6.3} {:>6.3} {:>6.3}",
             so.range, so.detail, so.global, so.saturation, st.range, st.detail, st.global, st.saturation
         );
-        worst = worst.min(q);
+        worst_psnr = worst_psnr.min(p);
+        worst_ssim = worst_ssim.min(q);
         if let Some(dir) = &out_dir {
             std::fs::create_dir_all(dir).unwrap();
             let global = tone_map(clean.view(), None, &ToneMap::default()).unwrap();
@@ -331,7 +332,16 @@ fn mantiuk06_matches_pfstmo_mantiuk06() {
         }
     }
     let _ = std::io::stdout().flush();
-    println!("worst SSIM {worst:.3}");
+    println!("worst PSNR {worst_psnr:.2} dB, worst SSIM {worst_ssim:.3}");
+    // The agreement `display::mantiuk`'s module doc states: 20–32 dB PSNR, SSIM 0.79–0.98.
+    assert!(
+        worst_psnr >= 20.0,
+        "worst PSNR against pfstmo_mantiuk06 {worst_psnr:.2} dB, stated at least 20 dB"
+    );
+    assert!(
+        worst_ssim >= 0.79,
+        "worst SSIM against pfstmo_mantiuk06 {worst_ssim:.3}, stated at least 0.79"
+    );
 }
 
 /// Black-box measurement of the reference's display mapping (step 6 of `display::mantiuk`):

@@ -3,6 +3,9 @@
 //! their LPIPS from an implementation that matches the `lpips` Python package to 4 decimals),
 //! identity, symmetry, monotonicity in noise, input checks, and the evaluation protocol.
 
+#[path = "common/skip.rs"]
+mod skip;
+
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -186,7 +189,7 @@ fn speed_496x254() {
 }
 
 /// The embedded binary16 weights against the published float32 ones, when the project's shared
-/// data folder is present (skipped otherwise, e.g. on CI).
+/// data folder is present (skipped otherwise; CI requires it).
 #[test]
 fn embedded_f16_weights_agree_with_the_published_f32_weights() {
     let rel = "shared/data/lpips/lpips_alex_v0.1_oihw.npz";
@@ -196,7 +199,7 @@ fn embedded_f16_weights_agree_with_the_published_f32_weights() {
         .map(|d| d.join(rel))
         .find(|p| p.is_file())
     else {
-        println!("SKIPPED: {rel} not found beside the project");
+        skip::skip(rel, "not found beside any parent of the project");
         return;
     };
     let bytes = std::fs::read(&path).unwrap();

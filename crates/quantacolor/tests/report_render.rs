@@ -2,6 +2,9 @@
 //! pipeline on sample pixels: the page must match `quantacolor display` to within one 8-bit
 //! level. Runs render.js under node; skips with a message when node is not installed.
 
+#[path = "common/skip.rs"]
+mod skip;
+
 use ndarray::Array3;
 use quantacolor::display::{render_srgb8, MesopicConfig, MesopicOffset, RenderOptions, ToneMap};
 use quantacolor::report::encode::{base64, half_bytes};
@@ -89,7 +92,10 @@ process.stdout.write(JSON.stringify(out));
 #[test]
 fn render_js_matches_the_rust_display_pipeline_within_one_level() {
     if Command::new("node").arg("--version").output().is_err() {
-        eprintln!("skipping render_js_matches_the_rust_display_pipeline_within_one_level: node is not installed (the browser test in quantacolor-cli checks the page in Chromium)");
+        skip::skip(
+            "render_js_matches_the_rust_display_pipeline_within_one_level",
+            "node is not installed (the browser test in quantacolor-cli checks the page in Chromium)",
+        );
         return;
     }
     let img = samples();

@@ -1,6 +1,9 @@
 //! Simulator scene tests: image files (PNG sRGB, EXR linear) from the shared data folder (skipped
 //! when absent), errors naming the file, and the built-in chart's patch values.
 
+#[path = "common/skip.rs"]
+mod skip;
+
 use quantacolor::color::colorchecker::{srgb8_to_linear, COLORCHECKER_SRGB};
 use quantacolor::color::srgb::srgb_to_linear;
 use quantacolor::progress::Silent;
@@ -9,14 +12,19 @@ use quantacolor::simulate::{simulate, FluxSpec, Scene, SimulationConfig};
 use std::path::{Path, PathBuf};
 
 fn shared(name: &str) -> Option<PathBuf> {
-    let p = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/data/scenes")
-        .join(name);
-    let alt = Path::new("/work/shared/data/scenes").join(name);
-    [p, alt].into_iter().find(|p| p.exists()).or_else(|| {
-        eprintln!("skipping: shared scene {name} not found");
-        None
-    })
+    // The shared data folder sits beside the project root (or beside a parent of a worktree).
+    let rel = Path::new("shared/data/scenes").join(name);
+    let found = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .ancestors()
+        .map(|a| a.join(&rel))
+        .find(|p| p.exists());
+    if found.is_none() {
+        skip::skip(
+            name,
+            "the shared scene is not beside any parent of the project",
+        );
+    }
+    found
 }
 
 #[test]

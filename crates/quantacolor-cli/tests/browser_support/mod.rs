@@ -10,6 +10,9 @@
 //! [`Browser::launch`] returns `None` (the test then skips with a message) when no Chromium is
 //! installed; `QC_CHROMIUM` names a binary explicitly.
 
+#[path = "../../../quantacolor/tests/common/skip.rs"]
+mod skip;
+
 use serde_json::{json, Value};
 use std::fs::File;
 use std::io::{BufRead, BufReader, Write};
@@ -341,8 +344,9 @@ pub fn base64_decode(s: &str) -> Vec<u8> {
 pub fn browser_or_skip(test: &str, width: u32, height: u32) -> Option<Browser> {
     let b = Browser::launch(width, height);
     if b.is_none() {
-        eprintln!(
-            "skipping {test}: no Chromium found (install the Debian packages chromium and chromium-driver, or set QC_CHROMIUM)"
+        skip::skip(
+            test,
+            "no Chromium found (install the Debian packages chromium and chromium-driver, or set QC_CHROMIUM)",
         );
     }
     b
