@@ -362,17 +362,7 @@ fn align_blocks(
 /// block collects `steady_smear` px of its motion ([`steady_block_smear`]), more than
 /// [`BlockConfig::max_steady_smear_px`]: the size at which it collects that much, at least
 /// `min_block_size`. `None` when the block size is fixed, the rule is off or not needed.
-///
-/// Measured (`quantacolor simulate --frames 10000 --cfa colorspad --motion pan`, sRGB PSNR
-/// without denoising / with chroma-BM3D, 400-frame blocks before): kodim07 at 0.02 px per
-/// frame (tuning) 29.62 / 33.36 → 30.45 / 34.34 dB in 200-frame blocks; ScanLines_Cannon HDR
-/// (validation) 32.38 / 34.48 → 32.89 / 34.83; kodim04 at 0.015 px per frame (validation)
-/// 35.66 / 38.60 → 35.88 / 38.84 in 266-frame blocks. kodim07 at 0.04 px per frame over 5,000
-/// frames had been sent to the fast-motion tracking by its long blocks' streaks: re-planned,
-/// the refinement follows it, 28.90 / 32.39 → 30.34 / 33.82 dB and 10.5 → 1.4 s. `bench
-/// quality`: its HDR pan (2,000 frames) 32.12 / 33.52 → 32.26 / 33.60 dB, every other cell
-/// unchanged; the other 10,000-frame captures (hand shake, objects, HDR still, and pans the
-/// tracking keeps) keep their blocks. A re-planned capture is aligned twice (about +0.2 s).
+/// A re-planned capture is aligned twice (about +0.2 s); measurements in docs/tuning.md.
 fn shorter_block_size(
     steady_smear: Option<f64>,
     current: usize,

@@ -203,10 +203,8 @@ impl<'a> VideoReconstructor<'a> {
     /// path places its own reference frame: the grey blocks, hence the moving-object
     /// detections, are then the per-reference path's, and the local residual (zero at the
     /// centre of the reference block) is zero at the video frame itself. Otherwise the grid is
-    /// [`Self::new`]'s. Changing B to divide the spacing was measured to cost more than it
-    /// gains (`bench video`, handheld chart, B 383 → 500: −0.94 dB mean instead of −0.37 dB),
-    /// so B moves by 2 % at most; with the grid centred (`bench video --stride 383`) the reuse
-    /// path is 0.04 dB below the per-reference path instead of 0.54 dB. This placement is the
+    /// [`Self::new`]'s. B moves by 2 % at most: changing it further to divide the spacing
+    /// cost more than centring gains (`bench video`; docs/tuning.md). This placement is the
     /// project's own.
     pub fn for_frames(
         capture: &'a Capture,

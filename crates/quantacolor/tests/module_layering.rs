@@ -1,6 +1,7 @@
-//! The library's top-level modules import each other without cycles (DESIGN.md: "lower modules
-//! never import higher ones"). Reads the sources as text: every `crate::name` outside comments
-//! and `#[cfg(test)]` modules is an edge from the file's top-level module to `name`.
+//! The library's top-level modules import each other without cycles (docs/architecture.md,
+//! "Module layering": lower modules never import higher ones). Reads the sources as text: every
+//! `crate::name` outside comments and `#[cfg(test)]` modules is an edge from the file's top-level
+//! module to `name`.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};

@@ -27,11 +27,9 @@ pub struct BlockConfig {
     pub min_blocks: usize,
     /// Floor of the automatic block size when `min_blocks` shortens it, frames.
     pub min_short_block_size: usize,
-    /// Most camera motion (px at the image corners) one automatic block may collect when the
-    /// camera moves steadily (a pan that the refinement follows): a longer block is re-planned
-    /// shorter after a first alignment (`burst::estimate_motion`); 0 = never. This project's
-    /// heuristic, not the paper's: every block image is smeared along the pan, and the merge's
-    /// guide and robustness compare those images.
+    /// Most steady-pan motion (px at the image corners) one automatic block may collect; a
+    /// longer block is re-planned shorter after a first alignment (`burst::estimate_motion`),
+    /// as block images smear along a pan. 0 = never. This project's heuristic.
     pub max_steady_smear_px: f64, // 4 px
 }
 

@@ -70,21 +70,16 @@ pub struct AlignConfig {
     /// a dark block cannot resolve. 0 disables it.
     pub median_radius: usize, // 1 tile (3x3)
     /// Replace each block's tile flow by the component-wise median of it and its two temporal
-    /// neighbours: motion is smooth in time, isolated mismatches (e.g. a grating matched one
-    /// period off) are not, and frame-level interpolation between blocks would spread them.
-    /// Off by default: with few blocks it flattens real motion peaks (median end-point error
-    /// at block centres 0.61 -> 0.81 px, handheld, 512 frames). It helped the earlier merge of
-    /// sub-blocks at interpolated block motion; not measured with [`refine`].
+    /// neighbours (motion is smooth in time, isolated mismatches are not). Off: with few
+    /// blocks it flattens real motion peaks (docs/tuning.md).
     pub temporal_median: bool, // false
     /// Tiles whose (median-filtered) flow lies within this distance of the block's robust
-    /// affine fit take the fit: camera motion (translation, small rotation) is affine to first
-    /// order, and the fit averages the photon noise of every tile; tiles farther away keep
-    /// their own flow (moving objects). 0 disables the fit.
+    /// affine fit take the fit (camera motion is affine to first order); tiles farther away
+    /// keep their own flow (moving objects). 0 disables the fit.
     pub affine_tolerance_px: f32, // 2 px
     /// Convert the measured flows (between block-mean positions) to flows at the block centre
     /// frames relative to the reference frame ([`block_centre_flow`]), computed on each block's
-    /// camera fit. Measured (median end-point error at block centres, 512 frames, 0.1
-    /// photons): handheld 0.33 -> 0.20 px, circular 0.32 -> 0.15 px.
+    /// camera fit.
     pub centre_correction: bool, // true
     /// Search radius (px) of the second motion model that tiles rejected by the camera fit
     /// are given ([`ReferenceAligner::follow_second_motion`]); 0 disables it.

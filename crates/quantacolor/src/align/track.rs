@@ -8,8 +8,7 @@
 //! fitted by the Gauss–Newton of [`super::refine`] with a wide coarse level against a template
 //! built from the sub-blocks already tracked, and then added to that template. Every fit is to
 //! the same growing template, so errors do not compound from one sub-block to the next.
-//! (Refitting every sub-block against the finished mosaic was tried and measured no better:
-//! 26.33–26.41 dB against 26.65 dB on a fast handheld capture.)
+//! (Refitting every sub-block against the finished mosaic measured no better; docs/tuning.md.)
 //!
 //! Tracking runs only when the block motion says the camera moves fast (see
 //! [`TrackConfig::trigger_px`]) and only on CFAs whose grey channel is W; afterwards the merge
@@ -33,86 +32,26 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct TrackConfig {
-    /// Track when the camera motion of two consecutive blocks differs by more than this (px,
-    /// at the image corners) and by more than [`MIN_RMS_SHARE`] of it as a root mean square
-    /// over the image ([`moves_fast`]): blocks that long are streaks. Infinite disables
-    /// tracking. Measured: a 2000-frame HDR pan (5 px between blocks) tracked at 4 px lost
-    /// 0.1 dB and doubled the time; fast shake (40 px, 2°, 512 frames) estimates tens of
-    /// pixels. With the photon trajectory after tracking, 6 px instead of 12 px tracks the
-    /// night, fast-shake SPAD capture of `experiment sensors` (long blocks at 0.015 detections
-    /// per frame): 15.34 -> 19.08 dB; no capture of `bench quality` moves between 6 and 12 px,
-    /// so none changes; at 4 px the daylight fast chart capture is tracked and loses 2.2 dB.
+    /// Track when two consecutive blocks' cameras differ by more than this (px, at the image
+    /// corners) and by more than [`MIN_RMS_SHARE`] of it as an RMS over the image
+    /// ([`moves_fast`]): blocks that long are streaks. Infinite disables tracking.
     pub trigger_px: f64, // 6 px
-    /// A steady camera is not tracked however far apart its blocks are: consecutive blocks
-    /// over [`Self::trigger_px`] apart do not count as moving fast when each of the two block
-    /// cameras lies within this distance (px, at the image corners) of the constant-velocity
-    /// path through its neighbours ([`off_constant_velocity`]) and the camera moves slowly
-    /// enough for the refinement's shortest sub-blocks (at most its
-    /// `max_sub_block_motion_px` inside one). This project's heuristic: the refinement starts
-    /// from block motion interpolated linearly in time, which is right for such a camera, so
-    /// long captures of slow pans no longer take the tracking and photon-trajectory path
-    /// (which costs about 1.3 ms per frame). Measured on 10,000-frame captures (`quantacolor
-    /// simulate --frames 10000 --cfa colorspad`; pans `--motion pan`, seeds 202, 304 and 309;
-    /// fast shake seeds 204 and 303; sRGB PSNR without denoising / with chroma-BM3D, border
-    /// 16): the steady pans' block cameras lay 0.02–0.34 px off the
-    /// path, fast shake's 1.6–9.5 px at the pairs over the trigger (kodim15 and kodim22
-    /// `fast-handheld`). Untracked against tracked (stage times summed, default
-    /// chroma-BM3D run): kodim07 pan (0.02 px per frame, 7.7 px between blocks) 29.62 / 33.36
-    /// against 29.62 / 33.37 dB, 1.5 s against 17.9 s; ScanLines_Cannon HDR pan 32.38 / 34.48
-    /// against 32.36 / 34.47 dB, 1.5 s against 18.3 s; kodim04 pan at 0.015 px per frame
-    /// 35.66 / 38.60 against 35.60 / 38.46 dB, 1.3 s against 17.7 s. Faster steady pans, which
-    /// the speed condition keeps tracked (shortest sub-blocks of 14 frames at 0.1 detections
-    /// per frame): kodim07 at 0.04 px per frame (5,000 frames) untracked 28.83 / 32.19
-    /// against 28.90 / 32.39 dB, kodim22 at 0.08 (2,500 frames) 27.53 / 29.75 against 27.74
-    /// / 30.24 dB. 0 turns the exemption off.
+    /// A steady camera (both block cameras within this distance, px at the corners, of the
+    /// constant-velocity path, [`off_constant_velocity`], and slow enough for the refinement's
+    /// shortest sub-blocks) is not tracked: the refinement follows it. Ours; 0 = off.
     pub steady_px: f64, // 1 px
     /// Coarse-to-fine levels of each sub-block's fit (the coarse level sets the capture range
     /// around the constant-velocity prediction).
     pub levels: Vec<RefineLevel>,
     /// Gauss–Newton iterations per level.
     pub iterations: usize, // 8
-    /// Largest linear part (largest |m| entry: rotation, scale and shear, 0.1 ≈ 6° or 10 %) of
-    /// the median tracked camera; a tracking whose median camera needs more has failed and is
-    /// abandoned, the burst then going through the refinement as when the camera moves slowly
-    /// (the median, because a fit that escapes now and then is corrected by the next ones:
-    /// tests/burst_motion's fast shake, 2°, has such outliers over 0.1). This project's
-    /// heuristic: a handheld camera turns by a few degrees in a burst (2° over 512 frames in the
-    /// fast-shake simulations) and does not zoom. Each fit is not bounded on its own: under
-    /// fast shake a fit must move far from its constant-velocity prediction, and a discarded
-    /// fit makes the next prediction worse (bounds of 8 px on a fit's correction at the corners,
-    /// or of 4 px on its linear part, lost lock on `bench quality`'s fast handheld captures:
-    /// kodim15 EPE 0.23 → 1.8 and 12.6 px, kodim22 EPE 0.15 → 14 px). Measured on a static,
-    /// dim HDR capture (96×128, 512 frames of 8-frame sub-blocks at 0.16 detections per dim
-    /// pixel, noisy block motion over `trigger_px`): its tracking fits, given almost no
-    /// photons, escape into linear parts of 0.2–90 and |b| up to ≈ 2000 px, each extrapolated
-    /// into the next prediction, and the merge's dim half had a relative RMS error of 2.7–4.1
-    /// (tests/denoise_chroma; median camera 81.6). The bound was 0.1 until a scene with long
-    /// horizontal edges showed a benign drift above it: on MultiResolution_Bonita under fast
-    /// shake (3,000 frames, HDR, `quantacolor simulate --motion fast-handheld --peak-percentile
-    /// 50 --peak 0.1`, seeds 311–313) the tracked cameras carry a shear of 0.06–0.11 at the
-    /// median (x displacement along y, which the horizon's edges do not constrain; the photon
-    /// trajectory fitted afterwards removes it). Seed 311 (0.108) was abandoned and its merge
-    /// at the refined block motion scored 24.18 dB (sRGB PSNR without denoising; 24.24 dB with
-    /// chroma-BM3D), against 34.40 dB (36.58 dB) tracked, as seeds 312 and 313 were (34.50,
-    /// 34.28 dB). 0.25 keeps a margin of
-    /// 2.3x over that drift and of 300x under the runaway fits (the fast-shake HDR captures of
-    /// ScanLines_StillLife and ScanLines_Cannon: medians 0.012 and 0.009); `bench quality` is
-    /// unchanged.
+    /// Largest linear part (largest |m| entry; 0.1 ≈ 6° or 10 %) of the median tracked camera;
+    /// a tracking that needs more has failed and the burst goes through the refinement
+    /// instead. Ours: a handheld camera turns a few degrees and does not zoom.
     pub max_linear: f64, // 0.25
-    /// The template a sub-block is fitted to is made again (blurred levels of the mosaic of
-    /// every sub-block tracked so far) only once the mosaic holds more than this fraction more
-    /// frames than when it was last made; 0 makes it for every sub-block. This project's
-    /// heuristic: a mosaic of hundreds of frames hardly changes with the next sub-block of
-    /// ten, while making its levels was half of the stage's time. Measured at 0.05 against 0
-    /// (`quantacolor simulate --cfa colorspad --motion fast-handheld`, sRGB PSNR without
-    /// denoising): 10,000-frame kodim15 (seed 204, tuning) and kodim22 (seed 303, validation)
-    /// made 74 and 77 templates instead of 518 and 535, the stage took 2.50 s instead of 3.74 s
-    /// and 2.73 s instead of 4.03 s, at the same PSNR to 0.001 dB after the photon
-    /// trajectory; 3,000-frame captures (tuning kodim02 and the chart, validation kodim04,
-    /// kodim12 and ScanLines_Cannon) within 0.004 dB with or without the photon trajectory;
-    /// `bench quality`'s fast handheld captures within 0.01 dB; `experiment sensors`
-    /// unchanged; MultiResolution_Bonita under fast shake (HDR, 3,000 frames, seeds 311–313)
-    /// −0.045 to +0.024 dB.
+    /// The template (blurred levels of the mosaic tracked so far) is made again only once the
+    /// mosaic holds this fraction more frames than when last made; 0 = every sub-block. Ours:
+    /// a speed setting (making the levels was half of the stage's time).
     pub template_growth: f64, // 0.05
 }
 
@@ -186,23 +125,10 @@ const MIN_RMS_SHARE: f64 = 0.65;
 /// than `followable_px_per_frame` at the corners. This project's heuristic. The corner
 /// difference is the streak at the corners; the RMS guard rejects a corner difference made by
 /// a shear that moves the image little on average, which is what a block fit leaves unobserved
-/// on a scene that constrains one direction only (sky and sea, MultiResolution_Bonita): a block
-/// camera sheared by 0.03 (4 px at the top and bottom edges) while the camera moved about 1 px
-/// between blocks. A 10,000-frame HDR handheld capture of that scene (`quantacolor simulate
-/// --scene MultiResolution_Bonita.exr --motion handheld --seed 2 --frames 10000 --cfa colorspad
-/// --peak-percentile 50 --peak 0.1`) read 8.24 px at the corners but 3.60 px RMS; on the
-/// corners alone it was tracked and its photon trajectory cut 4,136 sub-blocks: 82 s and
-/// 37.26 dB sRGB PSNR without denoising, against 1.2 s and 37.47 dB untracked. Largest
-/// corner / RMS differences elsewhere: `experiment sensors` (seeds 1–4) night fast shake
-/// 8.45 / 6.98, 6.91 / 5.56, 6.45 / 5.96, 7.12 / 6.59 px (tracked: 2–4 dB better), daylight
-/// fast shake 5.95 / 4.91, 4.60 / 3.69, 4.23 / 3.42, 7.46 / 6.76 px, night fast shake seen by
-/// the 1 kfps jot (three blocks) 3.60 / 2.66, 7.21 / 4.94, 6.16 / 4.28, 4.71 / 2.82 px (seed 3
-/// tracked: 18.25 dB, untracked 15.00 dB, so the share is 0.65 rather than 0.75);
-/// `bench quality`'s HDR pan 5.20 / 5.05 px (not tracked) and Bonita handheld 5.78 / 4.18 px.
-/// The RMS alone cannot separate the pan (5.05) from the night fast shake (5.56). The margins
-/// are thin on both sides of the guard (3.60 and 4.28 px against 3.9): a fit of the camera's
-/// linear part that knows what the photons left unobserved (as the similarity prior of
-/// [`super::refine`] does) would be the better fix.
+/// on a scene that constrains one direction only (sky and sea, MultiResolution_Bonita). The
+/// margins on both sides of the guard are thin (measurements in docs/tuning.md); a fit of the
+/// camera's linear part that knows what the photons left unobserved (as the similarity prior
+/// of [`super::refine`] does) would be the better fix.
 fn moves_fast(motion: &FrameMotion, config: &TrackConfig, followable_px_per_frame: f64) -> bool {
     let half = motion.half_size();
     let times = motion.plan.center_frames();
