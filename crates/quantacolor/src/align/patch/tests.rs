@@ -1,5 +1,6 @@
 //! Unit tests of the patch alignment: every AVX2 kernel against its portable reference
 //! (`Isa::current()` against `Isa::generic()`, bit for bit) and the second motion's steps.
+#![forbid(unsafe_code)]
 
 use super::cost::{seed_costs, tile_cost, window_costs, window_row_costs, Tile};
 use super::lucas_kanade::{lk_gradient_dot_error, lk_gradient_dot_error_generic, LkScratch};
