@@ -761,7 +761,12 @@ fn second_motion_follows_a_moving_square_over_a_still_background() {
         });
         let (_, _, pyramid) = aligner.align_with_pyramid(&block).unwrap();
         let plain = aligner.follow_second_motion(&block, &flow, &camera, 2.0, 16, 4);
-        let reused = aligner.follow_second_motion_in(&block, &pyramid, &flow, &camera, 2.0, 16, 4);
+        let search = SecondMotionSearch {
+            tolerance_px: 2.0,
+            radius_px: 16,
+            min_tiles: 4,
+        };
+        let reused = aligner.follow_second_motion_in(&block, &pyramid, &flow, &camera, search);
         assert_ne!(plain, flow, "{config:?}: no second motion to compare");
         assert!(
             plain

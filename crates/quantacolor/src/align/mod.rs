@@ -30,7 +30,7 @@ pub use hot_pixels::{
     HotPixelDetectConfig,
 };
 pub use motion::{block_centre_flow, flow_at, frame_flow};
-pub use patch::{Norm, PatchConfig, ReferenceAligner, TileGrid};
+pub use patch::{Norm, PatchConfig, ReferenceAligner, SecondMotionSearch, TileGrid};
 pub use refine::{
     plan_sub_blocks, refine_camera_motion, shortest_sub_block, AffineMotion, FrameMotion,
     RefineConfig, RefineLevel,
@@ -455,9 +455,11 @@ pub fn align_grey_blocks(
                         &alt,
                         &f,
                         fit,
-                        config.affine_tolerance_px,
-                        config.second_motion_radius_px,
-                        config.second_motion_min_tiles,
+                        SecondMotionSearch {
+                            tolerance_px: config.affine_tolerance_px,
+                            radius_px: config.second_motion_radius_px,
+                            min_tiles: config.second_motion_min_tiles,
+                        },
                     );
                 }
             }
