@@ -2,6 +2,8 @@
 //! reconstruction of the built-in ColorChecker chart (`simulate --scene builtin:chart`, then
 //! `reconstruct`), with the patches located from the chart layout for the image's (H, W).
 
+#![forbid(unsafe_code)]
+
 use anyhow::Result;
 use clap::Args;
 use quantacolor::capture::io;

@@ -1,6 +1,8 @@
 //! `quantacolor cfa`: generate, analyse and compare colour filter arrays (paper §5, Fig. 7–9).
 //! Parses arguments and calls `quantacolor::cfa`; all algorithms live in the library.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use quantacolor::cfa::analysis::{write_analysis, AnalysisConfig};

@@ -1,5 +1,7 @@
-//! `quantacolor convert` (real recordings -> capture directory) and `quantacolor inspect`,
-//! plus the `--frames` / hot-pixel self-calibration shared by `reconstruct` and `align`.
+//! `quantacolor convert` (real recordings -> capture directory), plus the `--frames` /
+//! hot-pixel self-calibration shared by `reconstruct`, `align` and `inspect`.
+
+#![forbid(unsafe_code)]
 
 use anyhow::Result;
 use clap::{Args, ValueEnum};
@@ -7,8 +9,6 @@ use quantacolor::align::hot_pixels::HotPixelDetectConfig;
 use quantacolor::capture::readers::{RawFormat, SourceSpec, Spad512sOptions, Spad512sOrientation};
 use quantacolor::capture::{io, Capture, FrameWindow};
 use quantacolor::convert::{convert_input, ConvertRequest, HotPixelChoice};
-use quantacolor::display::{write_rendered, BitDepth, RenderOptions};
-use quantacolor::naive::{reconstruct_naive, NaiveConfig};
 use quantacolor::progress::Progress;
 use std::path::{Path, PathBuf};
 
@@ -137,61 +137,4 @@ pub fn run_convert(args: &ConvertArgs, progress: &dyn Progress) -> Result<()> {
 /// [`quantacolor::convert::open_capture`]).
 pub fn open_capture(dir: &Path, frames: Option<&FrameWindow>, detect: bool) -> Result<Capture> {
     Ok(quantacolor::convert::open_capture(dir, frames, detect)?)
-}
-
-#[derive(Debug, Args)]
-pub struct InspectArgs {
-    /// Capture directory.
-    pub capture: PathBuf,
-    /// Write a naive-average preview image (PNG or TIFF) of the inspected frames.
-    #[arg(long)]
-    pub preview: Option<PathBuf>,
-    /// Inspect only frames A:B.
-    #[arg(long)]
-    pub frames: Option<FrameWindow>,
-}
-
-pub fn run_inspect(args: &InspectArgs) -> Result<()> {
-    let mut capture = open_capture(&args.capture, args.frames.as_ref(), false)?;
-    let (summary, mask) =
-        quantacolor::inspect::summarize(&capture, &HotPixelDetectConfig::default())?;
-    println!("capture       {}", args.capture.display());
-    println!(
-        "frames        {} of {}x{} (H x W), {:.3e} s each",
-        summary.frames, summary.height, summary.width, summary.exposure_s
-    );
-    println!("channel  fraction  detections/frame  flux (λ, detections/frame)");
-    for c in &summary.channels {
-        println!(
-            "{:>7}  {:>7.2}%  {:>16.5}  {:>10.5}",
-            c.channel,
-            100.0 * c.fraction,
-            c.detections_per_frame,
-            c.flux
-        );
-    }
-    println!(
-        "hot pixels    {} ({:.2} %, {})",
-        summary.hot_pixels,
-        100.0 * summary.hot_pixels as f64 / (summary.height * summary.width) as f64,
-        match summary.hot_pixel_origin {
-            quantacolor::inspect::HotPixelOrigin::Capture => "from the capture's mask",
-            quantacolor::inspect::HotPixelOrigin::Detected => "detected from the frames",
-        }
-    );
-    println!(
-        "block size    {} frames (suggested)",
-        summary.suggested_block_size
-    );
-    if let Some(path) = &args.preview {
-        capture.hot_pixels = Some(mask);
-        let reference = capture.reference_frame();
-        let naive = reconstruct_naive(&capture, reference, &NaiveConfig::default())?;
-        let options = RenderOptions {
-            w_weights: capture.meta.w_weights,
-            ..RenderOptions::default()
-        };
-        write_rendered(path, naive.linear.view(), &options, BitDepth::Eight)?;
-    }
-    Ok(())
 }

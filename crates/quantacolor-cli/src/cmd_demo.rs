@@ -2,6 +2,8 @@
 //! the burst method and the naive long/short baselines (paper Table 2), write `demo/` (with the
 //! comparison page `index.html` of `quantacolor report`), print PSNR/SSIM.
 
+#![forbid(unsafe_code)]
+
 use crate::cmd_reconstruct::write_reconstruction;
 use crate::output::StagedDir;
 use anyhow::Result;

@@ -3,6 +3,8 @@
 //! colour correction -> noise-aware low-light blend -> exposure -> tone map -> sRGB (paper §7,
 //! Fig. 14, Fig. 20; supplement §4 Eq. 9–10).
 
+#![forbid(unsafe_code)]
+
 use crate::output::StagedDir;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};

@@ -2,6 +2,8 @@
 //! Table 2). LPIPS (AlexNet v0.1, weights built into the library) scores the same sRGB images
 //! as `psnr_srgb` / `ssim_srgb` (`metrics::evaluate_lpips`).
 
+#![forbid(unsafe_code)]
+
 use anyhow::Result;
 use clap::Args;
 use quantacolor::capture::io;

@@ -1,6 +1,8 @@
 //! `quantacolor experiment NAME --out DIR`: runs one of the paper's experiments (library module
 //! `quantacolor::experiments`) and writes its CSV, plots and `summary.md` atomically into DIR.
 
+#![forbid(unsafe_code)]
+
 use crate::output::StagedDir;
 use anyhow::Result;
 use clap::Args;

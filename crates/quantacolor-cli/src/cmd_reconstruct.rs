@@ -1,6 +1,8 @@
 //! `quantacolor reconstruct`: capture directory -> linear.npy, linear.exr, preview.png,
 //! report.toml.
 
+#![forbid(unsafe_code)]
+
 use crate::cmd_display::ToneMapArg;
 use crate::output::StagedDir;
 use anyhow::{Context, Result};

@@ -2,6 +2,8 @@
 //! user-study variant (supplement §4, Fig. 11) and the tally of its votes (Fig. 12). The page
 //! and the study are written by `quantacolor::report`.
 
+#![forbid(unsafe_code)]
+
 use crate::cmd_display::ToneMapArg;
 use anyhow::{bail, Result};
 use clap::Args;

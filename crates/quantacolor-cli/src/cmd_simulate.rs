@@ -1,6 +1,8 @@
 //! `quantacolor simulate`: renders a simulated capture (scene, motion, sensor of paper Table 1)
 //! and writes it as a capture directory with ground truth, hot-pixel mask and `motion.toml`.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{bail, Context};
 use clap::Args;
 use quantacolor::progress::Progress;

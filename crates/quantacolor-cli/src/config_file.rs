@@ -1,6 +1,8 @@
 //! Configuration files (`reconstruct --config`, the benchmarks' `--burst-config` and
 //! `--denoise-config`), read by [`quantacolor::config_toml::parse`]: unknown keys are an error.
 
+#![forbid(unsafe_code)]
+
 use anyhow::{anyhow, Context, Result};
 use serde::de::DeserializeOwned;
 use std::path::Path;

@@ -4,12 +4,14 @@ mod allocator;
 mod cmd_align;
 mod cmd_bench;
 mod cmd_calibrate_color;
+mod cmd_calibrate_dcr;
 mod cmd_cfa;
 mod cmd_convert;
 mod cmd_demo;
 mod cmd_display;
 mod cmd_eval;
 mod cmd_experiment;
+mod cmd_inspect;
 mod cmd_reconstruct;
 mod cmd_report;
 mod cmd_simulate;
@@ -43,7 +45,7 @@ enum Command {
     /// Align the binary frames to the reference frame; writes flow.npy and flow.toml.
     Align(cmd_align::AlignArgs),
     /// Per-pixel dark count rates and a hot-pixel mask from a dark capture.
-    CalibrateDcr(cmd_align::CalibrateDcrArgs),
+    CalibrateDcr(cmd_calibrate_dcr::CalibrateDcrArgs),
     /// Quality and speed benchmarks (ratios against baselines measured in the same run).
     Bench(cmd_bench::BenchArgs),
     /// Colour filter arrays: generate, analyse spectra, compare patterns (paper §5).
@@ -56,7 +58,7 @@ enum Command {
     /// capture directory.
     Convert(cmd_convert::ConvertArgs),
     /// Summarise a capture: size, CFA, light level per channel, hot pixels, block size.
-    Inspect(cmd_convert::InspectArgs),
+    Inspect(cmd_inspect::InspectArgs),
     /// The paper's experiments (dynamic-range, sensors, motion, w-fraction, cfa): CSV, plots, summary.md.
     Experiment(cmd_experiment::ExperimentArgs),
     /// A static comparison page over reconstruction folders (exposure, tone map, low-light view,
@@ -64,8 +66,28 @@ enum Command {
     Report(cmd_report::ReportArgs),
 }
 
+/// Checks `QUANTACOLOR_ISA` ([`quantacolor::cpu::ISA_ENV`]) before any work: an unknown value
+/// is an error here rather than silently ignored by the library.
+fn check_isa_env() -> Result<(), String> {
+    let name = quantacolor::cpu::ISA_ENV;
+    match std::env::var_os(name) {
+        None => Ok(()),
+        Some(value) => match value.to_str() {
+            Some(text) if quantacolor::cpu::Isa::from_env_value(text).is_some() => Ok(()),
+            _ => Err(format!(
+                "{name}={:?} is not a known instruction set (allowed values: generic, avx2, native)",
+                value.to_string_lossy()
+            )),
+        },
+    }
+}
+
 fn main() -> ExitCode {
     allocator::keep_freed_memory();
+    if let Err(message) = check_isa_env() {
+        eprintln!("error: {message}");
+        return ExitCode::from(2);
+    }
     let cli = Cli::parse();
     let progress = progress::TerminalProgress::new();
     let result = match &cli.command {
@@ -74,13 +96,13 @@ fn main() -> ExitCode {
         Command::Reconstruct(args) => cmd_reconstruct::run(args, &progress),
         Command::Eval(args) => cmd_eval::run(args),
         Command::Align(args) => cmd_align::run_align(args, &progress),
-        Command::CalibrateDcr(args) => cmd_align::run_calibrate_dcr(args),
+        Command::CalibrateDcr(args) => cmd_calibrate_dcr::run(args),
         Command::Cfa(args) => cmd_cfa::run(args),
         Command::Bench(args) => cmd_bench::run(args, &progress),
         Command::Display(args) => cmd_display::run(args),
         Command::CalibrateColor(args) => cmd_calibrate_color::run(args),
         Command::Convert(args) => cmd_convert::run_convert(args, &progress),
-        Command::Inspect(args) => cmd_convert::run_inspect(args),
+        Command::Inspect(args) => cmd_inspect::run(args),
         Command::Experiment(args) => cmd_experiment::run(args, &progress),
         Command::Report(args) => cmd_report::run(args, &progress),
     };

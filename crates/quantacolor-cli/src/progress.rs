@@ -1,5 +1,7 @@
 //! Progress bars on a terminal, silence otherwise.
 
+#![forbid(unsafe_code)]
+
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use quantacolor::progress::Progress;
 use std::io::IsTerminal;

@@ -580,3 +580,29 @@ fn cmos_capture_reconstructs_and_bad_multibit_metadata_exits_2() {
     assert!(err.contains("missing `gain_e_per_dn`"), "{err}");
     assert!(!out.exists(), "partial output left behind");
 }
+
+#[test]
+fn an_unknown_quantacolor_isa_exits_2_naming_the_variable_value_and_choices() {
+    let run = |value: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_quantacolor"))
+            .arg("--version")
+            .env("QUANTACOLOR_ISA", value)
+            .output()
+            .expect("binary runs")
+    };
+    for good in ["generic", "AVX2", "native", ""] {
+        let out = run(good);
+        assert!(
+            out.status.success(),
+            "QUANTACOLOR_ISA={good:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let out = run("sse9");
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    for word in ["QUANTACOLOR_ISA", "sse9", "generic", "avx2", "native"] {
+        assert!(err.contains(word), "error {err:?} does not name {word}");
+    }
+}

@@ -432,15 +432,14 @@ pub fn simulate_with_cfa(
         }
     };
     let prep = prepare(config, scene, cfa)?;
-    let packed_frames = render::render_binary(
-        &prep.field(),
+    let job = render::FrameJob {
+        field: &prep.field(),
         cfa,
-        &prep.dark_per_frame,
-        readout,
-        config.frames,
-        config.seed,
-        progress,
-    );
+        dark_per_frame: &prep.dark_per_frame,
+        frames: config.frames,
+        seed: config.seed,
+    };
+    let packed_frames = render::render_binary(&job, readout, progress);
     Ok(SimulatedCapture {
         packed_frames,
         width: config.width,
@@ -502,15 +501,14 @@ pub fn simulate_cmos_with_cfa(
         ..config.clone()
     };
     let prep = prepare(&config, scene, cfa)?;
-    let frames = render::render_cmos(
-        &prep.field(),
+    let job = render::FrameJob {
+        field: &prep.field(),
         cfa,
-        &prep.dark_per_frame,
-        &prep.sensor,
-        config.frames,
-        config.seed,
-        progress,
-    );
+        dark_per_frame: &prep.dark_per_frame,
+        frames: config.frames,
+        seed: config.seed,
+    };
+    let frames = render::render_cmos(&job, &prep.sensor, progress);
     Ok(SimulatedCmosCapture {
         frames,
         cfa: cfa.clone(),

@@ -157,17 +157,30 @@ pub(crate) enum BinaryReadout {
 
 const TWO_POW_32: f32 = 4_294_967_296.0;
 
-/// Renders `frames` binary frames, bit-packed (T, H, ceil(W/8)) MSB first.
-#[allow(clippy::too_many_arguments)]
+/// The frames a renderer draws: the flux `field` seen through `cfa`, plus `dark_per_frame`
+/// dark detections per frame of every pixel; `frames` of them, frame `t` drawn from the random
+/// stream [`frame_rng`]`(seed, t)`.
+pub(crate) struct FrameJob<'a> {
+    pub field: &'a FluxField<'a>,
+    pub cfa: &'a Cfa,
+    pub dark_per_frame: &'a Array2<f32>,
+    pub frames: usize,
+    pub seed: u64,
+}
+
+/// Renders the job's frames as binary frames, bit-packed (T, H, ceil(W/8)) MSB first.
 pub(crate) fn render_binary(
-    field: &FluxField<'_>,
-    cfa: &Cfa,
-    dark_per_frame: &Array2<f32>,
+    job: &FrameJob<'_>,
     readout: BinaryReadout,
-    frames: usize,
-    seed: u64,
     progress: &dyn Progress,
 ) -> Array3<u8> {
+    let FrameJob {
+        field,
+        cfa,
+        dark_per_frame,
+        frames,
+        seed,
+    } = *job;
     let (h, w) = (cfa.height(), cfa.width());
     let mut packed = Array3::<u8>::zeros((frames, h, w.div_ceil(8)));
     progress.start("simulating binary frames", frames as u64);
@@ -201,19 +214,22 @@ pub(crate) fn render_binary(
     packed
 }
 
-/// Renders `frames` CMOS frames: Poisson photoelectrons plus Gaussian read noise, divided by
-/// the gain, offset by the black level, rounded and clipped to `0..2^bit_depth − 1`, (T, H, W)
-/// uint16 (the Gaussian–Poisson model of [`crate::model::GaussianPoisson`]).
-#[allow(clippy::too_many_arguments)]
+/// Renders the job's frames as CMOS frames: Poisson photoelectrons plus Gaussian read noise,
+/// divided by the gain, offset by the black level, rounded and clipped to
+/// `0..2^bit_depth − 1`, (T, H, W) uint16 (the Gaussian–Poisson model of
+/// [`crate::model::GaussianPoisson`]).
 pub(crate) fn render_cmos(
-    field: &FluxField<'_>,
-    cfa: &Cfa,
-    dark_per_frame: &Array2<f32>,
+    job: &FrameJob<'_>,
     sensor: &super::SensorModel,
-    frames: usize,
-    seed: u64,
     progress: &dyn Progress,
 ) -> Array3<u16> {
+    let FrameJob {
+        field,
+        cfa,
+        dark_per_frame,
+        frames,
+        seed,
+    } = *job;
     let (h, w) = (cfa.height(), cfa.width());
     let max = ((1u32 << sensor.bit_depth.min(16)) - 1) as f64;
     let (read_noise_e, gain, black) = (

@@ -1,0 +1,344 @@
+//! `reconstruct`, `reconstruct_dir` and `align`: the pipeline and its alignment stage on a
+//! capture (paper §4), with the options of `quantacolor reconstruct`.
+
+#![forbid(unsafe_code)]
+
+use crate::args::{config_arg, index_arg, parse_arg};
+use crate::capture::capture_arg;
+use crate::display::{ccm_arg, mesopic_arg};
+use crate::errors::{compute, lib_err};
+use crate::progress::PyProgress;
+use numpy::{IntoPyArray, PyArray3};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use quantacolor::denoise::chroma::DenoiseMethod;
+use quantacolor::display::{MesopicConfig, RenderOptions, ToneMap};
+use quantacolor::pipeline::{Method, ReconstructConfig, ReconstructOverrides};
+use std::path::PathBuf;
+
+/// Reconstructs `capture` into linear RGB, float32 (H·scale, W·scale, 3), in mean detections
+/// per binary frame of an R, G or B pixel with dark counts removed. Same result as the CLI's
+/// `linear.npy` for the same inputs and options.
+#[pyfunction]
+#[pyo3(signature = (capture, method=None, denoise=None, scale=None, reference_frame=None,
+                    config=None, *, sigma_y=None, sigma_c=None, block_size=None,
+                    max_sub_block_motion=None, window=None, progress=None))]
+#[expect(
+    clippy::too_many_arguments,
+    reason = "pyo3: the parameters are the Python keyword arguments"
+)]
+pub(crate) fn reconstruct<'py>(
+    py: Python<'py>,
+    capture: &Bound<'py, PyAny>,
+    method: Option<&str>,
+    denoise: Option<&str>,
+    scale: Option<i64>,
+    reference_frame: Option<i64>,
+    config: Option<&Bound<'py, PyAny>>,
+    sigma_y: Option<f32>,
+    sigma_c: Option<f32>,
+    block_size: Option<i64>,
+    max_sub_block_motion: Option<f64>,
+    window: Option<i64>,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    let args = ReconstructArgs {
+        overrides: OverrideArgs {
+            method,
+            denoise,
+            scale,
+            reference_frame,
+            sigma_y,
+            sigma_c,
+            block_size,
+            max_sub_block_motion,
+            window,
+        },
+        config,
+    };
+    reconstruct_capture(py, capture, &args, progress)
+}
+
+/// Reconstructs the capture directory `capture_dir` into `out_dir` exactly as `quantacolor
+/// reconstruct CAPTURE_DIR --out OUT_DIR` does (linear.npy, linear.exr, preview.png,
+/// report.toml; written atomically). Returns a summary dict.
+#[pyfunction]
+#[pyo3(signature = (capture_dir, out_dir, method=None, denoise=None, scale=None,
+                    reference_frame=None, config=None, *, sigma_y=None, sigma_c=None,
+                    block_size=None, max_sub_block_motion=None, window=None,
+                    tonemap="global", mesopic=None, ccm=None, progress=None))]
+#[expect(
+    clippy::too_many_arguments,
+    reason = "pyo3: the parameters are the Python keyword arguments"
+)]
+pub(crate) fn reconstruct_dir<'py>(
+    py: Python<'py>,
+    capture_dir: PathBuf,
+    out_dir: PathBuf,
+    method: Option<&str>,
+    denoise: Option<&str>,
+    scale: Option<i64>,
+    reference_frame: Option<i64>,
+    config: Option<&Bound<'py, PyAny>>,
+    sigma_y: Option<f32>,
+    sigma_c: Option<f32>,
+    block_size: Option<i64>,
+    max_sub_block_motion: Option<f64>,
+    window: Option<i64>,
+    tonemap: &str,
+    mesopic: Option<&Bound<'py, PyAny>>,
+    ccm: Option<&Bound<'py, PyAny>>,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let args = ReconstructDirArgs {
+        capture_dir,
+        out_dir,
+        overrides: OverrideArgs {
+            method,
+            denoise,
+            scale,
+            reference_frame,
+            sigma_y,
+            sigma_c,
+            block_size,
+            max_sub_block_motion,
+            window,
+        },
+        config,
+        tonemap,
+        mesopic,
+        ccm,
+    };
+    reconstruct_capture_dir(py, args, progress)
+}
+
+/// The reconstruction options of `reconstruct` and `reconstruct_dir` (Python spellings in
+/// errors), as Python passed them.
+struct OverrideArgs<'a> {
+    method: Option<&'a str>,
+    denoise: Option<&'a str>,
+    scale: Option<i64>,
+    reference_frame: Option<i64>,
+    sigma_y: Option<f32>,
+    sigma_c: Option<f32>,
+    block_size: Option<i64>,
+    max_sub_block_motion: Option<f64>,
+    window: Option<i64>,
+}
+
+impl OverrideArgs<'_> {
+    /// The options as the library's overrides, checked in parameter order.
+    fn overrides(&self) -> PyResult<ReconstructOverrides> {
+        Ok(ReconstructOverrides {
+            method: self
+                .method
+                .map(|m| parse_arg::<Method>("method", m))
+                .transpose()?,
+            denoise: self
+                .denoise
+                .map(|d| parse_arg::<DenoiseMethod>("denoise", d))
+                .transpose()?,
+            scale: match self.scale {
+                Some(s) if s < 1 => {
+                    return Err(PyValueError::new_err(format!(
+                        "scale must be 1, 2, 3 or 4, got {s}"
+                    )))
+                }
+                s => index_arg("scale", s)?,
+            },
+            reference_frame: index_arg("reference_frame", self.reference_frame)?,
+            sigma_y: self.sigma_y,
+            sigma_c: self.sigma_c,
+            block_size: match self.block_size {
+                Some(b) if b < 1 => {
+                    return Err(PyValueError::new_err(format!(
+                        "block_size must be >= 1, got {b}"
+                    )))
+                }
+                b => index_arg("block_size", b)?,
+            },
+            max_sub_block_motion: self.max_sub_block_motion,
+            window: match self.window {
+                Some(w) if w < 1 => {
+                    return Err(PyValueError::new_err(format!(
+                        "window must be >= 1, got {w}"
+                    )))
+                }
+                w => index_arg("window", w)?,
+            },
+        })
+    }
+}
+
+/// The reconstruction config: the `config=` dict (or the defaults) with the overrides applied.
+fn reconstruct_config(
+    config: Option<&Bound<'_, PyAny>>,
+    overrides: &ReconstructOverrides,
+) -> PyResult<ReconstructConfig> {
+    let mut cfg: ReconstructConfig = config_arg(config)?;
+    overrides
+        .apply(&mut cfg, &|key| key.to_string())
+        .map_err(|e| lib_err("", e))?;
+    Ok(cfg)
+}
+
+/// The arguments of `reconstruct` but the capture and the progress callback.
+struct ReconstructArgs<'a, 'py> {
+    overrides: OverrideArgs<'a>,
+    config: Option<&'a Bound<'py, PyAny>>,
+}
+
+/// `reconstruct`: the capture, then the options, then the callback checked; the library's
+/// reconstruction without the GIL.
+fn reconstruct_capture<'py>(
+    py: Python<'py>,
+    capture: &Bound<'py, PyAny>,
+    args: &ReconstructArgs<'_, 'py>,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    let (capture, _) = capture_arg("capture", capture)?;
+    let ov = args.overrides.overrides()?;
+    let cfg = reconstruct_config(args.config, &ov)?;
+    let sink = PyProgress::new(progress)?;
+    let result = compute(py, || {
+        quantacolor::pipeline::reconstruct(&capture, &cfg, &sink).map_err(|e| lib_err("", e))
+    });
+    sink.check(py)?;
+    Ok(result?.linear.into_pyarray(py))
+}
+
+/// The arguments of `reconstruct_dir` but the progress callback.
+struct ReconstructDirArgs<'a, 'py> {
+    capture_dir: PathBuf,
+    out_dir: PathBuf,
+    overrides: OverrideArgs<'a>,
+    config: Option<&'a Bound<'py, PyAny>>,
+    tonemap: &'a str,
+    mesopic: Option<&'a Bound<'py, PyAny>>,
+    ccm: Option<&'a Bound<'py, PyAny>>,
+}
+
+/// `reconstruct_dir`: the options checked, then the capture directory opened, reconstructed
+/// and written without the GIL; the summary dict.
+fn reconstruct_capture_dir<'py>(
+    py: Python<'py>,
+    args: ReconstructDirArgs<'_, 'py>,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let ReconstructDirArgs {
+        capture_dir,
+        out_dir,
+        overrides,
+        config,
+        tonemap,
+        mesopic,
+        ccm,
+    } = args;
+    let ov = overrides.overrides()?;
+    let cfg = reconstruct_config(config, &ov)?;
+    let ccm = ccm.filter(|c| !c.is_none()).map(ccm_arg).transpose()?;
+    let tonemap = parse_arg::<ToneMap>("tonemap", tonemap)?;
+    let mesopic = mesopic_arg(mesopic)?;
+    let sink = PyProgress::new(progress)?;
+    let result = compute(py, || {
+        let capture = quantacolor::convert::open_capture(&capture_dir, None, true)
+            .map_err(|e| lib_err("", e))?;
+        let rec = quantacolor::pipeline::reconstruct(&capture, &cfg, &sink)
+            .map_err(|e| lib_err("", e))?;
+        let preview = RenderOptions {
+            exposure: None,
+            color_matrix: ccm,
+            tonemap,
+            mesopic: mesopic.map(|l0| MesopicConfig {
+                l0,
+                frames: Some(rec.frames_used as f64),
+            }),
+            w_weights: capture.meta.w_weights,
+        };
+        quantacolor::output::write_reconstruction(
+            &out_dir,
+            &capture_dir.display().to_string(),
+            &capture,
+            &cfg,
+            &rec,
+            &preview,
+        )
+        .map_err(|e| lib_err("", e))?;
+        let seconds: f64 = rec.timings.iter().map(|t| t.seconds).sum();
+        let (h, w, _) = rec.linear.dim();
+        Ok((rec.reference_frame, rec.frames_used, h, w, seconds))
+    });
+    sink.check(py)?;
+    let (reference_frame, frames_used, h, w, seconds) = result?;
+    let d = PyDict::new(py);
+    d.set_item("capture", capture_dir)?;
+    d.set_item("out", out_dir)?;
+    d.set_item("reference_frame", reference_frame)?;
+    d.set_item("frames_used", frames_used)?;
+    d.set_item("height", h)?;
+    d.set_item("width", w)?;
+    d.set_item("seconds", seconds)?;
+    Ok(d)
+}
+
+/// Block-level alignment of `capture` (paper §4.1; `quantacolor align`). Returns a dict with
+/// `flow` float32 (n_blocks, tiles_y, tiles_x, 2) as (dy, dx) to the reference frame, and the
+/// keys of `flow.toml`: `block_size`, `block_start_frames`, `block_center_frames`,
+/// `tile_size`, `tile_stride`, `tile_centers_y`, `tile_centers_x`.
+#[pyfunction]
+#[pyo3(signature = (capture, reference_frame=None, block_size=None, *, progress=None))]
+pub(crate) fn align<'py>(
+    py: Python<'py>,
+    capture: &Bound<'py, PyAny>,
+    reference_frame: Option<i64>,
+    block_size: Option<i64>,
+    progress: Option<Bound<'py, PyAny>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let (capture, _) = capture_arg("capture", capture)?;
+    let reference =
+        index_arg("reference_frame", reference_frame)?.unwrap_or_else(|| capture.reference_frame());
+    if reference >= capture.frames.frame_count() {
+        return Err(PyValueError::new_err(format!(
+            "reference_frame {reference} is outside the capture's {} frames",
+            capture.frames.frame_count()
+        )));
+    }
+    let mut config = quantacolor::align::AlignConfig::default();
+    config.blocks.block_size = match block_size {
+        Some(b) if b < 1 => {
+            return Err(PyValueError::new_err(format!(
+                "block_size must be >= 1, got {b}"
+            )))
+        }
+        b => index_arg("block_size", b)?,
+    };
+    let sink = PyProgress::new(progress)?;
+    let result = compute(py, || {
+        quantacolor::align::align(
+            &capture.frames,
+            &capture.cfa,
+            capture.hot_pixels.as_ref(),
+            reference,
+            &config,
+            &sink,
+        )
+        .map_err(|e| lib_err("", e))
+    });
+    sink.check(py)?;
+    let alignment = result?;
+    let meta = alignment.flow_meta();
+    let d = PyDict::new(py);
+    d.set_item(
+        "flow",
+        numpy::PyArray4::from_owned_array(py, alignment.flow),
+    )?;
+    d.set_item("block_size", meta.block_size)?;
+    d.set_item("block_start_frames", meta.block_start_frames)?;
+    d.set_item("block_center_frames", meta.block_center_frames)?;
+    d.set_item("tile_size", meta.tile_size)?;
+    d.set_item("tile_stride", meta.tile_stride)?;
+    d.set_item("tile_centers_y", meta.tile_centers_y)?;
+    d.set_item("tile_centers_x", meta.tile_centers_x)?;
+    Ok(d)
+}
