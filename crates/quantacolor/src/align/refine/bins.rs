@@ -104,22 +104,27 @@ impl RunGroups {
 
     /// The (mean bit rate, trials) `observation` of every bin laid out as the slots are (0 for
     /// padding: no trials, so weight zero in the fit).
-    #[allow(clippy::type_complexity)]
     pub(super) fn observations(
         &self,
         observation: impl Fn(usize) -> (f32, f32),
-    ) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
+    ) -> LaneObservations {
         lane_observations(&self.bin, observation)
     }
 }
 
+/// Observations laid out as lanes of slots ([`RunGroups::observations`]): every slot's mean
+/// bit rates and numbers of trials (0 for padding).
+pub(super) struct LaneObservations {
+    pub(super) observed: Vec<[f32; GROUP_LANES]>,
+    pub(super) trials: Vec<[f32; GROUP_LANES]>,
+}
+
 /// `observation(i)` of every lane's index `i` of `slots` (0 for padding, `u32::MAX`: no
 /// trials, so weight zero in the fit).
-#[allow(clippy::type_complexity)]
 fn lane_observations(
     slots: &[[u32; GROUP_LANES]],
     observation: impl Fn(usize) -> (f32, f32),
-) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
+) -> LaneObservations {
     let mut observed = Vec::with_capacity(slots.len());
     let mut trials = Vec::with_capacity(slots.len());
     for indices in slots {
@@ -132,7 +137,7 @@ fn lane_observations(
         observed.push(o);
         trials.push(t);
     }
-    (observed, trials)
+    LaneObservations { observed, trials }
 }
 
 impl BinLayout {
@@ -356,12 +361,11 @@ pub(super) fn bin_observations(
 /// ([`RunGroups::observations`]); a layout of one site per bin is read straight from the
 /// counts through [`RunGroups::site`] (the same numbers without the bin-ordered vectors in
 /// between).
-#[allow(clippy::type_complexity)]
 pub(super) fn slot_observations(
     layout: &BinLayout,
     counts: &[u32],
     frames: usize,
-) -> (Vec<[f32; GROUP_LANES]>, Vec<[f32; GROUP_LANES]>) {
+) -> LaneObservations {
     let groups = &layout.groups;
     if groups.site.len() != groups.bin.len() {
         let (observed, trials) = bin_observations(layout, counts, frames);

@@ -1,13 +1,18 @@
 //! One sub-block's camera fit: Gauss–Newton on binned photon counts against the template,
 //! coarse to fine, weighted by the binomial variance and Huber-robust (this project's stage;
 //! the paper aligns whole blocks, §4.1). The portable sums; their AVX2 twins are in x86.rs.
+#![forbid(unsafe_code)]
 
 use super::affine::AffineMotion;
-use super::bins::{bin_observations, most_informative_bins, slot_observations, BinLayout};
+use super::bins::{
+    bin_observations, most_informative_bins, slot_observations, BinLayout, LaneObservations,
+    RunGroups,
+};
 use super::template::{bilinear4, group_lanes_fit, TemplateLevel};
 #[cfg(target_arch = "x86_64")]
-use super::x86::{fit_sub_block_avx2, run_sums_group_avx2};
+use super::x86;
 use crate::align::motion::invert;
+use crate::cpu::Isa;
 use ndarray::Array2;
 
 /// Which gradient component (0 = ∂/∂y, 1 = ∂/∂x) and which basis function (0 = 1, 1 = y,
@@ -71,8 +76,17 @@ pub(in crate::align) fn fit_sub_block(
     centre: [f64; 2],
     settings: FitSettings,
 ) -> Option<AffineMotion> {
-    fit_sub_block_with_information(counts, frames, layouts, templates, start, centre, settings)
-        .map(|(fit, _)| fit)
+    // The tracking stage's entry into the fit (track.rs): the instruction set of the process.
+    let fit = SubBlockFit {
+        counts: counts.as_slice()?,
+        frames,
+        layouts,
+        templates,
+        centre,
+        settings,
+        isa: Isa::current(),
+    };
+    fit_sub_block_with_information(&fit, start).map(|(fit, _)| fit)
 }
 
 /// The Fisher information of the six inverse-camera parameters (b_y, b_x, m_yy, m_yx, m_xy,
@@ -80,73 +94,122 @@ pub(in crate::align) fn fit_sub_block(
 /// last iteration.
 pub(super) type Information = [[f64; 6]; 6];
 
-/// [`fit_sub_block`] and the [`Information`] of its photons about the fitted parameters.
-pub(super) fn fit_sub_block_with_information(
-    counts: &Array2<u32>,
-    frames: usize,
-    layouts: &[BinLayout],
-    templates: &[&TemplateLevel],
-    start: AffineMotion,
-    centre: [f64; 2],
-    settings: FitSettings,
-) -> Option<(AffineMotion, Information)> {
-    let counts = counts.as_slice()?;
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            return unsafe {
-                fit_sub_block_avx2(counts, frames, layouts, templates, start, centre, settings)
-            };
-        }
-    }
-    fit_sub_block_generic(
-        counts, frames, layouts, templates, start, centre, settings, false,
-    )
+/// What the fit of one sub-block reads besides its start: the grey-site photon `counts` over
+/// `frames` frames, every level's bins and template (coarse to fine), the image centre, the
+/// settings and the instruction set its sums run on.
+#[derive(Clone, Copy)]
+pub(super) struct SubBlockFit<'a> {
+    pub(super) counts: &'a [u32],
+    pub(super) frames: usize,
+    pub(super) layouts: &'a [BinLayout],
+    pub(super) templates: &'a [&'a TemplateLevel],
+    pub(super) centre: [f64; 2],
+    pub(super) settings: FitSettings,
+    pub(super) isa: Isa,
 }
 
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-pub(super) fn fit_sub_block_generic(
-    counts: &[u32],
-    frames: usize,
-    layouts: &[BinLayout],
-    templates: &[&TemplateLevel],
+/// [`fit_sub_block`] from `start` and the [`Information`] of its photons about the fitted
+/// parameters; the AVX2 build of the same code where `fit.isa` offers AVX2.
+pub(super) fn fit_sub_block_with_information(
+    fit: &SubBlockFit,
     start: AffineMotion,
-    centre: [f64; 2],
-    settings: FitSettings,
-    avx2: bool,
+) -> Option<(AffineMotion, Information)> {
+    #[cfg(target_arch = "x86_64")]
+    if fit.isa.avx2() {
+        return x86::fit_sub_block(fit, start);
+    }
+    fit_sub_block_generic(fit, start)
+}
+
+/// The fit of [`fit_sub_block_with_information`], level after level: at the finest, only the
+/// bins holding the share `fine_information` of the Fisher information at the motion the
+/// coarser levels reached ([`most_informative_bins`]).
+#[inline(always)]
+pub(super) fn fit_sub_block_generic(
+    fit: &SubBlockFit,
+    start: AffineMotion,
 ) -> Option<(AffineMotion, Information)> {
     let mut params = start.params();
     let mut information = [[0.0f64; 6]; 6];
-    let last = layouts.len().min(templates.len()).saturating_sub(1);
-    for (level, (layout, template)) in layouts.iter().zip(templates).enumerate() {
-        let reduced;
-        let layout = if level == last && settings.fine_information < 1.0 {
+    let last = fit.layouts.len().min(fit.templates.len()).saturating_sub(1);
+    for (level, (layout, template)) in fit.layouts.iter().zip(fit.templates).enumerate() {
+        let reduced = (level == last && fit.settings.fine_information < 1.0).then(|| {
             let keep = most_informative_bins(
                 layout,
                 template,
                 &AffineMotion::from_params(params),
-                centre,
-                settings.fine_information,
+                fit.centre,
+                fit.settings.fine_information,
             );
-            reduced = layout.subset(&keep);
-            &reduced
+            layout.subset(&keep)
+        });
+        let level = Level::new(
+            fit,
+            reduced.as_ref().unwrap_or(layout),
+            template,
+            level == last,
+        );
+        level.iterate(&mut params, &mut information)?;
+    }
+    Some((AffineMotion::from_params(params), information))
+}
+
+/// One coarse-to-fine level of a sub-block's fit: its bins, template and observations.
+struct Level<'a> {
+    fit: &'a SubBlockFit<'a>,
+    layout: &'a BinLayout,
+    template: &'a TemplateLevel,
+    /// Whether this is the finest level (its own iterations, thinning and information).
+    fine: bool,
+    observations: Observations,
+}
+
+/// The bins' observations as the level's sums read them.
+enum Observations {
+    /// Bin by bin, for the portable sums ([`run_sums`]): mean bit rate and trials.
+    Bins {
+        observed: Vec<f32>,
+        trials: Vec<f32>,
+    },
+    /// As the run groups' slots (made straight from the counts), for the AVX2 sums.
+    Slots(LaneObservations),
+}
+
+impl<'a> Level<'a> {
+    /// The level of `layout` and `template`; the AVX2 sums read the observations laid out as
+    /// the run groups' slots, the portable ones bin by bin.
+    #[inline(always)]
+    fn new(
+        fit: &'a SubBlockFit<'a>,
+        layout: &'a BinLayout,
+        template: &'a TemplateLevel,
+        fine: bool,
+    ) -> Self {
+        let by_groups = fit.isa.avx2() && group_lanes_fit(template);
+        let observations = if by_groups {
+            Observations::Slots(slot_observations(layout, fit.counts, fit.frames))
         } else {
-            layout
+            let (observed, trials) = bin_observations(layout, fit.counts, fit.frames);
+            Observations::Bins { observed, trials }
         };
-        // The AVX2 sums read the observations laid out as the run groups' slots (made straight
-        // from the counts), the scalar ones bin by bin.
-        let by_groups = avx2 && group_lanes_fit(template);
-        let (observed, trials) = if by_groups {
-            (Vec::new(), Vec::new())
-        } else {
-            bin_observations(layout, counts, frames)
-        };
-        let interleaved = by_groups.then(|| slot_observations(layout, counts, frames));
-        let mut group_sums = vec![[0.0f64; 13]; layout.runs.len()];
+        Level {
+            fit,
+            layout,
+            template,
+            fine,
+            observations,
+        }
+    }
+
+    /// The level's Gauss–Newton iterations from `params` (updated in place); `information`
+    /// takes every iteration's normal matrix. A step that turns back on the previous one is
+    /// shortened ([`alternation_factor`]); `None` when a step cannot be solved for.
+    #[inline(always)]
+    fn iterate(&self, params: &mut [f64; 6], information: &mut Information) -> Option<()> {
+        let (settings, centre) = (&self.fit.settings, self.fit.centre);
+        let mut group_sums = vec![[0.0f64; 13]; self.layout.runs.len()];
         let mut previous: Option<[f64; 6]> = None;
-        let iterations = if level == last {
+        let iterations = if self.fine {
             settings.fine_iterations
         } else {
             settings.iterations
@@ -156,66 +219,14 @@ pub(super) fn fit_sub_block_generic(
         let mut converging = false;
         for iteration in 0..iterations {
             // Every `group_step`-th run group: thinned iterations of the finest level.
-            let group_step = if level == last && !converging {
+            let group_step = if self.fine && !converging {
                 settings.thinned_group_step(iteration, iterations)
             } else {
                 1
             };
-            let motion = AffineMotion::from_params(params);
-            let mut normal = [[0.0f64; 6]; 6];
-            let mut rhs = [0.0f64; 6];
-            #[cfg(target_arch = "x86_64")]
-            if let Some((observed, trials)) = &interleaved {
-                // SAFETY: `avx2` is only set by `fit_sub_block_avx2`, whose caller checked that
-                // the CPU supports AVX2.
-                unsafe {
-                    run_sums_group_avx2(
-                        template,
-                        &motion,
-                        centre,
-                        &layout.groups,
-                        observed,
-                        trials,
-                        group_step,
-                        &mut group_sums,
-                    )
-                };
-            }
-            for (r, run) in layout.runs.iter().enumerate() {
-                if !layout.groups.group_of_run[r].is_multiple_of(group_step) {
-                    continue;
-                }
-                // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
-                // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
-                // [9 + g + 2·p].
-                let sums = if by_groups {
-                    group_sums[r]
-                } else {
-                    let bins = RunBins {
-                        row: layout.centroid[run.start][0] as f32,
-                        x: &layout.x[run.clone()],
-                        x2: &layout.x2[run.clone()],
-                        observed: &observed[run.clone()],
-                        trials: &trials[run.clone()],
-                    };
-                    run_sums(template, &motion, centre, &bins)
-                };
-                add_run(&mut normal, &mut rhs, layout.centroid[run.start][0], &sums);
-            }
-            let normal = symmetric_from_upper(&normal);
-            for (row, values) in information.iter_mut().zip(&normal) {
-                row.copy_from_slice(values);
-            }
-            let inv = invert(normal)?;
-            let mut step: [f64; 6] =
-                std::array::from_fn(|r| (0..6).map(|c| inv[r][c] * rhs[c]).sum());
-            if step.iter().any(|v| !v.is_finite()) {
-                return None;
-            }
-            if let Some(previous) = &previous {
-                let factor = alternation_factor(&step, previous, &scale);
-                step.iter_mut().for_each(|v| *v *= factor);
-            }
+            let motion = AffineMotion::from_params(*params);
+            let (normal, rhs) = self.normal_equations(&motion, group_step, &mut group_sums);
+            let step = gauss_newton_step(&normal, &rhs, previous.as_ref(), &scale, information)?;
             previous = Some(step);
             params.iter_mut().zip(&step).for_each(|(p, s)| *p += s);
             if step_size_px(&step, centre) < 0.002 && iteration > 0 {
@@ -225,8 +236,90 @@ pub(super) fn fit_sub_block_generic(
                 converging = true;
             }
         }
+        Some(())
     }
-    Some((AffineMotion::from_params(params), information))
+
+    /// The upper triangle of the normal equations and their right-hand side at `motion`, over
+    /// the runs of every `group_step`-th run group (`group_sums`: the AVX2 sums' scratch).
+    #[inline(always)]
+    fn normal_equations(
+        &self,
+        motion: &AffineMotion,
+        group_step: usize,
+        group_sums: &mut [[f64; 13]],
+    ) -> ([[f64; 6]; 6], [f64; 6]) {
+        let (layout, template, centre) = (self.layout, self.template, self.fit.centre);
+        let mut normal = [[0.0f64; 6]; 6];
+        let mut rhs = [0.0f64; 6];
+        #[cfg(target_arch = "x86_64")]
+        if let Observations::Slots(slots) = &self.observations {
+            let runs = GroupedRuns {
+                template,
+                groups: &layout.groups,
+                slots,
+            };
+            x86::run_sums_groups(self.fit.isa, &runs, motion, centre, group_step, group_sums);
+        }
+        for (r, run) in layout.runs.iter().enumerate() {
+            if !layout.groups.group_of_run[r].is_multiple_of(group_step) {
+                continue;
+            }
+            // Per gradient pair (yy, yx, xx) and power of x (0, 1, 2): Σ w·g·g'·xᵖ at
+            // [pair + 3·p]; per gradient (y, x) and power of x (0, 1): Σ w·g·r·xᵖ at
+            // [9 + g + 2·p].
+            let sums = match &self.observations {
+                Observations::Slots(_) => group_sums[r],
+                Observations::Bins { observed, trials } => {
+                    let bins = RunBins {
+                        row: layout.centroid[run.start][0] as f32,
+                        x: &layout.x[run.clone()],
+                        x2: &layout.x2[run.clone()],
+                        observed: &observed[run.clone()],
+                        trials: &trials[run.clone()],
+                    };
+                    run_sums(template, motion, centre, &bins)
+                }
+            };
+            add_run(&mut normal, &mut rhs, layout.centroid[run.start][0], &sums);
+        }
+        (normal, rhs)
+    }
+}
+
+/// The runs of a level grouped for the AVX2 sums: the template they sample, the run groups
+/// and their observations laid out as the groups' slots.
+pub(super) struct GroupedRuns<'a> {
+    pub(super) template: &'a TemplateLevel,
+    pub(super) groups: &'a RunGroups,
+    pub(super) slots: &'a LaneObservations,
+}
+
+/// The Gauss–Newton step of the normal equations (upper triangle `normal`, right-hand side
+/// `rhs`), shortened after the `previous` step by [`alternation_factor`] (parameters weighted
+/// by `scale`); `information` takes the full normal matrix. `None` when the matrix cannot be
+/// inverted or the step is not finite.
+#[inline(always)]
+fn gauss_newton_step(
+    normal: &[[f64; 6]; 6],
+    rhs: &[f64; 6],
+    previous: Option<&[f64; 6]>,
+    scale: &[f64; 6],
+    information: &mut Information,
+) -> Option<[f64; 6]> {
+    let normal = symmetric_from_upper(normal);
+    for (row, values) in information.iter_mut().zip(&normal) {
+        row.copy_from_slice(values);
+    }
+    let inv = invert(normal)?;
+    let mut step: [f64; 6] = std::array::from_fn(|r| (0..6).map(|c| inv[r][c] * rhs[c]).sum());
+    if step.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    if let Some(previous) = previous {
+        let factor = alternation_factor(&step, previous, scale);
+        step.iter_mut().for_each(|v| *v *= factor);
+    }
+    Some(step)
 }
 
 impl FitSettings {

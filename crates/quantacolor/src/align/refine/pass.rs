@@ -5,7 +5,7 @@
 use super::affine::AffineMotion;
 use super::bins::{bin_layout, BinLayout};
 use super::config::RefineConfig;
-use super::fit::{fit_sub_block_with_information, FitSettings, Information};
+use super::fit::{fit_sub_block_with_information, FitSettings, Information, SubBlockFit};
 use super::frame_motion::FrameMotion;
 use super::prior::similarity_posterior;
 use super::template::{
@@ -15,14 +15,15 @@ use super::template::{
 use crate::align::grey::GreyMethod;
 use crate::align::motion::invert;
 use crate::capture::{BinaryFrames, Capture};
-use crate::cpu;
+use crate::cpu::{self, Isa};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use ndarray::Array2;
 use rayon::prelude::*;
 
 /// Re-measures the camera motion of every sub-block of `motion` against a template made of the
-/// other blocks and smooths it in time; see the module documentation.
+/// other blocks and smooths it in time; see the module documentation. The stage's entry: the
+/// instruction set of its fits ([`Isa::current`]) is taken here.
 ///
 /// The template of the sub-blocks of block k is the mean of every *other* block's grey image
 /// (`grey_blocks`, mean bit rate per frame) warped to the reference by the current block motion
@@ -60,16 +61,17 @@ pub fn refine_camera_motion(
             )
         })
         .collect();
+    let inputs = PassInputs {
+        frames: &capture.frames,
+        layouts: &layouts,
+        grey_blocks,
+        config,
+        progress,
+        isa: Isa::current(),
+    };
     for _ in 0..config.passes.max(1) {
         let before = motion.camera.clone();
-        let information = refine_pass(
-            &capture.frames,
-            &layouts,
-            grey_blocks,
-            motion,
-            config,
-            progress,
-        )?;
+        let information = refine_pass(&inputs, motion)?;
         // The templates are registered wherever the block motion put them; the convention is
         // zero motion at the reference frame.
         motion.anchor_at_reference();
@@ -101,17 +103,22 @@ pub fn refine_camera_motion(
     Ok(())
 }
 
+/// What every pass of [`refine_camera_motion`] reads: the capture's frames, every level's bins,
+/// the grey blocks, the settings, the progress report and the instruction set of the fits.
+struct PassInputs<'a> {
+    frames: &'a BinaryFrames,
+    layouts: &'a [BinLayout],
+    grey_blocks: &'a [Array2<f32>],
+    config: &'a RefineConfig,
+    progress: &'a dyn Progress,
+    isa: Isa,
+}
+
 /// One pass of [`refine_camera_motion`]: templates from the current block motion, a fit per
 /// sub-block, smoothing in time. Returns the [`Information`] of every sub-block's fit (`None`
 /// where it failed and kept its starting motion).
-pub(super) fn refine_pass(
-    frames: &BinaryFrames,
-    layouts: &[BinLayout],
-    grey_blocks: &[Array2<f32>],
-    motion: &mut FrameMotion,
-    config: &RefineConfig,
-    progress: &dyn Progress,
-) -> Result<Vec<Option<Information>>> {
+fn refine_pass(inputs: &PassInputs, motion: &mut FrameMotion) -> Result<Vec<Option<Information>>> {
+    let (grey_blocks, config, progress) = (inputs.grey_blocks, inputs.config, inputs.progress);
     let n_blocks = grey_blocks.len();
     let WarpedBlocks { total, mut kept } = warp_blocks_to_reference(grey_blocks, motion)?;
     let all = &total / n_blocks as f32;
@@ -149,9 +156,7 @@ pub(super) fn refine_pass(
                 None => shared.iter().flatten().collect(),
             })
             .collect();
-        for (k, result) in
-            fit_group_sub_blocks(frames, layouts, motion, group, &templates, config, progress)
-        {
+        for (k, result) in fit_group_sub_blocks(inputs, motion, group, &templates) {
             fitted[k] = result;
         }
     }
@@ -167,14 +172,12 @@ pub(super) fn refine_pass(
 /// `group[g]`'s), in one parallel loop: `(sub-block, fitted motion and its information)`,
 /// `None` where the fit failed or moved farther than `max_correction_px` from its start.
 fn fit_group_sub_blocks(
-    frames: &BinaryFrames,
-    layouts: &[BinLayout],
+    inputs: &PassInputs,
     motion: &FrameMotion,
     group: &[usize],
     templates: &[Vec<&TemplateLevel>],
-    config: &RefineConfig,
-    progress: &dyn Progress,
 ) -> Vec<(usize, Option<(AffineMotion, Information)>)> {
+    let (config, progress) = (inputs.config, inputs.progress);
     let settings = FitSettings {
         fine_iterations: config.fine_iterations,
         fine_information: config.fine_information,
@@ -196,19 +199,20 @@ fn fit_group_sub_blocks(
         .map(|&(k, g)| {
             let range = motion.sub_blocks[k].clone();
             let start = motion.camera[k];
-            let counts = frames.shared_sum(range.clone());
+            let counts = inputs.frames.shared_sum(range.clone());
             let result = start.inverse().and_then(|inverse_start| {
-                fit_sub_block_with_information(
-                    &counts,
-                    range.len(),
-                    layouts,
-                    &templates[g],
-                    inverse_start,
+                let fit = SubBlockFit {
+                    counts: counts.as_slice()?,
+                    frames: range.len(),
+                    layouts: inputs.layouts,
+                    templates: &templates[g],
                     centre,
                     settings,
-                )
-                .and_then(|(inv, info)| inv.inverse().map(|fit| (fit, info)))
-                .filter(|(fit, _)| fit.distance(&start, half) <= config.max_correction_px)
+                    isa: inputs.isa,
+                };
+                fit_sub_block_with_information(&fit, inverse_start)
+                    .and_then(|(inv, info)| inv.inverse().map(|fit| (fit, info)))
+                    .filter(|(fit, _)| fit.distance(&start, half) <= config.max_correction_px)
             });
             progress.advance(1);
             (k, result)

@@ -1,4 +1,6 @@
 //! Tests of the frame-granular camera motion, and its hand-run diagnostic (`#[ignore]`d).
+// `deny`, not `forbid`: ndarray's `s!` expands to an `allow(unsafe_code)`.
+#![deny(unsafe_code)]
 
 use super::affine::*;
 use super::bins::*;
@@ -9,12 +11,13 @@ use super::local::*;
 use super::prior::*;
 use super::template::*;
 #[cfg(target_arch = "x86_64")]
-use super::x86::*;
+use super::x86::run_sums_groups;
 use crate::align::blocks::BlockPlan;
 use crate::align::grey::GreyMethod;
 use crate::align::patch::TileGrid;
 use crate::align::Flow;
 use crate::cfa::{Cfa, Channel};
+use crate::cpu::Isa;
 use crate::filters::gaussian_blur;
 use crate::merge::SubBlockMotion;
 use crate::progress::Silent;
@@ -537,7 +540,9 @@ fn bin_observations_are_the_divided_counts() {
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn avx2_run_sums_are_bit_identical_to_scalar() {
-    if !std::arch::is_x86_feature_detected!("avx2") {
+    let isa = Isa::current();
+    if !isa.avx2() {
+        println!("SKIPPED: the instruction set is {}", isa.name());
         return;
     }
     let (h, w) = (37usize, 53usize);
@@ -575,23 +580,16 @@ fn avx2_run_sums_are_bit_identical_to_scalar() {
                 .collect();
             let trials: Vec<f32> = (0..start).map(|_| rng.gen_range(8.0..200.0)).collect();
             let groups = RunGroups::new(&runs, &rows, &x, &x2);
-            let (lanes_observed, lanes_trials) = groups.observations(|b| (observed[b], trials[b]));
+            let slots = groups.observations(|b| (observed[b], trials[b]));
+            let grouped = GroupedRuns {
+                template: &template,
+                groups: &groups,
+                slots: &slots,
+            };
             // Every group, and every second one (the others' runs left untouched).
             for group_step in [1, 2] {
                 let mut simd = vec![[f64::NAN; 13]; runs.len()];
-                // SAFETY: AVX2 checked above.
-                unsafe {
-                    run_sums_group_avx2(
-                        &template,
-                        &motion,
-                        centre,
-                        &groups,
-                        &lanes_observed,
-                        &lanes_trials,
-                        group_step,
-                        &mut simd,
-                    )
-                };
+                run_sums_groups(isa, &grouped, &motion, centre, group_step, &mut simd);
                 for (r, run) in runs.iter().enumerate() {
                     if !groups.group_of_run[r].is_multiple_of(group_step) {
                         assert!(simd[r].iter().all(|v| v.is_nan()), "{n_runs} {shift} {r}");
@@ -737,6 +735,56 @@ fn sub_block_fit_recovers_a_known_affine_motion() {
             println!("truth {truth:?}, keep {keep}: fit {fit:?}, corner error {err:.4} px");
             assert!(err < 0.3, "{err}");
         }
+    }
+}
+
+/// The fit on the AVX2 sums (the process's instruction set) equals the portable fit bit for
+/// bit: the fitted motion and its information, every bin and the most informative ones.
+#[test]
+fn the_fit_is_the_same_on_every_instruction_set() {
+    let cfa = colorspad_cfa();
+    let (h, w) = (cfa.height(), cfa.width());
+    let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
+    let reference = Array2::from_shape_fn((h, w), |(y, x)| scene(y as f64, x as f64) as f32);
+    let config = RefineConfig::default();
+    let (layouts, templates) = fit_levels(&cfa, &reference, &config);
+    let templates: Vec<&TemplateLevel> = templates.iter().collect();
+    let truth = AffineMotion {
+        b: [0.7, -1.3],
+        m: [[0.001, 0.004], [-0.004, 0.002]],
+    };
+    let c = counts(&cfa, &truth, 32, 9);
+    let start = AffineMotion {
+        b: [truth.b[0] + 0.8, truth.b[1] - 0.6],
+        ..truth
+    };
+    for (keep, thinning) in [(1.0, 0), (0.95, 1)] {
+        let fit_on = |isa: Isa| {
+            let fit = SubBlockFit {
+                counts: c.as_slice().unwrap(),
+                frames: 32,
+                layouts: &layouts,
+                templates: &templates,
+                centre,
+                settings: FitSettings {
+                    fine_information: keep,
+                    fine_thinning: thinning,
+                    ..settings(&config)
+                },
+                isa,
+            };
+            let (motion, information) =
+                fit_sub_block_with_information(&fit, start.inverse().unwrap()).unwrap();
+            (
+                motion.params().map(f64::to_bits),
+                information.map(|r| r.map(f64::to_bits)),
+            )
+        };
+        assert_eq!(
+            fit_on(Isa::generic()),
+            fit_on(Isa::current()),
+            "keep {keep}"
+        );
     }
 }
 
