@@ -13,10 +13,17 @@ fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
         let path = entry.expect("directory entry").path();
         if path.is_dir() {
             rust_files(&path, out);
-        } else if path.extension().is_some_and(|e| e == "rs") {
+        } else if path.extension().is_some_and(|e| e == "rs") && !is_test_module(&path) {
             out.push(path);
         }
     }
+}
+
+/// Files that hold only `#[cfg(test)]` modules (declared `#[cfg(test)] mod tests;` or
+/// `mod test_oracle;` by their parents): their imports are not edges of the library.
+fn is_test_module(path: &Path) -> bool {
+    path.file_stem()
+        .is_some_and(|s| s == "tests" || s == "test_oracle")
 }
 
 /// The source without line comments and without everything from the first `#[cfg(test)]`.
