@@ -103,7 +103,7 @@ impl MergeAccumulator<'_> {
         };
         match &sub.flow {
             SubBlockMotion::Affine { matrix, offset } => {
-                grid.fill_affine(targets, spans, matrix, offset, None)
+                grid.fill_affine(self.isa, targets, spans, matrix, offset, None)
             }
             SubBlockMotion::CameraAndLocal {
                 matrix,
@@ -115,7 +115,7 @@ impl MergeAccumulator<'_> {
                 let flow = flow.as_slice().expect("standard layout");
                 let mask = local.as_standard_layout();
                 let mask = mask.as_slice().expect("standard layout");
-                grid.fill_affine(targets, spans, matrix, offset, Some((mask, flow)))
+                grid.fill_affine(self.isa, targets, spans, matrix, offset, Some((mask, flow)))
             }
             SubBlockMotion::Dense(flow) => {
                 let flow = flow.as_standard_layout();

@@ -45,12 +45,10 @@ use config::validate;
 use ndarray::{Array2, Array3, Axis};
 use positions::{index_in, reference_positions, round_half_away, round_half_away_trunc};
 use rayon::prelude::*;
-use regression::{gather_row_generic, Gather};
+use regression::Gather;
 use sub_block::affine_position;
 use targets::TargetGrid;
 use weights::{make_weights, snap_scales, ChannelPlan};
-#[cfg(target_arch = "x86_64")]
-use x86::gather_row_avx2;
 
 /// Lanes of the vectorised kernel regression (eight f32: one AVX2 register).
 const LANES: usize = 8;
@@ -104,6 +102,9 @@ pub struct MergeAccumulator<'a> {
     /// (padding columns stay 0); bin (by, bx) sits at reference position
     /// (by/u − margin, bx/u − margin).
     bins: Vec<f32>,
+    /// The instruction set of the splat's targets and of the regression, taken once by
+    /// [`MergeAccumulator::new`] ([`cpu::Isa::current`]).
+    isa: cpu::Isa,
     /// Scratch of [`MergeAccumulator::add`], kept between calls: the target of every site of
     /// a group of sub-blocks, and the range of targets of each of their rows.
     targets: Vec<(u32, f32)>,
@@ -168,6 +169,7 @@ impl<'a> MergeAccumulator<'a> {
             stride,
             // Zeroed by all threads (26 MB for 496x254: ~10 ms of one thread's memset).
             bins: cpu::zeroed_par(len),
+            isa: cpu::Isa::current(),
             targets: Vec::new(),
             row_bins: Vec::new(),
         })

@@ -1,7 +1,12 @@
 //! The kernel regression over the phase bins (paper §4.2; supplement Eq. 1–3): for every output
 //! pixel, the anisotropic-kernel-weighted sums of every channel's bins.
 
+#![forbid(unsafe_code)]
+
+#[cfg(target_arch = "x86_64")]
+use super::x86::gather_row_avx2;
 use super::*;
+use crate::cpu::Isa;
 
 /// A channel's own ellipse bounds its bins in the regression ([`gather_row_generic`]) when its
 /// limit is below this fraction of the widest channel's (this project's heuristic: it changes
@@ -21,10 +26,11 @@ impl MergeAccumulator<'_> {
         let inv_cov = self.kernels.inv_cov.as_standard_layout();
         let inv_cov = inv_cov.as_slice().expect("standard layout");
         let mut sums = cpu::zeroed_par::<[f32; SUMS]>(hs * ws);
+        let isa = self.isa;
         let gather_rows = |sums: &mut [[f32; SUMS]], gather: &Gather| {
             sums.par_chunks_mut(ws)
                 .enumerate()
-                .for_each(|(oy, row)| gather_row(gather, oy, row))
+                .for_each(|(oy, row)| gather_row(gather, isa, oy, row))
         };
         let all_sparse = self.sparse_channels();
         let sparse: [bool; 4] = std::array::from_fn(|ch| all_sparse[ch] && channels[ch]);
@@ -43,8 +49,8 @@ impl MergeAccumulator<'_> {
         sums.par_chunks_mut(ws).enumerate().for_each_init(
             || vec![[0.0f32; SUMS]; ws],
             |sparse_row, (oy, row)| {
-                gather_row(&fine, oy, row);
-                gather_row(&coarse, oy, sparse_row);
+                gather_row(&fine, isa, oy, row);
+                gather_row(&coarse, isa, oy, sparse_row);
                 for (out, s) in row.iter_mut().zip(sparse_row.iter()) {
                     for ch in (0..4).filter(|&ch| sparse[ch]) {
                         out[ch * 3..ch * 3 + 3].copy_from_slice(&s[ch * 3..ch * 3 + 3]);
@@ -166,15 +172,17 @@ pub(super) struct Gather<'g> {
     pub(super) channel_limit: [Option<f64>; 4],
 }
 
-/// The regression sums of output row `oy` into `row` (W·scale pixels).
-pub(super) fn gather_row(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+/// The regression sums of output row `oy` into `row` (W·scale pixels), compiled for AVX2
+/// where `isa` has it (the same bits).
+pub(super) fn gather_row(g: &Gather, isa: Isa, oy: usize, row: &mut [[f32; SUMS]]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
-            return unsafe { gather_row_avx2(g, oy, row) };
+        if isa.avx2() {
+            return gather_row_avx2(isa, g, oy, row);
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = isa;
     gather_row_generic(g, oy, row)
 }
 

@@ -1,7 +1,10 @@
 //! The target phase bin and robustness weight of every site of a sub-block (the first half of
 //! the splat, [`MergeAccumulator::add`]): portable lanes here, their AVX2 form in `x86`.
 
+#![forbid(unsafe_code)]
+
 use super::*;
+use crate::cpu::Isa;
 
 /// The range (lowest, highest) of the target bins of a row of sites, `(u32::MAX, 0)` when no
 /// site of the row lands in the bins: [`MergeAccumulator::add`]'s bands skip the rows that
@@ -90,10 +93,11 @@ impl TargetGrid<'_> {
     /// (`matrix`, `offset`), where `local` (mask (H·W), dense flow (H, W, 2)) marks the reference
     /// pixels whose sites take the inverted dense flow instead ([`SubBlockMotion::
     /// CameraAndLocal`]). The positions and their roundings are computed eight sites at a time
-    /// (vector instructions where the CPU has AVX2): the same operations per site, so the same
+    /// (vector instructions where `isa` has AVX2): the same operations per site, so the same
     /// targets as `fill` with the position closure of that motion.
     pub(super) fn fill_affine(
         &self,
+        isa: Isa,
         targets: &mut [(u32, f32)],
         spans: &mut [(u32, u32)],
         matrix: &[[f64; 2]; 2],
@@ -107,14 +111,13 @@ impl TargetGrid<'_> {
             .for_each(|(y, (row, span))| {
                 #[cfg(target_arch = "x86_64")]
                 {
-                    if std::arch::is_x86_feature_detected!("avx2") {
-                        // SAFETY: the CPU supports AVX2 (checked just above).
-                        unsafe { self.affine_row_avx2(y, row, matrix, offset, local) };
+                    if isa.avx2() {
+                        self.affine_row_avx2(isa, y, row, matrix, offset, local);
                         *span = row_span(row);
                         return;
                     }
                 }
-                self.affine_row::<false>(y, row, matrix, offset, local);
+                self.affine_row(isa, y, row, matrix, offset, local);
                 *span = row_span(row);
             });
     }
@@ -122,11 +125,13 @@ impl TargetGrid<'_> {
     /// Targets of the sites of row `y` ([`TargetGrid::fill_affine`]): lane-wise and without
     /// branches for the affine positions (whatever their robustness and whether they land in
     /// the bins), then the few sites that need more (local motion, excluded) one by one.
-    /// `AVX2` (only from [`TargetGrid::affine_row_avx2`]): the affine lanes' targets by
-    /// [`TargetGrid::lane_targets_avx2`], the same values as [`TargetGrid::lane_targets`].
+    /// Where `isa` has AVX2 (and the robustness map covers the image), the affine lanes'
+    /// targets by [`TargetGrid::lane_targets_avx2`], the same values as
+    /// [`TargetGrid::lane_targets`].
     #[inline(always)]
-    pub(super) fn affine_row<const AVX2: bool>(
+    pub(super) fn affine_row(
         &self,
+        isa: Isa,
         y: usize,
         row: &mut [(u32, f32)],
         matrix: &[[f64; 2]; 2],
@@ -136,11 +141,6 @@ impl TargetGrid<'_> {
         let (h, w, u, margin) = (self.h, self.w, self.u, self.margin);
         let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
         let excluded = self.excluded.map(|e| &e[y * w..(y + 1) * w]);
-        // The vector reads of the robustness map stay inside it ([`TargetGrid::
-        // lane_targets_avx2`]); a shorter map takes the checked reads (and their panic).
-        let robust_covers = self.robust.is_none_or(|m| m.len() >= h * w);
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = robust_covers;
         for (chunk, out) in row.chunks_mut(LANES).enumerate() {
             let x0 = chunk * LANES;
             // Lane-wise: positions, their roundings and bin coordinates.
@@ -164,16 +164,17 @@ impl TargetGrid<'_> {
                     *s = e;
                 }
             }
-            let mut lanes = match self.robust {
-                #[cfg(target_arch = "x86_64")]
-                _ if AVX2 && robust_covers => {
-                    // SAFETY: `AVX2` is set only by `affine_row_avx2`, whose caller checked
-                    // that the CPU supports AVX2; the robustness map (if any) holds the H·W
-                    // pixels (`robust_covers`).
-                    unsafe { self.lane_targets_avx2(&rounded, &bin, &skip) }
-                }
-                Some(m) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
-                None => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
+            #[cfg(target_arch = "x86_64")]
+            let simd = self.lane_targets_x86(isa, &rounded, &bin, &skip);
+            #[cfg(not(target_arch = "x86_64"))]
+            let simd = {
+                let _ = isa;
+                None
+            };
+            let mut lanes = match (simd, self.robust) {
+                (Some(lanes), _) => lanes,
+                (None, Some(m)) => self.lane_targets(&rounded, &bin, &skip, |i| m[i]),
+                (None, None) => self.lane_targets(&rounded, &bin, &skip, |_| 1.0),
             };
             if let Some((mask, flow)) = local {
                 // Sites whose affine position is outside the image or on a marked pixel take

@@ -9,7 +9,6 @@ use super::*;
 impl MergeAccumulator<'_> {
     /// Runs `f` with what the regression of every channel over the phase bins reads
     /// ([`Gather`]).
-    #[cfg(test)]
     pub(super) fn with_gather<R>(&self, f: impl FnOnce(&Gather) -> R) -> R {
         let inv_cov = self.kernels.inv_cov.as_standard_layout();
         let gather = self.gather(
@@ -24,7 +23,6 @@ impl MergeAccumulator<'_> {
 /// The regression of [`gather_row_generic`] as it was before its weights were made a bin row
 /// at a time (the channels taking turns per group of eight bins, the partial sums in memory):
 /// the reference of `gather_row_matches_the_group_by_group_reference`.
-#[cfg(test)]
 pub(super) fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     let (bins, stride) = (g.bins, g.stride);
     let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
@@ -149,7 +147,6 @@ pub(super) fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]
 /// a·dy² + 2b·dy·dx + c·dx² (`b2` = 2b) is below `limit`, widened by 0.1 % and 10⁻³ px against
 /// rounding; `None` when the whole row is at least 0.1 % above it. Not positive definite:
 /// an unbounded interval. The reference of [`ellipse_spans`].
-#[cfg(test)]
 pub(super) fn ellipse_span(a: f32, b2: f32, c: f32, dy: f32, limit: f64) -> Option<(f64, f64)> {
     let (a, b, c, dy) = (a as f64, b2 as f64 / 2.0, c as f64, dy as f64);
     let det = a * c - b * b;

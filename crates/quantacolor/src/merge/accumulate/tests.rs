@@ -5,6 +5,7 @@ use super::regression::{ellipse_spans, gather_row};
 use super::test_oracle::{ellipse_span, gather_row_reference};
 use super::weights::{lane_power, MAX_SNAP_MULTIPLE};
 use super::*;
+use crate::cpu::Isa;
 
 #[test]
 fn coarse_bins_share_each_fine_bin_between_the_nearest_coarse_bins() {
@@ -123,20 +124,16 @@ fn affine_targets_match_the_per_site_positions() {
             assert_eq!(fast_spans, spans_of(fast));
             assert_eq!(plain_spans, spans_of(plain));
         };
-        grid.fill_affine(&mut fast, &mut fast_spans, &matrix, &offset, None);
-        grid.fill(&mut plain, &mut plain_spans, |q| {
-            affine_position(&matrix, &offset, q)
-        });
-        check(&fast, &fast_spans, &plain, &plain_spans, "affine");
+        // The portable lanes and, where the CPU has them, the AVX2 ones.
+        for isa in [Isa::generic(), Isa::current()] {
+            grid.fill_affine(isa, &mut fast, &mut fast_spans, &matrix, &offset, None);
+            grid.fill(&mut plain, &mut plain_spans, |q| {
+                affine_position(&matrix, &offset, q)
+            });
+            check(&fast, &fast_spans, &plain, &plain_spans, "affine");
+        }
 
         let (hf, wf) = ((h - 1) as f32, (w - 1) as f32);
-        grid.fill_affine(
-            &mut fast,
-            &mut fast_spans,
-            &matrix,
-            &offset,
-            Some((&mask, &flow)),
-        );
         grid.fill(&mut plain, &mut plain_spans, |q| {
             let p = affine_position(&matrix, &offset, q);
             let inside = p[0] >= 0.0 && p[1] >= 0.0 && p[0] <= hf && p[1] <= wf;
@@ -147,19 +144,30 @@ fn affine_targets_match_the_per_site_positions() {
                 reference_position(&flow, h, w, q)
             }
         });
-        check(&fast, &fast_spans, &plain, &plain_spans, "camera and local");
+        for isa in [Isa::generic(), Isa::current()] {
+            grid.fill_affine(
+                isa,
+                &mut fast,
+                &mut fast_spans,
+                &matrix,
+                &offset,
+                Some((&mask, &flow)),
+            );
+            check(&fast, &fast_spans, &plain, &plain_spans, "camera and local");
+        }
     }
 }
 
 #[test]
 fn lane_targets_avx2_match_the_scalar_lanes() {
-    // `lane_targets_avx2` against `lane_targets` (the scalar path, which an AVX2 CPU
-    // otherwise never runs) on lanes inside and outside the image and the bins, at their
+    // `lane_targets_avx2` (where `Isa::current()` has AVX2) against `lane_targets` (the
+    // portable path, which an AVX2 CPU otherwise never runs) on lanes inside and outside the image and the bins, at their
     // edges, NaN and infinite, with and without a robustness map, skipped or not.
     #[cfg(target_arch = "x86_64")]
     {
         use rand::{Rng, SeedableRng};
-        if !std::arch::is_x86_feature_detected!("avx2") {
+        let isa = Isa::current();
+        if !isa.avx2() {
             return;
         }
         let (h, w) = (11usize, 13usize);
@@ -219,8 +227,9 @@ fn lane_targets_avx2_match_the_scalar_lanes() {
                     Some(m) => grid.lane_targets(&rounded, &bin, &skip, |i| m[i]),
                     None => grid.lane_targets(&rounded, &bin, &skip, |_| 1.0),
                 };
-                // SAFETY: AVX2 is supported (checked above); the map holds H·W values.
-                let fast = unsafe { grid.lane_targets_avx2(&rounded, &bin, &skip) };
+                let fast = grid
+                    .lane_targets_x86(isa, &rounded, &bin, &skip)
+                    .expect("AVX2, and a map of H·W values");
                 let bits = |t: [(u32, f32); LANES]| t.map(|(b, r)| (b, r.to_bits()));
                 assert_eq!(bits(fast), bits(plain), "{rounded:?} {bin:?} {skip:?}");
             }
@@ -307,8 +316,8 @@ fn gather_row_matches_the_group_by_group_reference() {
                         let mut fast = vec![[0.0f32; SUMS]; ws];
                         let mut generic = vec![[1.0f32; SUMS]; ws];
                         let mut reference = vec![[2.0f32; SUMS]; ws];
-                        gather_row(g, oy, &mut fast);
-                        gather_row_generic(g, oy, &mut generic);
+                        gather_row(g, Isa::current(), oy, &mut fast);
+                        gather_row(g, Isa::generic(), oy, &mut generic);
                         gather_row_reference(g, oy, &mut reference);
                         let bits = |v: &Vec<[f32; SUMS]>| {
                             v.iter().map(|s| s.map(f32::to_bits)).collect::<Vec<_>>()

@@ -1,24 +1,65 @@
 //! The merge's AVX2 kernels, beside their portable references: the targets of eight sites at
-//! once ([`TargetGrid::lane_targets`]) and the regression of a row compiled for AVX2.
+//! once ([`TargetGrid::lane_targets`]) and the rows of the splat's targets and of the
+//! regression compiled for AVX2. The safe entries take the [`Isa`] that allows them.
 
+use super::regression::gather_row_generic;
 use super::*;
+use crate::cpu::Isa;
 
 impl TargetGrid<'_> {
     /// [`TargetGrid::affine_row`] compiled for AVX2 (no fused multiply-add: the same bits).
     ///
-    /// # Safety
-    /// The CPU must support AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn affine_row_avx2(
+    /// # Panics
+    /// If `isa` lacks AVX2 ([`TargetGrid::fill_affine`] asks it first).
+    pub(super) fn affine_row_avx2(
         &self,
+        isa: Isa,
         y: usize,
         row: &mut [(u32, f32)],
         matrix: &[[f64; 2]; 2],
         offset: &[f64; 2],
         local: Option<(&[bool], &[f32])>,
     ) {
-        self.affine_row::<true>(y, row, matrix, offset, local)
+        assert!(isa.avx2(), "the AVX2 targets need an AVX2 instruction set");
+        // SAFETY: an `Isa` with AVX2 exists only on a CPU that supports it.
+        unsafe { self.affine_row_avx2_unchecked(isa, y, row, matrix, offset, local) }
+    }
+
+    /// [`TargetGrid::affine_row_avx2`] without the check.
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[target_feature(enable = "avx2")]
+    unsafe fn affine_row_avx2_unchecked(
+        &self,
+        isa: Isa,
+        y: usize,
+        row: &mut [(u32, f32)],
+        matrix: &[[f64; 2]; 2],
+        offset: &[f64; 2],
+        local: Option<(&[bool], &[f32])>,
+    ) {
+        self.affine_row(isa, y, row, matrix, offset, local)
+    }
+
+    /// [`TargetGrid::lane_targets_avx2`] where `isa` has AVX2 and the robustness map (if any)
+    /// covers the H×W image; `None` otherwise (then the portable [`TargetGrid::lane_targets`]
+    /// make them, and a shorter map takes their checked reads and their panic).
+    #[inline(always)]
+    pub(super) fn lane_targets_x86(
+        &self,
+        isa: Isa,
+        rounded: &[[f32; LANES]; 2],
+        bin: &[[f32; LANES]; 2],
+        skip: &[bool; LANES],
+    ) -> Option<[(u32, f32); LANES]> {
+        if isa.avx2() && self.robust.is_none_or(|m| m.len() >= self.h * self.w) {
+            // SAFETY: an `Isa` with AVX2 exists only on a CPU that supports it; the map holds
+            // the H·W pixels (checked just above).
+            Some(unsafe { self.lane_targets_avx2(rounded, bin, skip) })
+        } else {
+            None
+        }
     }
 
     /// [`TargetGrid::lane_targets`] with AVX2 instructions, the robustness (if any) read
@@ -33,9 +74,8 @@ impl TargetGrid<'_> {
     /// # Safety
     /// The CPU must support AVX2, and `self.robust`, if any, must hold at least H·W values
     /// (every index read is a clamped pixel of the H×W image).
-    #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn lane_targets_avx2(
+    unsafe fn lane_targets_avx2(
         &self,
         rounded: &[[f32; LANES]; 2],
         bin: &[[f32; LANES]; 2],
@@ -127,10 +167,22 @@ impl TargetGrid<'_> {
 /// [`gather_row_generic`] compiled for AVX2 (its eight-lane loops become vector instructions):
 /// the same operations in the same order (no fused multiply-add), so the same result.
 ///
+/// # Panics
+/// If `isa` lacks AVX2 ([`gather_row`] asks it first).
+pub(super) fn gather_row_avx2(isa: Isa, g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+    assert!(
+        isa.avx2(),
+        "the AVX2 regression needs an AVX2 instruction set"
+    );
+    // SAFETY: an `Isa` with AVX2 exists only on a CPU that supports it.
+    unsafe { gather_row_avx2_unchecked(g, oy, row) }
+}
+
+/// [`gather_row_avx2`] without the check.
+///
 /// # Safety
 /// The CPU must support AVX2.
-#[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-pub(super) unsafe fn gather_row_avx2(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
+unsafe fn gather_row_avx2_unchecked(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
     gather_row_generic(g, oy, row)
 }
