@@ -17,8 +17,7 @@ const SPLAT_BAND_ROWS: usize = 16;
 /// `AccumulateConfig::sparse_bins_per_output_px` (its kernel std is then at least 1.5 times the
 /// densest channel's). On the colour-SPAD CFA at spacing exponent 0.5 (the default pipeline with
 /// denoising) G, B and R have 2.4, 3.5 and 3.5 times W's scale; Bayer's R and B have at most
-/// twice G's, and stay on the phase bins: with them on coarser bins (ratio 2) the quality
-/// suite's Bayer capture lost 0.11 dB (burst) and 0.14 dB (true motion).
+/// twice G's, and stay on the phase bins (measured: docs/tuning.md).
 const SPARSE_SCALE_RATIO: f32 = 2.25;
 
 impl MergeAccumulator<'_> {
@@ -219,7 +218,7 @@ impl MergeAccumulator<'_> {
     /// when splatting with bilinear weights). Unlike rounding to the coarse grid it moves no
     /// sample on average: the positions of a static burst (every site on a whole reference
     /// pixel) stay where they are (rounding pairs of fine bins instead shifted the sparse
-    /// channels by a quarter pixel: −0.17 dB on the quality suite's static capture). The
+    /// channels by a quarter pixel; measured in docs/tuning.md). The
     /// splat itself stays one pass over the fine bins.
     pub(super) fn coarse_bins(&self, sparse: [bool; 4]) -> CoarseBins {
         let f = self.config.bins_per_output_px / self.config.sparse_bins_per_output_px;
@@ -274,6 +273,7 @@ impl MergeAccumulator<'_> {
     }
 }
 
+/// A grid of phase bins in [`MergeAccumulator`]'s plane layout: bin (by, bx) sits at reference
 /// position (by/u − margin, bx/u − margin).
 pub(super) struct BinGrid<'b> {
     pub(super) bins: &'b [f32],

@@ -1,5 +1,15 @@
-//! Colour from ratios to W, or to G without W: this project's own step, not the paper's (the
-//! principle of colour-ratio demosaicking, Kimmel 1999, and of guided filtering, He et al. 2013).
+//! Colour from ratios to W, or to G without W (`AccumulateConfig::colour_ratios`): this
+//! project's own step, not the paper's (the principle of colour-ratio demosaicking, Kimmel
+//! 1999, and of guided filtering, He et al. 2013). Where the CFA has W and R, G, B, each
+//! colour's flux is divided by the merged W seen through that colour's own kernel and sample
+//! weights (the same regression over the same bins with every sample's counts replaced by the
+//! merged W at its position), and multiplied by the merged W at the pixel. A colour kernel is
+//! several pixels wide (its sites are sparse), so at a luminance edge it averages samples from
+//! both sides and the brighter side's colour bleeds into the darker (fringes, strongest in
+//! static captures where the sites never move); the ratio to W over the same samples cancels
+//! that luminance step. In flat regions the factor is 1. Without W (Bayer) the densest colour,
+//! G, guides R and B, its noise gated ([`COLOUR_GUIDE_NOISE_GATE`]). Measured gains and cost:
+//! docs/tuning.md.
 #![forbid(unsafe_code)]
 
 use super::*;
@@ -8,11 +18,8 @@ use super::*;
 /// would carry into the other colours (Eq. 8 cancels W's, not G's): the factor's departure
 /// from 1 is shrunk by the non-negative garrote (Breiman 1995) at this many standard deviations
 /// of the guide's flux at the pixel (relative to the guide seen by the colour), so flat areas
-/// keep their colour noise and
-/// edges get the correction ([`MergeAccumulator::colour_from_ratios`]). Measured on Bayer
-/// captures (default pipeline, sRGB PSNR against no ratios): kodim07 static 2,000 frames +1.74
-/// / +1.72 / +1.41 dB at 0 / 1 / 2 standard deviations, kodim12 static +0.57 / +0.72 / +0.54,
-/// kodim22 static 512 +0.55 / +0.70 / +0.53, kodim04 handheld 512 −0.54 / +0.12 / +0.01.
+/// keep their colour noise and edges get the correction
+/// ([`MergeAccumulator::colour_from_ratios`]; 0, 1 and 2 measured: docs/tuning.md).
 const COLOUR_GUIDE_NOISE_GATE: f32 = 1.0;
 
 /// The non-negative garrote of `value` at `threshold`: `value·(1 − threshold²/value²)` beyond

@@ -1,6 +1,7 @@
 //! The merge's last steps: per-channel mean samples and fluxes from the regression sums (the
-//! MLE of paper Eq. 6, or the Gaussian–Poisson inversion, §6.1), hole filling and the W
-//! saturation fallback (supplement §7, generalised to censoring).
+//! MLE of paper Eq. 6, or the Gaussian–Poisson inversion, §6.1), hole filling, and the W
+//! saturation fallback (supplement §7, generalised to censoring: this project's own) that lets
+//! paper Eq. 8's RGBW combination ([`crate::rgbw`]) keep the RGB estimate where W saturates.
 #![forbid(unsafe_code)]
 
 use super::*;
@@ -29,13 +30,33 @@ impl MergeAccumulator<'_> {
     /// fluxes (the MLE of paper Eq. 6, or the Gaussian–Poisson inversion: [`PixelModel::flux`]),
     /// holes filled, W saturation fallback applied.
     pub fn finish(mut self, w_weights: [f64; 3]) -> MergedPlanes {
+        let scale = self.config.scale;
+        let channel_scale = self.channel_scale;
+        let sums = self.regression([true; 4]);
+        let (bit_rate, mut flux, effective_frames) = self.fluxes(&sums);
+        drop(sums);
+        fill_holes(&mut flux, channel_scale, scale);
+        let w_fallback = self.w_fallback(w_weights, &mut flux, &bit_rate, &effective_frames);
+        if self.config.colour_ratios && channel_scale[..3].iter().all(|&s| s > 0.0) {
+            let guide = colour_guide(channel_scale);
+            self.colour_from_ratios(guide, &mut flux, &effective_frames);
+        }
+        MergedPlanes {
+            flux,
+            bit_rate,
+            effective_frames,
+            w_fallback,
+        }
+    }
+
+    /// (bit rate, flux, effective frames), each (4, H·s, W·s), from the regression `sums`: the
+    /// mean sample p̂ = Σ g·S0 / Σ g·S1, the effective frames (Σ g·S1)² / Σ g²·S2 and the flux
+    /// of the pixel model; NaN where no sample reached the pixel.
+    fn fluxes(&self, sums: &[[f32; SUMS]]) -> (Array3<f32>, Array3<f32>, Array3<f32>) {
         let model = self.model;
-        let w_saturation = self.config.w_saturation * model.max_sample() as f32;
         let scale = self.config.scale;
         let (h, w) = (self.cfa.height(), self.cfa.width());
         let (hs, ws) = (h * scale, w * scale);
-        let channel_scale = self.channel_scale;
-        let sums = self.regression([true; 4]);
         let mut bit_rate = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut flux = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
         let mut effective_frames = Array3::<f32>::from_elem((4, hs, ws), f32::NAN);
@@ -63,32 +84,31 @@ impl MergeAccumulator<'_> {
                     }
                 });
         }
-        drop(sums);
-        // Fill pixels that no sample reached (sparse channels, image borders).
-        for channel in Channel::ALL {
-            let ch = channel.index();
-            if channel_scale[ch] == 0.0 {
-                continue;
-            }
-            let plane = flux.index_axis(Axis(0), ch);
-            if plane.iter().any(|v| v.is_nan()) {
-                let sigma = (channel_scale[ch] as f64).sqrt() * scale as f64;
-                let filled = normalized_convolution(plane, sigma);
-                let mut plane = flux.index_axis_mut(Axis(0), ch);
-                plane.zip_mut_with(&filled, |v, &f| {
-                    if v.is_nan() {
-                        *v = f;
-                    }
-                });
-            }
-        }
+        (bit_rate, flux, effective_frames)
+    }
+
+    /// W saturation fallback (supplement §7), generalised to censoring: where W is censored
+    /// (binary frames, [`w_trust`]) or saturated (multi-bit frames), W of `flux` is blended
+    /// towards or replaced by wR·R + wG·G + wB·B; the (H·s, W·s) pixels where it was.
+    fn w_fallback(
+        &self,
+        w_weights: [f64; 3],
+        flux: &mut Array3<f32>,
+        bit_rate: &Array3<f32>,
+        effective_frames: &Array3<f32>,
+    ) -> Array2<bool> {
+        let model = self.model;
+        let w_saturation = self.config.w_saturation * model.max_sample() as f32;
+        let scale = self.config.scale;
+        let (h, w) = (self.cfa.height(), self.cfa.width());
+        let (hs, ws) = (h * scale, w * scale);
+        let channel_scale = self.channel_scale;
         // W saturation fallback (supplement §7), generalised to censoring.
         // Pixel by pixel, in parallel by output rows.
         let mut w_fallback = Array2::<bool>::from_elem((hs, ws), false);
         if channel_scale[..3].iter().all(|&s| s > 0.0) && channel_scale[3] > 0.0 {
             let censoring_zeros = self.config.w_censoring_zeros;
             let (rgb, mut white) = flux.view_mut().split_at(Axis(0), 3);
-            let (bit_rate, effective_frames) = (&bit_rate, &effective_frames);
             white
                 .index_axis_mut(Axis(0), 0)
                 .axis_iter_mut(Axis(0))
@@ -121,23 +141,40 @@ impl MergeAccumulator<'_> {
                     }
                 });
         }
-        if self.config.colour_ratios && channel_scale[..3].iter().all(|&s| s > 0.0) {
-            // W guides where the CFA has it; otherwise the densest colour (G of Bayer).
-            let guide = if channel_scale[3] > 0.0 {
-                3
-            } else {
-                (0..3)
-                    .min_by(|&a, &b| channel_scale[a].total_cmp(&channel_scale[b]))
-                    .expect("three colours")
-            };
-            self.colour_from_ratios(guide, &mut flux, &effective_frames);
+        w_fallback
+    }
+}
+
+/// Fills the pixels of `flux` that no sample reached (sparse channels, image borders) by
+/// normalized convolution of their channel's plane, at the channel's site spacing.
+fn fill_holes(flux: &mut Array3<f32>, channel_scale: [f32; 4], scale: usize) {
+    for channel in Channel::ALL {
+        let ch = channel.index();
+        if channel_scale[ch] == 0.0 {
+            continue;
         }
-        MergedPlanes {
-            flux,
-            bit_rate,
-            effective_frames,
-            w_fallback,
+        let plane = flux.index_axis(Axis(0), ch);
+        if plane.iter().any(|v| v.is_nan()) {
+            let sigma = (channel_scale[ch] as f64).sqrt() * scale as f64;
+            let filled = normalized_convolution(plane, sigma);
+            let mut plane = flux.index_axis_mut(Axis(0), ch);
+            plane.zip_mut_with(&filled, |v, &f| {
+                if v.is_nan() {
+                    *v = f;
+                }
+            });
         }
+    }
+}
+
+/// The colour ratios' guide: W where the CFA has it, otherwise the densest colour (G of Bayer).
+fn colour_guide(channel_scale: [f32; 4]) -> usize {
+    if channel_scale[3] > 0.0 {
+        3
+    } else {
+        (0..3)
+            .min_by(|&a, &b| channel_scale[a].total_cmp(&channel_scale[b]))
+            .expect("three colours")
     }
 }
 

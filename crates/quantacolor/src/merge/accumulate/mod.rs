@@ -3,9 +3,10 @@
 //! CFA sites of every sub-block that land near it after motion compensation, weighted by the
 //! anisotropic kernel and the sub-block's robustness, then inverts the pixel's response on the
 //! accumulated counts: the Bernoulli MLE of paper Eq. 6 for binary frames, the Gaussian–Poisson
-//! inversion for multi-bit frames (§6.1; [`crate::model::PixelModel`]). Samples are first splatted into sub-pixel phase bins
-//! on the reference grid, so the regression runs once whatever the number of sub-blocks
-//! (this project's implementation choice; the sum it computes is the paper's).
+//! inversion for multi-bit frames (§6.1; [`crate::model::PixelModel`]). Samples are first
+//! splatted into sub-pixel phase bins on the reference grid, so the regression runs once
+//! whatever the number of sub-blocks (this project's implementation choice; the sum it
+//! computes is the paper's).
 //!
 //! The steps, one file each: [`sub_block`] (the inputs: sub-block counts and motion),
 //! [`config`] (parameters and their checks), [`positions`] and [`targets`] (where each site

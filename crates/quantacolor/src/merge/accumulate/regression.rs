@@ -132,6 +132,7 @@ impl MergeAccumulator<'_> {
     }
 }
 
+/// What the kernel regression ([`gather_row`]) reads: the phase bins and the kernels, with the
 /// geometry of both grids (see [`MergeAccumulator`]).
 pub(super) struct Gather<'g> {
     /// The bins in [`MergeAccumulator`]'s plane layout.
@@ -207,121 +208,225 @@ pub(super) fn gather_row(g: &Gather, isa: Isa, oy: usize, row: &mut [[f32; SUMS]
 /// (`gather_row_matches_the_group_by_group_reference`).
 #[inline(always)]
 pub(super) fn gather_row_generic(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
-    let (bins, stride) = (g.bins, g.stride);
-    let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
-    let py = oy as f32 * g.inv_s + g.offset;
-    let iy = (py.round().max(0.0) as usize).min(g.h - 1);
-    let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
-    let by1 = (((py + radius + margin) * u).floor() as isize).min(g.bins_h - 1);
-    // Row offsets of the bin rows from the pixel row, and each pixel's dx interval of every
-    // ellipse in each bin row (the main one, then each channel's own), made for all rows at
-    // once ([`ellipse_spans`]).
-    let dys: Vec<f32> = (by0..=by1)
-        .map(|by| by as f32 * inv_u - margin - py)
-        .collect();
-    let rows = dys.len();
-    let mut main_span = vec![[0.0f64; 2]; rows];
-    let own = own_ellipses(g);
-    let mut channel_span: [Vec<[f64; 2]>; 4] = std::array::from_fn(|ch| {
-        if own[ch] == Some(ch) {
-            vec![[0.0f64; 2]; rows]
-        } else {
-            Vec::new()
-        }
-    });
-    let source = g.source;
-    // Groups of eight bins of a bin row: at most the bins within the radius, plus one.
-    let max_groups = ((2.0 * radius * u) as usize + 2).div_ceil(LANES) + 1;
-    // weights[ch][group·8 + lane] of the channels that make their own weights.
-    let mut quads = vec![0.0f32; max_groups * LANES];
-    let mut weights: [Vec<f32>; 4] = std::array::from_fn(|ch| {
-        vec![
-            0.0f32;
-            if g.present[ch] && g.source[ch] == ch {
-                max_groups * LANES
-            } else {
-                0
-            }
-        ]
-    });
-    let plan = ChannelPlan::new(g, &own);
-    // 0, 1, 2, … in f32 (exact): the bins' offsets from the first of a row segment.
-    let lane_index: Vec<f32> = (0..max_groups * LANES).map(|k| k as f32).collect();
+    let mut scratch = RowScratch::new(g, oy);
     for (ox, out) in row.iter_mut().enumerate() {
+        scratch.pixel(g, ox, out);
+    }
+}
+
+/// What [`gather_row_generic`] makes once per output row and reuses for every pixel of it.
+struct RowScratch {
+    /// Reference row of the kernels.
+    iy: usize,
+    /// The bin rows within the gather radius.
+    by0: isize,
+    by1: isize,
+    /// Row offsets of the bin rows from the pixel row.
+    dys: Vec<f32>,
+    /// A pixel's dx interval of the main ellipse in each bin row ([`ellipse_spans`]).
+    main_span: Vec<[f64; 2]>,
+    /// The channels' own ellipses ([`own_ellipses`]) and their dx intervals.
+    own: [Option<usize>; 4],
+    channel_span: [Vec<[f64; 2]>; 4],
+    /// Groups of eight bins of a bin row: at most the bins within the radius, plus one.
+    max_groups: usize,
+    /// The quadratic forms of a bin row's groups ([`fill_quads`]).
+    quads: Vec<f32>,
+    /// weights[ch][group·8 + lane] of the channels that make their own weights.
+    weights: [Vec<f32>; 4],
+    plan: ChannelPlan,
+    /// 0, 1, 2, … in f32 (exact): the bins' offsets from the first of a row segment.
+    lane_index: Vec<f32>,
+}
+
+/// An output pixel's kernel and bins, as each bin row of [`RowScratch::pixel`] reads them.
+struct PixelKernel {
+    /// Reference x of the pixel.
+    px: f32,
+    /// The bin columns within the gather radius.
+    bx0: isize,
+    bx1: isize,
+    /// The kernel's inverse covariance (a, 2b, c).
+    a: f32,
+    b2: f32,
+    c: f32,
+}
+
+impl RowScratch {
+    /// The scratch of output row `oy`.
+    #[inline(always)]
+    fn new(g: &Gather, oy: usize) -> RowScratch {
+        let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
+        let py = oy as f32 * g.inv_s + g.offset;
+        let iy = (py.round().max(0.0) as usize).min(g.h - 1);
+        let by0 = (((py - radius + margin) * u).ceil() as isize).max(0);
+        let by1 = (((py + radius + margin) * u).floor() as isize).min(g.bins_h - 1);
+        // Row offsets of the bin rows from the pixel row, and each pixel's dx interval of every
+        // ellipse in each bin row (the main one, then each channel's own), made for all rows at
+        // once ([`ellipse_spans`]).
+        let dys: Vec<f32> = (by0..=by1)
+            .map(|by| by as f32 * inv_u - margin - py)
+            .collect();
+        let rows = dys.len();
+        let main_span = vec![[0.0f64; 2]; rows];
+        let own = own_ellipses(g);
+        let channel_span: [Vec<[f64; 2]>; 4] = std::array::from_fn(|ch| {
+            if own[ch] == Some(ch) {
+                vec![[0.0f64; 2]; rows]
+            } else {
+                Vec::new()
+            }
+        });
+        // Groups of eight bins of a bin row: at most the bins within the radius, plus one.
+        let max_groups = ((2.0 * radius * u) as usize + 2).div_ceil(LANES) + 1;
+        let quads = vec![0.0f32; max_groups * LANES];
+        // weights[ch][group·8 + lane] of the channels that make their own weights.
+        let weights: [Vec<f32>; 4] = std::array::from_fn(|ch| {
+            vec![
+                0.0f32;
+                if g.present[ch] && g.source[ch] == ch {
+                    max_groups * LANES
+                } else {
+                    0
+                }
+            ]
+        });
+        let plan = ChannelPlan::new(g, &own);
+        // 0, 1, 2, … in f32 (exact): the bins' offsets from the first of a row segment.
+        let lane_index: Vec<f32> = (0..max_groups * LANES).map(|k| k as f32).collect();
+        RowScratch {
+            iy,
+            by0,
+            by1,
+            dys,
+            main_span,
+            own,
+            channel_span,
+            max_groups,
+            quads,
+            weights,
+            plan,
+            lane_index,
+        }
+    }
+
+    /// The regression sums of output pixel `ox` of the row into `out`.
+    #[inline(always)]
+    fn pixel(&mut self, g: &Gather, ox: usize, out: &mut [f32; SUMS]) {
+        let (u, margin, radius) = (g.u, g.margin, g.radius);
         let px = ox as f32 * g.inv_s + g.offset;
         let ix = (px.round().max(0.0) as usize).min(g.w - 1);
-        let k = 3 * (iy * g.w + ix);
+        let k = 3 * (self.iy * g.w + ix);
         let (a, b2, c) = (g.inv_cov[k], 2.0 * g.inv_cov[k + 1], g.inv_cov[k + 2]);
         let bx0 = (((px - radius + margin) * u).ceil() as isize).max(0);
         let bx1 = (((px + radius + margin) * u).floor() as isize).min(g.bins_w - 1);
         if let Some(limit) = g.ellipse_limit {
-            ellipse_spans(a, b2, c, &dys, limit, &mut main_span);
+            ellipse_spans(a, b2, c, &self.dys, limit, &mut self.main_span);
         }
-        for (ch, spans) in channel_span.iter_mut().enumerate() {
-            if let (Some(limit), Some(true)) = (g.channel_limit[ch], own[ch].map(|o| o == ch)) {
-                ellipse_spans(a, b2, c, &dys, limit, spans);
+        for (ch, spans) in self.channel_span.iter_mut().enumerate() {
+            if let (Some(limit), Some(true)) = (g.channel_limit[ch], self.own[ch].map(|o| o == ch))
+            {
+                ellipse_spans(a, b2, c, &self.dys, limit, spans);
             }
         }
+        let pixel = PixelKernel {
+            px,
+            bx0,
+            bx1,
+            a,
+            b2,
+            c,
+        };
         // acc[channel][sum][lane]
         let mut acc = [[[0.0f32; LANES]; 3]; 4];
-        for (row, by) in (by0..=by1).enumerate() {
-            let dy = dys[row];
-            let ady2 = a * dy * dy;
-            let bdy = b2 * dy;
-            // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
-            let cols = BinSpan {
-                bx0,
-                bx1,
-                inv_u: inv_u as f64,
-                centre: (margin + px) as f64,
-                u: u as f64,
-            };
-            let (lo, hi) = match g.ellipse_limit {
-                Some(_) => cols.of(main_span[row]),
-                None => (bx0, bx1),
-            };
-            if lo > hi {
-                continue;
-            }
-            let groups = ((hi - lo) as usize) / LANES + 1;
-            debug_assert!(groups <= max_groups);
-            // Per bin row: each channel's groups, the kernel's quadratic form of their bins,
-            // the channels' weights, then the sums.
-            let ranges =
-                channel_group_ranges(&plan, &own, &cols, &channel_span, row, (lo, hi), groups);
-            fill_quads(
-                &mut quads[..groups * LANES],
-                &lane_index[..groups * LANES],
-                (lo, hi),
-                (inv_u, margin, px),
-                (ady2, bdy, c),
-            );
-            make_weights(g, &plan, &ranges, &quads, &mut weights);
-            let row_start = by as usize * SUMS * stride;
-            // The channels that share weights and groups (R, G and B of most CFAs) run over
-            // the groups together: one pass with all their partial sums in registers (more
-            // independent additions in flight), each partial sum receiving the same products
-            // in the same order as in a pass of its own, so the same bits.
-            for members in plan.passes() {
-                let pass = RowPass {
-                    bins,
-                    weights: &weights[source[members[0]]],
-                    start: row_start + lo as usize,
-                    stride,
-                    groups: ranges[members[0]],
-                };
-                if let &[c0, c1, c2] = members {
-                    pass.run3(&mut acc, [c0, c1, c2]);
-                } else {
-                    for &ch in members {
-                        pass.run1(&mut acc[ch], ch);
-                    }
-                }
-            }
+        for (row, by) in (self.by0..=self.by1).enumerate() {
+            self.bin_row(g, &pixel, row, by, &mut acc);
         }
         for (ch, acc) in acc.iter().enumerate() {
             for (sum, lanes) in acc.iter().enumerate() {
                 out[ch * 3 + sum] = lane_sum(lanes);
+            }
+        }
+    }
+
+    /// Adds bin row `by` (the `row`-th of the pixel's) to the pixel's partial sums `acc`: each
+    /// channel's groups, the kernel's quadratic form of their bins, the channels' weights,
+    /// then the sums.
+    #[inline(always)]
+    fn bin_row(
+        &mut self,
+        g: &Gather,
+        pixel: &PixelKernel,
+        row: usize,
+        by: isize,
+        acc: &mut [[[f32; LANES]; 3]; 4],
+    ) {
+        let (bins, stride) = (g.bins, g.stride);
+        let (u, inv_u, margin) = (g.u, g.inv_u, g.margin);
+        let PixelKernel {
+            px,
+            bx0,
+            bx1,
+            a,
+            b2,
+            c,
+        } = *pixel;
+        let dy = self.dys[row];
+        let ady2 = a * dy * dy;
+        let bdy = b2 * dy;
+        // The bins of the row inside an ellipse's dx interval, widened by a bin each side.
+        let cols = BinSpan {
+            bx0,
+            bx1,
+            inv_u: inv_u as f64,
+            centre: (margin + px) as f64,
+            u: u as f64,
+        };
+        let (lo, hi) = match g.ellipse_limit {
+            Some(_) => cols.of(self.main_span[row]),
+            None => (bx0, bx1),
+        };
+        if lo > hi {
+            return;
+        }
+        let groups = ((hi - lo) as usize) / LANES + 1;
+        debug_assert!(groups <= self.max_groups);
+        let ranges = channel_group_ranges(
+            &self.plan,
+            &self.own,
+            &cols,
+            &self.channel_span,
+            row,
+            (lo, hi),
+            groups,
+        );
+        fill_quads(
+            &mut self.quads[..groups * LANES],
+            &self.lane_index[..groups * LANES],
+            (lo, hi),
+            (inv_u, margin, px),
+            (ady2, bdy, c),
+        );
+        make_weights(g, &self.plan, &ranges, &self.quads, &mut self.weights);
+        let row_start = by as usize * SUMS * stride;
+        // The channels that share weights and groups (R, G and B of most CFAs) run over
+        // the groups together: one pass with all their partial sums in registers (more
+        // independent additions in flight), each partial sum receiving the same products
+        // in the same order as in a pass of its own, so the same bits.
+        for members in self.plan.passes() {
+            let pass = RowPass {
+                bins,
+                weights: &self.weights[g.source[members[0]]],
+                start: row_start + lo as usize,
+                stride,
+                groups: ranges[members[0]],
+            };
+            if let &[c0, c1, c2] = members {
+                pass.run3(acc, [c0, c1, c2]);
+            } else {
+                for &ch in members {
+                    pass.run1(&mut acc[ch], ch);
+                }
             }
         }
     }

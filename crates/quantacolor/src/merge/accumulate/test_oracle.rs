@@ -24,7 +24,7 @@ impl MergeAccumulator<'_> {
 /// at a time (the channels taking turns per group of eight bins, the partial sums in memory):
 /// the reference of `gather_row_matches_the_group_by_group_reference`.
 pub(super) fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]]) {
-    let (bins, stride) = (g.bins, g.stride);
+    let stride = g.stride;
     let (u, inv_u, margin, radius) = (g.u, g.inv_u, g.margin, g.radius);
     let py = oy as f32 * g.inv_s + g.offset;
     let iy = (py.round().max(0.0) as usize).min(g.h - 1);
@@ -91,49 +91,7 @@ pub(super) fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]
                 }
             }
             let row_start = by as usize * SUMS * stride;
-            let mut bx = lo;
-            while bx <= hi {
-                let mut quad = [0.0f32; LANES];
-                let mut inside = [false; LANES];
-                for i in 0..LANES {
-                    let dx = (bx + i as isize) as f32 * inv_u - margin - px;
-                    quad[i] = ady2 + dx * (bdy + c * dx);
-                    inside[i] = bx + (i as isize) <= hi;
-                }
-                let first = row_start + bx as usize;
-                for (ch, acc) in acc.iter_mut().enumerate() {
-                    if !g.present[ch] || bx + (LANES as isize - 1) < span[ch].0 || bx > span[ch].1 {
-                        continue;
-                    }
-                    let exps = |ch: usize| -> [f32; LANES] {
-                        std::array::from_fn(|i| {
-                            let q = quad[i] * g.inv_scale[ch];
-                            let e = fastmath::exp(-0.5 * q);
-                            if inside[i] && q < g.cutoff {
-                                e
-                            } else {
-                                0.0
-                            }
-                        })
-                    };
-                    let weight = match g.power[ch] {
-                        0 => exps(ch),
-                        k => power_weights(g, ch, &quad, exps(g.base), k),
-                    };
-                    let at = first + ch * 3 * stride;
-                    let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
-                    let at = at + stride;
-                    let s1: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
-                    let at = at + stride;
-                    let s2: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
-                    for i in 0..LANES {
-                        acc[0][i] += weight[i] * s0[i];
-                        acc[1][i] += weight[i] * s1[i];
-                        acc[2][i] += weight[i] * weight[i] * s2[i];
-                    }
-                }
-                bx += LANES as isize;
-            }
+            reference_groups(g, row_start, (lo, hi), &span, (ady2, bdy, c), px, &mut acc);
         }
         for (ch, acc) in acc.iter().enumerate() {
             for (sum, lanes) in acc.iter().enumerate() {
@@ -162,4 +120,62 @@ pub(super) fn ellipse_span(a: f32, b2: f32, c: f32, dy: f32, limit: f64) -> Opti
     let half = ((limit + slack - min).max(0.0) / c).sqrt() * 1.001 + 1e-3;
     let centre = -b * dy / c;
     Some((centre - half, centre + half))
+}
+
+/// The groups of eight bins from `lo` to `hi` of the bin row whose first bin is `row_start`
+/// ([`gather_row_reference`]), the channels taking turns per group, each within its `span`.
+fn reference_groups(
+    g: &Gather,
+    row_start: usize,
+    (lo, hi): (isize, isize),
+    span: &[(isize, isize); 4],
+    (ady2, bdy, c): (f32, f32, f32),
+    px: f32,
+    acc: &mut [[[f32; LANES]; 3]; 4],
+) {
+    let (bins, stride) = (g.bins, g.stride);
+    let (inv_u, margin) = (g.inv_u, g.margin);
+    let mut bx = lo;
+    while bx <= hi {
+        let mut quad = [0.0f32; LANES];
+        let mut inside = [false; LANES];
+        for i in 0..LANES {
+            let dx = (bx + i as isize) as f32 * inv_u - margin - px;
+            quad[i] = ady2 + dx * (bdy + c * dx);
+            inside[i] = bx + (i as isize) <= hi;
+        }
+        let first = row_start + bx as usize;
+        for (ch, acc) in acc.iter_mut().enumerate() {
+            if !g.present[ch] || bx + (LANES as isize - 1) < span[ch].0 || bx > span[ch].1 {
+                continue;
+            }
+            let exps = |ch: usize| -> [f32; LANES] {
+                std::array::from_fn(|i| {
+                    let q = quad[i] * g.inv_scale[ch];
+                    let e = fastmath::exp(-0.5 * q);
+                    if inside[i] && q < g.cutoff {
+                        e
+                    } else {
+                        0.0
+                    }
+                })
+            };
+            let weight = match g.power[ch] {
+                0 => exps(ch),
+                k => power_weights(g, ch, &quad, exps(g.base), k),
+            };
+            let at = first + ch * 3 * stride;
+            let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+            let at = at + stride;
+            let s1: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+            let at = at + stride;
+            let s2: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+            for i in 0..LANES {
+                acc[0][i] += weight[i] * s0[i];
+                acc[1][i] += weight[i] * s1[i];
+                acc[2][i] += weight[i] * weight[i] * s2[i];
+            }
+        }
+        bx += LANES as isize;
+    }
 }

@@ -260,30 +260,9 @@ fn gather_row_matches_the_group_by_group_reference() {
             Ok(cfa) => cfa,
             Err(_) => continue, // a pattern of fixed size
         };
-        // And a W-rich CFA with exactly as many R, G and B sites (one pass of three
-        // channels, `RowPass::run3`).
-        let cfas = [
-            cfa,
-            {
-                let mut codes = Array2::from_elem((h, w), 3u8);
-                for (k, i) in (0..h * w).step_by(4).take(93).enumerate() {
-                    codes[[i / w, i % w]] = (k % 3) as u8;
-                }
-                Cfa::new(codes).unwrap()
-            },
-            {
-                // /tmp/cap10k's pattern (W rows, then W with R and G, W with G and B): as
-                // many R as B sites, G twice and W about 14 times (weights as powers of
-                // R's, `snap_scales`), G's and W's ellipses their own.
-                let codes = Array2::from_shape_fn((h, w), |(y, x)| match (y % 4, x % 4) {
-                    (1, 1) => 0,
-                    (1, 3) | (3, 1) => 1,
-                    (3, 3) => 2,
-                    _ => 3,
-                });
-                Cfa::new(codes).unwrap()
-            },
-        ];
+        // And a W-rich CFA with exactly as many R, G and B sites, and /tmp/cap10k's pattern.
+        let [equal, cap10k] = extra_cfas(h, w);
+        let cfas = [cfa, equal, cap10k];
         for cfa in &cfas {
             for (scale, bins, max_radius, exponent) in [
                 (1, 2, 5, 1.0),
@@ -310,23 +289,11 @@ fn gather_row_matches_the_group_by_group_reference() {
                         *v = rng.gen_range(0.0f32..50.0);
                     }
                 }
-                let ws = w * scale;
-                acc.with_gather(|g| {
-                    for oy in 0..h * scale {
-                        let mut fast = vec![[0.0f32; SUMS]; ws];
-                        let mut generic = vec![[1.0f32; SUMS]; ws];
-                        let mut reference = vec![[2.0f32; SUMS]; ws];
-                        gather_row(g, Isa::current(), oy, &mut fast);
-                        gather_row(g, Isa::generic(), oy, &mut generic);
-                        gather_row_reference(g, oy, &mut reference);
-                        let bits = |v: &Vec<[f32; SUMS]>| {
-                            v.iter().map(|s| s.map(f32::to_bits)).collect::<Vec<_>>()
-                        };
-                        assert_eq!(bits(&fast), bits(&reference), "{pattern:?} {config:?} {oy}");
-                        assert_eq!(bits(&generic), bits(&reference), "{pattern:?} {config:?}");
-                        assert!(reference.iter().flatten().any(|&v| v > 0.0));
-                    }
-                });
+                assert_rows_match_the_reference(
+                    &acc,
+                    h * scale,
+                    &format!("{pattern:?} {config:?}"),
+                );
                 compared += 1;
             }
         }
@@ -475,4 +442,50 @@ fn ellipse_spans_are_the_rows_ellipse_spans() {
             }
         }
     }
+}
+
+/// Two CFAs of `gather_row_matches_the_group_by_group_reference`: a W-rich one with exactly as
+/// many R, G and B sites (one pass of three channels, `RowPass::run3`), and /tmp/cap10k's
+/// pattern (W rows, then W with R and G, W with G and B): as many R as B sites, G twice and W
+/// about 14 times (weights as powers of R's, `snap_scales`), G's and W's ellipses their own.
+fn extra_cfas(h: usize, w: usize) -> [Cfa; 2] {
+    [
+        {
+            let mut codes = Array2::from_elem((h, w), 3u8);
+            for (k, i) in (0..h * w).step_by(4).take(93).enumerate() {
+                codes[[i / w, i % w]] = (k % 3) as u8;
+            }
+            Cfa::new(codes).unwrap()
+        },
+        {
+            let codes = Array2::from_shape_fn((h, w), |(y, x)| match (y % 4, x % 4) {
+                (1, 1) => 0,
+                (1, 3) | (3, 1) => 1,
+                (3, 3) => 2,
+                _ => 3,
+            });
+            Cfa::new(codes).unwrap()
+        },
+    ]
+}
+
+/// Every output row (`hs` of them) of `acc`'s regression over its bins, AVX2 (where the CPU has
+/// it) and portable, against the group-by-group reference, bit for bit.
+fn assert_rows_match_the_reference(acc: &MergeAccumulator, hs: usize, what: &str) {
+    let ws = acc.cfa.width() * acc.config.scale;
+    acc.with_gather(|g| {
+        for oy in 0..hs {
+            let mut fast = vec![[0.0f32; SUMS]; ws];
+            let mut generic = vec![[1.0f32; SUMS]; ws];
+            let mut reference = vec![[2.0f32; SUMS]; ws];
+            gather_row(g, Isa::current(), oy, &mut fast);
+            gather_row(g, Isa::generic(), oy, &mut generic);
+            gather_row_reference(g, oy, &mut reference);
+            let bits =
+                |v: &Vec<[f32; SUMS]>| v.iter().map(|s| s.map(f32::to_bits)).collect::<Vec<_>>();
+            assert_eq!(bits(&fast), bits(&reference), "{what} {oy}");
+            assert_eq!(bits(&generic), bits(&reference), "{what}");
+            assert!(reference.iter().flatten().any(|&v| v > 0.0));
+        }
+    });
 }
