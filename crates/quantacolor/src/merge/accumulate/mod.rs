@@ -8,12 +8,12 @@
 //! whatever the number of sub-blocks (this project's implementation choice; the sum it
 //! computes is the paper's).
 //!
-//! The steps, one file each: [`sub_block`] (the inputs: sub-block counts and motion),
-//! [`config`] (parameters and their checks), [`positions`] and [`targets`] (where each site
-//! lands: the inverse of its sub-block's flow, and its phase bin), [`bins`] (the splat into
-//! the phase bins), [`weights`] and [`regression`] (the kernel regression of supplement
-//! Eq. 1–3 over the bins), [`finish`] (per-channel fluxes, paper Eq. 6, hole filling and the
-//! W saturation fallback of supplement §7) and [`colour_ratios`] (this project's own colour
+//! The steps, one file each: `sub_block` (the inputs: sub-block counts and motion), `config`
+//! (parameters and their checks), `positions` and `targets` (where each site lands: the
+//! inverse of its sub-block's flow, and its phase bin), `bins` (the splat into the phase
+//! bins), `weights` and `regression` (the kernel regression of supplement Eq. 1–3 over the
+//! bins), `finish` (per-channel fluxes, paper Eq. 6, hole filling and the W saturation
+//! fallback of supplement §7, ahead of Eq. 8) and `colour_ratios` (this project's own colour
 //! step); the AVX2 kernels in `x86` beside their portable reference.
 
 mod bins;
