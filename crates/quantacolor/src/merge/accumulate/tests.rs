@@ -1,4 +1,5 @@
 //! Tests of the joint demosaic-merge's internals (bins, targets, regression, weights).
+#![forbid(unsafe_code)]
 
 use super::colour_ratios::garrote;
 use super::regression::{ellipse_spans, gather_row};
