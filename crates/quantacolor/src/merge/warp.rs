@@ -1,5 +1,6 @@
 //! Bilinear warping of block images onto the reference grid (supplement §1.2).
 
+use crate::cpu::Isa;
 use crate::error::{Error, Result};
 use crate::filters::bilinear_taps;
 use ndarray::{Array2, Array3};
@@ -44,6 +45,11 @@ pub fn warp_to_reference(block: &Array2<f32>, flow: &Array3<f32>) -> Result<Arra
 
 /// [`warp_to_reference`] of a `flow` that [`check_flow`] has passed for `block`'s shape.
 pub(crate) fn warp_checked(block: &Array2<f32>, flow: &Array3<f32>) -> Result<Array2<f32>> {
+    warp_checked_on(Isa::current(), block, flow)
+}
+
+/// [`warp_checked`] on the instruction set `isa`.
+fn warp_checked_on(isa: Isa, block: &Array2<f32>, flow: &Array3<f32>) -> Result<Array2<f32>> {
     let (h, w) = block.dim();
     if h == 0 || w == 0 {
         return Err(Error::invalid("cannot warp an empty block image"));
@@ -60,21 +66,24 @@ pub(crate) fn warp_checked(block: &Array2<f32>, flow: &Array3<f32>) -> Result<Ar
         .par_chunks_exact_mut(w)
         .zip(flow.par_chunks_exact(2 * w))
         .enumerate()
-        .for_each(|(y, (row, flow))| warp_row(pixels, h, y, flow, row));
+        .for_each(|(y, (row, flow))| warp_row(isa, pixels, h, y, flow, row));
     Ok(out)
 }
 
 /// Output row `y` of [`warp_to_reference`]: `row[x]` = the bilinear sample of the (H, W)
-/// image `pixels` at (y, x) + `flow[x]` (`h` = H, W = `row.len()`).
-fn warp_row(pixels: &[f32], h: usize, y: usize, flow: &[f32], row: &mut [f32]) {
+/// image `pixels` at (y, x) + `flow[x]` (`h` = H, W = `row.len()`), eight pixels at a time
+/// where `isa` has AVX2 (the same bits).
+fn warp_row(isa: Isa, pixels: &[f32], h: usize, y: usize, flow: &[f32], row: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU supports AVX2 (checked just above).
+        if isa.avx2() {
+            // SAFETY: an `Isa` with AVX2 exists only on a CPU that supports it.
             let done = unsafe { warp_row_avx2(pixels, h, y, flow, row) };
             return warp_row_from(pixels, h, y, flow, row, done);
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = isa;
     warp_row_from(pixels, h, y, flow, row, 0)
 }
 
@@ -177,6 +186,7 @@ pub(crate) fn warp_rows_to_reference(
     if h == 0 || w == 0 {
         return Err(Error::invalid("cannot warp an empty block image"));
     }
+    let isa = Isa::current();
     let block = block.as_standard_layout();
     let pixels = block.as_slice().expect("standard layout");
     let mut out = Array2::<f32>::zeros((h, w));
@@ -191,7 +201,7 @@ pub(crate) fn warp_rows_to_reference(
                 if flow.iter().any(|v| !v.is_finite()) {
                     return Err(Error::invalid("warp: flow holds non-finite values"));
                 }
-                warp_row(pixels, h, y, flow, row);
+                warp_row(isa, pixels, h, y, flow, row);
                 Ok(())
             },
         )?;
@@ -219,14 +229,18 @@ mod tests {
                 2 => -((if c == 0 { y } else { x }) as f32),
                 _ => -0.0,
             });
-            let warped = warp_to_reference(&block, &flow).unwrap();
-            for ((y, x), &v) in warped.indexed_iter() {
-                let expected = bilinear(
-                    block.view(),
-                    y as f32 + flow[[y, x, 0]],
-                    x as f32 + flow[[y, x, 1]],
-                );
-                assert_eq!(v.to_bits(), expected.to_bits(), "{h}x{w} at ({y}, {x})");
+            // The portable rows and, where the CPU has them, the AVX2 ones.
+            for isa in [Isa::generic(), Isa::current()] {
+                let warped = warp_checked_on(isa, &block, &flow).unwrap();
+                for ((y, x), &v) in warped.indexed_iter() {
+                    let expected = bilinear(
+                        block.view(),
+                        y as f32 + flow[[y, x, 0]],
+                        x as f32 + flow[[y, x, 1]],
+                    );
+                    let at = format!("{h}x{w} at ({y}, {x}), {}", isa.name());
+                    assert_eq!(v.to_bits(), expected.to_bits(), "{at}");
+                }
             }
         }
     }
