@@ -14,8 +14,11 @@
 //! ICIP 2007): the orthonormal opponent colour space, grouping on its luminance, one σ for all
 //! three channels (the RMS noise of the stabilised R, G, B).
 
+#![forbid(unsafe_code)]
+
 use super::anscombe::Stabiliser;
 use super::bm3d::{bm3d_planes, Bm3dBuffers, Bm3dConfig, FirstChannel};
+use crate::cpu::Isa;
 use crate::error::{Error, Result};
 use crate::filters::{bilinear, box_downsample};
 use crate::model::PixelModel;
@@ -63,6 +66,7 @@ impl std::fmt::Display for DenoiseMethod {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct DenoiseConfig {
+    /// The denoiser: none, plain colour BM3D, or chroma-BM3D (the paper's, the default).
     pub method: DenoiseMethod,
     /// σ of Y (of all channels for plain BM3D) in the stabilised domain, where one binomial
     /// count of the Anscombe trial number has unit σ. Default: from the noise model.
@@ -71,25 +75,20 @@ pub struct DenoiseConfig {
     /// σ of Cb and Cr in the stabilised domain. Default: from the noise model.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sigma_c: Option<f32>,
-    /// Multiplies the modelled per-pixel σ of Y (of every channel for plain BM3D). The merge's
-    /// kernels correlate the noise over a few pixels; `noise_correlation_px` models that
-    /// per DCT coefficient, so the modelled σ needs no gain (1). Before that model a gain of 1.5
-    /// stood in for it. Tuned with `bench denoise` on the tuning set.
+    /// Multiplies the modelled per-pixel σ of Y (of every channel for plain BM3D): 1, as
+    /// `noise_correlation_px` models the merge's correlated noise (tuning: docs/tuning.md).
     pub luma_gain: f32,
-    /// Multiplies the modelled per-pixel σ of Cb and Cr: the chroma kernels span several of the
-    /// sparse colour sites, so the chroma noise is coarse-grained and BM3D must remove more
-    /// than the per-pixel σ says (tuned as `luma_gain`: 2 with the correlation model, 3 before).
+    /// Multiplies the modelled per-pixel σ of Cb and Cr: the chroma kernels span several sparse
+    /// colour sites, so BM3D must remove more than the per-pixel σ says (docs/tuning.md).
     pub chroma_gain: f32,
     /// Spacing exponent of the merge's colour kernels (`merge::AccumulateConfig::
-    /// spacing_exponent`) used when this denoiser runs: narrower kernels than the merge's
-    /// default leave the smoothing to BM3D, which keeps edges (measured with `bench denoise`).
-    /// `None` keeps the merge's own value.
+    /// spacing_exponent`) when this denoiser runs: narrower kernels leave the smoothing to
+    /// BM3D, which keeps edges (this project's tuning). `None` keeps the merge's own value.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub merge_spacing_exponent: Option<f32>,
-    /// Isotropic kernel std of flat areas (`merge::KernelConfig::k_denoise`, px) of the merge
-    /// when this denoiser runs: BM3D removes the noise that wide flat-area kernels would
-    /// average away, without their blur (this project's tuning, `bench denoise`).
-    /// `None` keeps the merge's own value.
+    /// Flat-area kernel std (`merge::KernelConfig::k_denoise`, px) of the merge when this
+    /// denoiser runs: BM3D removes that noise without wide kernels' blur (this project's
+    /// tuning). `None` keeps the merge's own value.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub merge_k_denoise: Option<f32>,
     /// Coarse scales at which chroma is denoised again (0: off; 1: 1/2; 2: 1/2 and 1/4): the
@@ -99,20 +98,13 @@ pub struct DenoiseConfig {
     /// σ at a coarser scale as a multiple of the σ one scale finer: 0.5 for white noise (a 2×2
     /// mean), up to 1 for noise correlated over more than 2 px.
     pub coarse_sigma_factor: f32,
-    /// Filter each BM3D group with the σ of its own pixels from the merge's per-pixel noise
-    /// model ([`model_variance_map`]) instead of one σ per channel: the merge's effective
-    /// frames vary over the image (robustness, kernel widths, brightness through Eq. 8), so the
-    /// stabilised noise is not uniform. Ignored without a merge noise model.
+    /// Filter each BM3D group with the σ of its own pixels from the merge's noise model
+    /// ([`model_variance_map`]; the effective frames vary over the image) instead of one σ per
+    /// channel. Ignored without a merge noise model.
     pub sigma_map: bool,
-    /// Correlation length (px) of the merge's noise for luma and for chroma: BM3D thresholds
-    /// every DCT coefficient at the σ of white noise smoothed by a Gaussian of this std
-    /// ([`Bm3dConfig::noise_correlation_px`], which this sets). The merge's kernels average
-    /// neighbouring samples, so its noise is correlated; a white-noise BM3D over-thresholds the
-    /// fine coefficients (detail) and under-thresholds the coarse ones (blotches). Chosen with
-    /// `bench denoise --set tuning` (correlations 0–1.1 px, luma gains 1–1.5, chroma gains
-    /// 1.5–3): 0.8 / 0.4 px with gains 1 / 2 instead of white noise with 1.5 / 3 gave 29.45 dB /
-    /// 0.868 SSIM -> 29.67 / 0.874, and on the validation set 31.32 / 0.848 / LPIPS 0.250 ->
-    /// 31.61 / 0.855 / 0.180 (`bench quality`).
+    /// Correlation length (px) of the merge's noise for luma and for chroma, which sets
+    /// [`Bm3dConfig::noise_correlation_px`]: the merge's kernels correlate its noise, and a
+    /// white-noise BM3D over-thresholds detail and leaves blotches (tuning: docs/tuning.md).
     pub noise_correlation_px: [f32; 2],
     /// BM3D's own parameters (its `noise_correlation_px` is set from the field above).
     pub bm3d: Bm3dConfig,
@@ -312,13 +304,15 @@ pub fn denoise_linear(
     input: &DenoiseInput,
     config: &DenoiseConfig,
 ) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
-    crate::cpu::on_pool(|| denoise_on_pool(linear, input, config))
+    let isa = Isa::current();
+    crate::cpu::on_pool(|| denoise_on_pool(linear, input, config, isa))
 }
 
 fn denoise_on_pool(
     linear: ArrayView3<f32>,
     input: &DenoiseInput,
     config: &DenoiseConfig,
+    isa: Isa,
 ) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
     let (h, w, c) = linear.dim();
     if c != 3 {
@@ -349,13 +343,21 @@ fn denoise_on_pool(
         DenoiseMethod::ChromaBm3d => config.chroma_scales,
         _ => 0,
     };
-    let mut denoised = bm3d_multiscale(
-        planes.view(),
-        sigmas.map(|s| s * scale),
-        relative_variance.as_ref().map(|v| v.view()),
-        chroma_scales,
-        config.coarse_sigma_factor,
-        &config.bm3d_config(),
+    let bm3d = config.bm3d_config();
+    let mut denoised = multiscale(
+        Scale {
+            planes: planes.view(),
+            sigmas: sigmas.map(|s| s * scale),
+            relative_variance: relative_variance.as_ref().map(|v| v.view()),
+            scales: chroma_scales,
+            first_channel: FirstChannel::Filtered,
+        },
+        &Multiscale {
+            coarse_sigma_factor: config.coarse_sigma_factor,
+            config: &bm3d,
+            isa,
+        },
+        &mut Bm3dBuffers::default(),
     )?;
     denoised.par_mapv_inplace(|v| v / scale);
     Ok((
@@ -431,31 +433,56 @@ pub fn bm3d_multiscale(
     config: &Bm3dConfig,
 ) -> Result<Array3<f32>> {
     multiscale(
-        planes,
-        sigmas,
-        relative_variance,
-        scales,
-        coarse_sigma_factor,
-        config,
-        FirstChannel::Filtered,
+        Scale {
+            planes,
+            sigmas,
+            relative_variance,
+            scales,
+            first_channel: FirstChannel::Filtered,
+        },
+        &Multiscale {
+            coarse_sigma_factor,
+            config,
+            isa: Isa::current(),
+        },
         &mut Bm3dBuffers::default(),
     )
+}
+
+/// One scale of [`multiscale`]: its planes, σs and relative variance, the coarser scales
+/// still below it, and what it needs of channel 0.
+struct Scale<'p, 'v> {
+    planes: ArrayView3<'p, f32>,
+    sigmas: [f32; 3],
+    relative_variance: Option<ArrayView3<'v, f32>>,
+    scales: usize,
+    first_channel: FirstChannel,
+}
+
+/// What every scale of [`multiscale`] shares.
+struct Multiscale<'a> {
+    coarse_sigma_factor: f32,
+    config: &'a Bm3dConfig,
+    /// The instruction set, taken once at the entry.
+    isa: Isa,
 }
 
 /// [`bm3d_multiscale`]; the coarse scales use only their chroma, so their Y is only the
 /// grouping guide ([`FirstChannel::GuideOnly`]: the same chroma, less work). Every scale's BM3D
 /// works in `buffers`, allocated at the finest.
-#[allow(clippy::too_many_arguments)]
-fn multiscale(
-    planes: ArrayView3<f32>,
-    sigmas: [f32; 3],
-    relative_variance: Option<ArrayView3<f32>>,
-    scales: usize,
-    coarse_sigma_factor: f32,
-    config: &Bm3dConfig,
-    first_channel: FirstChannel,
-    buffers: &mut Bm3dBuffers,
-) -> Result<Array3<f32>> {
+fn multiscale(scale: Scale, shared: &Multiscale, buffers: &mut Bm3dBuffers) -> Result<Array3<f32>> {
+    let Scale {
+        planes,
+        sigmas,
+        relative_variance,
+        scales,
+        first_channel,
+    } = scale;
+    let Multiscale {
+        coarse_sigma_factor,
+        config,
+        isa,
+    } = *shared;
     let mut fine = bm3d_planes(
         planes,
         &sigmas,
@@ -463,6 +490,7 @@ fn multiscale(
         config,
         first_channel,
         buffers,
+        isa,
     )?;
     let (_, h, w) = planes.dim();
     let min_side = 4 * config.block_size;
@@ -483,13 +511,14 @@ fn multiscale(
     let coarse = down3(planes);
     let coarse_variance = relative_variance.map(down3);
     let coarse_denoised = multiscale(
-        coarse.view(),
-        sigmas.map(|s| s * coarse_sigma_factor),
-        coarse_variance.as_ref().map(|v| v.view()),
-        scales - 1,
-        coarse_sigma_factor,
-        config,
-        FirstChannel::GuideOnly,
+        Scale {
+            planes: coarse.view(),
+            sigmas: sigmas.map(|s| s * coarse_sigma_factor),
+            relative_variance: coarse_variance.as_ref().map(|v| v.view()),
+            scales: scales - 1,
+            first_channel: FirstChannel::GuideOnly,
+        },
+        shared,
         buffers,
     )?;
     for ch in 1..3 {
@@ -719,15 +748,20 @@ fn variance_map(
         .iter()
         .any(|v| v.is_finite());
     let mut out = Array3::<f32>::from_elem((3, h, w), f32::NAN);
+    let delta = DeltaMethod {
+        noise,
+        model,
+        transform,
+        w_weights,
+        has_w,
+    };
     let rows: Vec<Vec<[f32; 3]>> = (0..h)
         .into_par_iter()
         .map(|y| {
             (0..w)
                 .map(|x| {
-                    pixel_variance(noise, model, transform, w_weights, has_w, y, x, || {
-                        derivative(y, x)
-                    })
-                    .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
+                    pixel_variance(&delta, y, x, || derivative(y, x))
+                        .map_or([f32::NAN; 3], |v| v.map(|v| v as f32))
                 })
                 .collect()
         })
@@ -757,19 +791,31 @@ fn scatter_rows<T: Sync>(
         });
 }
 
-/// The variances of [`model_variance_map`] at pixel (y, x); `derivative` gives ∂a_c/∂λ_c there
-/// (asked only where the model is defined).
-#[allow(clippy::too_many_arguments)]
-fn pixel_variance(
-    noise: &MergeNoise,
-    model: &PixelModel,
-    transform: &ColorTransform,
+/// What [`pixel_variance`] carries through the delta method: the merge's noise model, the
+/// pixel model, the colour transform, the W weights of Eq. 8 and whether the image has W.
+struct DeltaMethod<'a, 'n> {
+    noise: &'a MergeNoise<'n>,
+    model: &'a PixelModel,
+    transform: &'a ColorTransform,
     w_weights: [f64; 3],
     has_w: bool,
+}
+
+/// The variances of [`model_variance_map`] at pixel (y, x); `derivative` gives ∂a_c/∂λ_c there
+/// (asked only where the model is defined).
+fn pixel_variance(
+    delta: &DeltaMethod,
     y: usize,
     x: usize,
     derivative: impl FnOnce() -> [f64; 3],
 ) -> Option<[f64; 3]> {
+    let DeltaMethod {
+        noise,
+        model,
+        transform,
+        w_weights,
+        has_w,
+    } = *delta;
     let lam = [0, 1, 2, 3].map(|c| noise.flux[[c, y, x]] as f64);
     let n = [0, 1, 2, 3].map(|c| noise.effective_frames[[c, y, x]] as f64);
     let channels = if has_w { 4 } else { 3 };
@@ -841,153 +887,4 @@ pub fn to_planes(image: ArrayView3<f32>, transform: &ColorTransform) -> Array3<f
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use ndarray::Array2;
-    use rand::SeedableRng;
-    use rand_chacha::ChaCha8Rng;
-    use rand_distr::{Distribution, Normal};
-
-    #[test]
-    fn channel_sigmas_take_the_gains_or_the_given_sigmas() {
-        let modelled = [1.0, 2.0, 2.0];
-        let chroma = DenoiseConfig {
-            luma_gain: 1.5,
-            chroma_gain: 3.0,
-            ..DenoiseConfig::default()
-        };
-        assert_eq!(
-            chroma.channel_sigmas(modelled, SigmaSource::BinomialModel),
-            ([1.5, 6.0, 6.0], SigmaSource::BinomialModel)
-        );
-        // Plain BM3D: one σ, the RMS over the channels (√3 here) times the luma gain.
-        let plain = DenoiseConfig {
-            method: DenoiseMethod::Bm3d,
-            ..chroma.clone()
-        };
-        let (sigmas, _) = plain.channel_sigmas(modelled, SigmaSource::BinomialModel);
-        assert!(sigmas.iter().all(|&s| (s - 3f32.sqrt() * 1.5).abs() < 1e-6));
-        // Given σs replace the modelled ones (σ_c only for chroma-BM3D), and say so.
-        let given = DenoiseConfig {
-            sigma_y: Some(0.5),
-            sigma_c: Some(4.0),
-            ..chroma
-        };
-        assert_eq!(
-            given.channel_sigmas(modelled, SigmaSource::BinomialModel),
-            ([0.5, 4.0, 4.0], SigmaSource::Given)
-        );
-        let given_plain = DenoiseConfig {
-            method: DenoiseMethod::Bm3d,
-            ..given
-        };
-        assert_eq!(
-            given_plain
-                .channel_sigmas(modelled, SigmaSource::BinomialModel)
-                .0,
-            [0.5; 3]
-        );
-    }
-
-    #[test]
-    fn scale_to_255_maps_the_plane_range_and_leaves_a_constant_plane() {
-        let ramp = Array2::from_shape_fn((2, 3), |(y, x)| 10.0 + (3 * y + x) as f32 * 2.0);
-        assert_eq!(scale_to_255(ramp.view()), 25.5);
-        assert_eq!(scale_to_255(Array2::from_elem((2, 2), 7.0f32).view()), 1.0);
-    }
-
-    #[test]
-    fn sigma_settings_are_checked_by_name() {
-        for (config, name) in [
-            (
-                DenoiseConfig {
-                    chroma_gain: 0.0,
-                    ..DenoiseConfig::default()
-                },
-                "chroma_gain",
-            ),
-            (
-                DenoiseConfig {
-                    sigma_y: Some(f32::NAN),
-                    ..DenoiseConfig::default()
-                },
-                "sigma_y",
-            ),
-        ] {
-            let err = config.validate_sigmas().unwrap_err().to_string();
-            assert!(err.contains(name), "{err}");
-        }
-        assert!(DenoiseConfig::default().validate_sigmas().is_ok());
-    }
-
-    fn matmul(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
-        let mut out = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                out[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-            }
-        }
-        out
-    }
-
-    #[test]
-    fn transforms_invert_and_luma_is_the_w_combination() {
-        let w = [0.9, 1.1, 0.7];
-        for t in [
-            ColorTransform::w_weighted_ycbcr(w).unwrap(),
-            ColorTransform::opponent(),
-        ] {
-            let id = matmul(&t.inverse, &t.forward);
-            for (i, row) in id.iter().enumerate() {
-                for (j, &v) in row.iter().enumerate() {
-                    assert!((v - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
-                }
-            }
-        }
-        let t = ColorTransform::w_weighted_ycbcr(w).unwrap();
-        let rgb = [0.2, 0.5, 0.9];
-        let ycc = ColorTransform::apply(&t.forward, rgb);
-        let white: f64 = rgb.iter().zip(w).map(|(c, k)| c * k).sum();
-        assert!((ycc[0] - white / w.iter().sum::<f64>()).abs() < 1e-12);
-        // Grey has zero chroma.
-        let grey = ColorTransform::apply(&t.forward, [0.4; 3]);
-        assert!(grey[1].abs() < 1e-12 && grey[2].abs() < 1e-12);
-        assert!(ColorTransform::w_weighted_ycbcr([1.0, 0.0, 1.0]).is_err());
-    }
-
-    #[test]
-    fn mad_sigma_recovers_gaussian_noise() {
-        let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let normal = Normal::new(0.0f32, 2.5).unwrap();
-        let plane = Array2::from_shape_fn((200, 200), |(y, x)| {
-            (y as f32 * 0.1).sin() * 20.0 + x as f32 * 0.05 + normal.sample(&mut rng)
-        });
-        let s = mad_sigma(plane.view());
-        assert!((s - 2.5).abs() < 0.15, "{s}");
-    }
-
-    #[test]
-    fn none_is_the_identity_and_bad_input_is_an_error() {
-        let img = Array3::<f32>::from_shape_fn((16, 16, 3), |(y, x, c)| (y + x + c) as f32 * 0.01);
-        let input = DenoiseInput {
-            noise: None,
-            frames: 100.0,
-            model: PixelModel::binary(0.0),
-            w_weights: [1.0; 3],
-        };
-        let config = DenoiseConfig {
-            method: DenoiseMethod::None,
-            ..Default::default()
-        };
-        let (out, report) = denoise_linear(img.view(), &input, &config).unwrap();
-        assert_eq!(out, img);
-        assert!(report.is_none());
-        let bad = DenoiseConfig {
-            sigma_y: Some(-1.0),
-            ..Default::default()
-        };
-        assert!(denoise_linear(img.view(), &input, &bad).is_err());
-        let two = Array3::<f32>::zeros((16, 16, 2));
-        assert!(denoise_linear(two.view(), &input, &DenoiseConfig::default()).is_err());
-    }
-}
+mod tests;
