@@ -19,7 +19,7 @@ use quantacolor::cfa::colorspad_cfa;
 use quantacolor::denoise::bm3d::{bm3d_grey, Bm3dConfig};
 use quantacolor::fastmath;
 use quantacolor::merge::{
-    merge_guide, robustness, GreyNoise, MergeAccumulator, SubBlock, SubBlockRobustness,
+    merge_guide, robustness, GreyNoise, MergeAccumulator, MergeGuide, SubBlock, SubBlockRobustness,
 };
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
@@ -73,7 +73,6 @@ fn block_motion(alignment: &Alignment, config: &BurstConfig) -> FrameMotion {
 fn pipeline_kernels(c: &mut Criterion) {
     let capture = capture();
     let config = BurstConfig::default();
-    let hot = capture.hot_pixels.as_ref();
     let alignment = block_alignment(&capture, &config);
     c.bench_function("align (1024 frames)", |b| {
         b.iter(|| block_alignment(&capture, &config))
@@ -131,6 +130,19 @@ fn pipeline_kernels(c: &mut Criterion) {
         })
     });
 
+    merge_accumulate(c, &capture, &motion, &guide, &config);
+}
+
+/// The phase-bin accumulator of the joint demosaic-merge: splatting eight sub-blocks of
+/// `motion` with `guide`'s kernels and robustness, and the kernel regression that finishes it.
+fn merge_accumulate(
+    c: &mut Criterion,
+    capture: &Capture,
+    motion: &FrameMotion,
+    guide: &MergeGuide,
+    config: &BurstConfig,
+) {
+    let hot = capture.hot_pixels.as_ref();
     let sub_blocks: Vec<SubBlock> = (0..motion.sub_blocks.len().min(8))
         .map(|k| SubBlock {
             counts: capture.frames.sum_range(motion.sub_blocks[k].clone()),

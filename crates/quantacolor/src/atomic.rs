@@ -2,6 +2,7 @@
 //! destination's directory (a name unique across threads and processes) and is renamed into
 //! place only when complete, so a reader never sees half a file and a failed write leaves any
 //! previous file untouched. Every error names the file and the problem.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use std::fs::{self, OpenOptions};

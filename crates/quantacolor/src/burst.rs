@@ -25,6 +25,7 @@
 //! refinement inside blocks, and the grey-value noise and the flux inversion follow the
 //! Gaussian–Poisson model of the capture ([`crate::model::PixelModel`]) instead of the binomial
 //! one ([`config_for_capture`]).
+#![forbid(unsafe_code)]
 
 use crate::align::{
     align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, shortest_sub_block,

@@ -1,6 +1,7 @@
 //! Configuration tables as TOML text (`reconstruct --config`, the benchmarks' config files, the
 //! Python `config=` dicts): missing keys take their defaults, unknown keys are an error, so that
 //! a misspelt key cannot silently leave a default in place.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use serde::de::DeserializeOwned;

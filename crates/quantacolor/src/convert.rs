@@ -1,6 +1,7 @@
 //! Converting real recordings into capture directories (`quantacolor convert`): a
 //! [`FrameSource`] from [`crate::capture::readers`] streamed into a
 //! [`CaptureWriter`], with the CFA, hot-pixel mask and metadata the capture needs.
+#![forbid(unsafe_code)]
 
 use crate::align::hot_pixels::{detect_hot_pixels, self_calibrate, HotPixelDetectConfig};
 use crate::capture::readers::{open_source, FrameSource, RawFormat, SourceSpec};

@@ -1,5 +1,6 @@
 //! Error type shared by every stage: each error names the file (where there is one) and the
 //! problem, so the CLI can print it and exit with code 2.
+#![forbid(unsafe_code)]
 
 use std::path::{Path, PathBuf};
 

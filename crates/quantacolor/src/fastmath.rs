@@ -5,6 +5,7 @@
 //!
 //! Not from the paper: a numerical tool of this project (the kernel regression of
 //! [`crate::merge::MergeAccumulator`] evaluates one Gaussian weight per phase bin).
+#![forbid(unsafe_code)]
 
 /// ln 2 split into a part with few mantissa bits (exact in products with small integers) and
 /// the rest (Cody–Waite reduction, as in Cephes `expf`).

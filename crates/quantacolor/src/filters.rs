@@ -1,6 +1,6 @@
 //! Low-level image filters shared by every stage: Gaussian kernels, zero-padded separable
 //! convolution, Gaussian blur, normalized convolution (Knutsson & Westin 1993), bilinear
-//! sampling and box downsampling.
+//! sampling, bicubic upsampling and box downsampling.
 //!
 //! One home for these ideas. Two kernel conventions exist on purpose and give different numbers,
 //! so both are kept under distinct names rather than merged:
@@ -10,11 +10,15 @@
 //! - [`gaussian_kernel_unit_sum`] (taps computed in f64 and normalised to sum 1 before rounding
 //!   to f32, radius `⌈3σ⌉`) feeds the demosaicking/hole-filling normalized convolution
 //!   [`normalized_convolution_nan`] of the naive baseline and the merge.
+//! - [`gaussian_taps_f64`] (f64, unnormalised, radius given by the caller) and
+//!   [`gaussian_of_squared_distance`] (one f64 weight of an integer squared distance) are the
+//!   f64 Gaussians both of the above builds on or that the blue-noise CFA uses directly.
 //!
 //! None of this is from the paper (which demosaics by normalized convolution without giving a
 //! kernel); the widths are this project's choices and live with the callers.
 
-use ndarray::{Array2, ArrayView2, Axis, Zip};
+use crate::cpu::Isa;
+use ndarray::{Array2, Array3, ArrayView2, ArrayView3, Axis, Zip};
 use rayon::prelude::*;
 
 /// Unnormalised Gaussian taps `exp(−d²/2σ²)` in f32 for `d = −r..=r`, `r = max(1, ⌈3σ⌉)`
@@ -33,12 +37,27 @@ pub fn gaussian_taps(sigma: f32) -> Vec<f32> {
 /// sum 1 and then rounded to f32. Differs from [`gaussian_taps`] in precision, normalisation and
 /// the minimum radius (0 here, 1 there).
 pub fn gaussian_kernel_unit_sum(sigma: f64) -> Vec<f32> {
-    let radius = (3.0 * sigma).ceil() as isize;
-    let k: Vec<f64> = (-radius..=radius)
-        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
-        .collect();
+    let radius = (3.0 * sigma).ceil() as i64;
+    let k = gaussian_taps_f64(sigma, radius);
     let sum: f64 = k.iter().sum();
     k.iter().map(|v| (v / sum) as f32).collect()
+}
+
+/// Unnormalised Gaussian taps `exp(−d²/2σ²)` in f64 for `d = −radius..=radius` (σ and the
+/// radius in grid steps, chosen by the caller): each tap is [`gaussian_of_squared_distance`]
+/// of `d²`. The factors of the blue-noise CFA's separable kernel, and (normalised) of
+/// [`gaussian_kernel_unit_sum`].
+pub fn gaussian_taps_f64(sigma: f64, radius: i64) -> Vec<f64> {
+    (-radius..=radius)
+        .map(|d| gaussian_of_squared_distance(d * d, sigma))
+        .collect()
+}
+
+/// `exp(−d²/2σ²)` in f64 for an integer squared distance `d²` (a 2-D one `di² + dj²` too,
+/// which is not the product of two 1-D taps bit for bit).
+#[inline]
+pub fn gaussian_of_squared_distance(d2: i64, sigma: f64) -> f64 {
+    (-(d2 as f64) / (2.0 * sigma * sigma)).exp()
 }
 
 /// One row of the horizontal pass: `out[x] = Σ_k kernel[k]·inp[x + k − r]`, zero outside.
@@ -228,8 +247,21 @@ pub fn bilinear_taps(v: f32, n: usize) -> (usize, usize, f32) {
 /// `bilinear_taps(p as f32 + offset, n)` over `start..start + len` gets), appended to `out`.
 /// With AVX2, eight coordinates at a time by the same operations (exact integer conversions,
 /// the same clamp, truncation and subtraction), so the same taps bit for bit; where the offset
-/// is not finite or the coordinates exceed `i32`, one at a time.
+/// is not finite or the coordinates exceed `i32`, one at a time. Runs on [`Isa::current`]
+/// (see [`bilinear_taps_into_with`] for a caller that holds its own).
 pub fn bilinear_taps_into(
+    start: usize,
+    len: usize,
+    offset: f32,
+    n: usize,
+    out: &mut Vec<(usize, usize, f32)>,
+) {
+    bilinear_taps_into_with(Isa::current(), start, len, offset, n, out);
+}
+
+/// [`bilinear_taps_into`] on the instruction set `isa` (the same taps on every one).
+pub fn bilinear_taps_into_with(
+    isa: Isa,
     start: usize,
     len: usize,
     offset: f32,
@@ -241,13 +273,15 @@ pub fn bilinear_taps_into(
         if offset.is_finite()
             && start + len <= i32::MAX as usize
             && n <= i32::MAX as usize
-            && std::arch::is_x86_feature_detected!("avx2")
+            && isa.avx2()
         {
-            // SAFETY: AVX2 checked just above.
+            // SAFETY: an `Isa` with AVX2 exists only on a CPU that has it.
             unsafe { bilinear_taps_into_avx2(start, len, offset, n, out) };
             return;
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = isa;
     out.extend((start..start + len).map(|p| bilinear_taps(p as f32 + offset, n)));
 }
 
@@ -323,11 +357,69 @@ pub fn box_downsample(img: &Array2<f32>, f: usize) -> Array2<f32> {
     })
 }
 
+/// Keys cubic convolution weight (a = −0.5) at distance `d`.
+fn keys(d: f32) -> f32 {
+    const A: f32 = -0.5;
+    let d = d.abs();
+    if d <= 1.0 {
+        ((A + 2.0) * d - (A + 3.0)) * d * d + 1.0
+    } else if d < 2.0 {
+        ((A * d - 5.0 * A) * d + 8.0 * A) * d - 4.0 * A
+    } else {
+        0.0
+    }
+}
+
+/// Bicubic (Keys, a = −0.5) upsampling of an (H, W, C) image by `scale` on the merge's scale-s
+/// grid: output pixel (Y, X) interpolates the input at ((Y + ½)/s − ½, (X + ½)/s − ½); edges
+/// are clamped.
+pub fn bicubic_upsample(image: ArrayView3<f32>, scale: usize) -> Array3<f32> {
+    // Taps (4 clamped source indices and weights) of every output coordinate along one axis.
+    let taps = |n: usize| -> Vec<([usize; 4], [f32; 4])> {
+        (0..n * scale)
+            .map(|o| {
+                let p = (o as f32 + 0.5) / scale as f32 - 0.5;
+                let base = p.floor();
+                let f = p - base;
+                let mut idx = [0usize; 4];
+                let mut wts = [0.0f32; 4];
+                for k in 0..4 {
+                    let i = base as isize - 1 + k as isize;
+                    idx[k] = i.clamp(0, n as isize - 1) as usize;
+                    wts[k] = keys(f - (k as f32 - 1.0));
+                }
+                (idx, wts)
+            })
+            .collect()
+    };
+    let (h, w, c) = image.dim();
+    let (ty, tx) = (taps(h), taps(w));
+    // Along x, then along y.
+    let mut rows = Array3::<f32>::zeros((h, w * scale, c));
+    for y in 0..h {
+        for (xo, (idx, wts)) in tx.iter().enumerate() {
+            for ch in 0..c {
+                rows[[y, xo, ch]] = (0..4).map(|k| wts[k] * image[[y, idx[k], ch]]).sum();
+            }
+        }
+    }
+    let mut out = Array3::<f32>::zeros((h * scale, w * scale, c));
+    for (yo, (idx, wts)) in ty.iter().enumerate() {
+        for xo in 0..w * scale {
+            for ch in 0..c {
+                out[[yo, xo, ch]] = (0..4).map(|k| wts[k] * rows[[idx[k], xo, ch]]).sum();
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// The batched taps equal [`bilinear_taps`] one coordinate at a time, bit for bit: offsets
+    /// The batched taps equal [`bilinear_taps`] one coordinate at a time, bit for bit, on the
+    /// portable path and on this CPU's (AVX2 where it has it): offsets
     /// below, inside and past the axis (clamped at both ends), negative zero, fractions next to
     /// whole pixels, lengths off the vector width, a one-pixel axis, and non-finite offsets.
     #[test]
@@ -349,9 +441,12 @@ mod tests {
         for n in [1usize, 9, 50] {
             for start in [0usize, 3, 20, 45] {
                 for len in [0usize, 1, 7, 8, 13, 16, 17] {
-                    for &offset in &offsets {
+                    for (&offset, isa) in offsets
+                        .iter()
+                        .flat_map(|o| [(o, Isa::generic()), (o, Isa::current())])
+                    {
                         let mut got = vec![(7, 7, 7.0)];
-                        bilinear_taps_into(start, len, offset, n, &mut got);
+                        bilinear_taps_into_with(isa, start, len, offset, n, &mut got);
                         let expected: Vec<(usize, usize, f32)> = std::iter::once((7, 7, 7.0))
                             .chain(
                                 (start..start + len).map(|p| bilinear_taps(p as f32 + offset, n)),
@@ -362,7 +457,8 @@ mod tests {
                             assert_eq!(
                                 (g.0, g.1, g.2.to_bits()),
                                 (e.0, e.1, e.2.to_bits()),
-                                "n {n} start {start} len {len} offset {offset}"
+                                "n {n} start {start} len {len} offset {offset} {}",
+                                isa.name()
                             );
                         }
                     }
@@ -462,6 +558,77 @@ mod tests {
         assert!(gaussian_blur(&flat, 1.2)
             .iter()
             .all(|&v| (v - 3.5).abs() < 1e-5));
+    }
+
+    /// The f64 Gaussians equal, bit for bit, the expressions they replaced: the normalised
+    /// kernel's old isize taps, the blue-noise kernel's 1-D taps and its 2-D causal weights.
+    #[test]
+    fn f64_gaussians_match_the_expressions_they_replaced_bit_for_bit() {
+        let old_unit_sum = |sigma: f64| -> Vec<f32> {
+            let radius = (3.0 * sigma).ceil() as isize;
+            let k: Vec<f64> = (-radius..=radius)
+                .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp())
+                .collect();
+            let sum: f64 = k.iter().sum();
+            k.iter().map(|v| (v / sum) as f32).collect()
+        };
+        let old_taps = |sigma: f64, radius: i64| -> Vec<f64> {
+            (-radius..=radius)
+                .map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp())
+                .collect()
+        };
+        let old_weight = |di: i64, dj: i64, sigma: f64| {
+            (-((di * di + dj * dj) as f64) / (2.0 * sigma * sigma)).exp()
+        };
+        let bits32 = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let bits64 = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for sigma in [0.3, 0.5, 0.75, 1.0, 1.1, 1.5, 1.7, 2.1, 3.3, 7.9] {
+            assert_eq!(
+                bits32(&gaussian_kernel_unit_sum(sigma)),
+                bits32(&old_unit_sum(sigma)),
+                "sigma {sigma}"
+            );
+            for radius in [0i64, 1, 2, 5, 24] {
+                assert_eq!(
+                    bits64(&gaussian_taps_f64(sigma, radius)),
+                    bits64(&old_taps(sigma, radius)),
+                    "sigma {sigma} radius {radius}"
+                );
+            }
+            for di in -6i64..=0 {
+                for dj in -6i64..=6 {
+                    assert_eq!(
+                        gaussian_of_squared_distance(di * di + dj * dj, sigma).to_bits(),
+                        old_weight(di, dj, sigma).to_bits(),
+                        "sigma {sigma} ({di}, {dj})"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn bicubic_reproduces_a_quadratic_away_from_the_edges() {
+        // Keys' a = −0.5 kernel reproduces polynomials up to degree 2.
+        let f = |y: f32, x: f32| 0.3 + 0.02 * y - 0.01 * x + 0.001 * x * x + 0.002 * x * y;
+        let image =
+            Array3::from_shape_fn((12, 14, 2), |(y, x, c)| f(y as f32, x as f32) + c as f32);
+        let up = bicubic_upsample(image.view(), 2);
+        assert_eq!(up.dim(), (24, 28, 2));
+        for yo in 4..20 {
+            for xo in 4..24 {
+                let (y, x) = ((yo as f32 + 0.5) / 2.0 - 0.5, (xo as f32 + 0.5) / 2.0 - 0.5);
+                for c in 0..2 {
+                    let want = f(y, x) + c as f32;
+                    assert!((up[[yo, xo, c]] - want).abs() < 1e-4, "({yo}, {xo}, {c})");
+                }
+            }
+        }
+        // Constants everywhere, edges included.
+        let flat = Array3::from_elem((5, 7, 3), 0.7f32);
+        assert!(bicubic_upsample(flat.view(), 2)
+            .iter()
+            .all(|v| (v - 0.7).abs() < 1e-6));
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! A capture at a glance (`quantacolor inspect`): size, CFA, light level per channel, hot
 //! pixels and the block size alignment would choose.
+#![forbid(unsafe_code)]
 
 use crate::align::blocks::{BlockConfig, BlockPlan};
 use crate::align::hot_pixels::{detect_hot_pixels, HotPixelDetectConfig};

@@ -35,6 +35,7 @@ pub mod progress;
 pub mod report;
 pub mod rgbw;
 pub mod simulate;
+pub mod stats;
 pub mod timing;
 pub mod video;
 

@@ -13,6 +13,7 @@
 //! input's float type, so the two agree to ~1e-12 for float64 input (the reference test) and to
 //! float32 rounding for float32 input. [`psnr`] is `peak_signal_noise_ratio`:
 //! `10·log10(data_range² / MSE)`, `+∞` for identical images.
+#![deny(unsafe_code)]
 
 pub mod lpips;
 
@@ -25,6 +26,7 @@ use rayon::prelude::*;
 
 use crate::color::srgb::linear_to_srgb;
 use crate::error::{Error, Result};
+use crate::stats::percentile_linear;
 
 /// SSIM window side (pixels): scikit-image's default for uniform weights.
 pub const SSIM_WIN_SIZE: usize = 7;
@@ -300,21 +302,6 @@ pub struct Scores {
     pub ssim_srgb: f64,
 }
 
-/// `p`-th percentile (0–100) with linear interpolation between order statistics (numpy default).
-fn percentile(values: &mut [f32], p: f64) -> f64 {
-    let n = values.len();
-    let pos = p / 100.0 * (n - 1) as f64;
-    let lo = (pos.floor() as usize).min(n - 1);
-    let frac = pos - lo as f64;
-    let (_, &mut v_lo, upper) = values.select_nth_unstable_by(lo, f32::total_cmp);
-    let v_lo = f64::from(v_lo);
-    if frac == 0.0 || upper.is_empty() {
-        return v_lo;
-    }
-    let v_hi = f64::from(upper.iter().copied().fold(f32::INFINITY, f32::min));
-    v_lo + frac * (v_hi - v_lo)
-}
-
 /// Scores a linear colour reconstruction `(H, W, C)` against the ground truth the paper's way
 /// (§6): crop `border` pixels from every side; optionally scale both images by the one factor
 /// that maps the truth's `normalize_percentile` to 1 (so scores do not depend on the exposure
@@ -395,7 +382,7 @@ fn protocol_linear(
                 )));
             }
             let mut values: Vec<f32> = tru.iter().copied().collect();
-            let q = percentile(&mut values, p);
+            let q = percentile_linear(&mut values, p);
             if q <= 0.0 {
                 return Err(Error::invalid(format!(
                     "ground truth's {p}th percentile is {q}; cannot normalise"
@@ -447,15 +434,5 @@ mod tests {
                 assert!((out[y * w + x] - direct).abs() < 1e-13, "({y},{x})");
             }
         }
-    }
-
-    #[test]
-    fn percentile_matches_numpy_linear() {
-        // np.percentile([1, 2, 3, 4], 50) = 2.5; 99.5 -> 3.985; 100 -> 4.
-        let v = [4.0f32, 1.0, 3.0, 2.0];
-        assert!((percentile(&mut v.clone(), 50.0) - 2.5).abs() < 1e-12);
-        assert!((percentile(&mut v.clone(), 99.5) - 3.985).abs() < 1e-6);
-        assert_eq!(percentile(&mut v.clone(), 100.0), 4.0);
-        assert_eq!(percentile(&mut [7.0f32], 30.0), 7.0);
     }
 }

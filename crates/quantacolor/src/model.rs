@@ -29,6 +29,7 @@
 //!   the same range.
 //!
 //! All fluxes are in photon detections per binary frame, as everywhere in this crate.
+#![forbid(unsafe_code)]
 
 use ndarray::{Array, ArrayView, Dimension, Zip};
 

@@ -4,6 +4,7 @@
 //! compensation, inverts the Bernoulli response per pixel (MLE, paper Eq. 6), demosaics any
 //! R/G/B/W arrangement by normalized convolution (Knutsson & Westin 1993), and applies the RGBW
 //! combination of paper Eq. 8 ([`crate::rgbw`]). Every burst method must beat it.
+#![forbid(unsafe_code)]
 
 use crate::capture::Capture;
 use crate::cfa::{Cfa, Channel};

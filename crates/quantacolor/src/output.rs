@@ -4,7 +4,9 @@
 //! [`StagedDir`] never leaves partial results: files are written into a temporary sibling
 //! directory, then renamed into place one by one once all of them are complete.
 //! [`write_reconstruction`] writes `linear.npy`, `linear.exr`, `preview.png` and `report.toml`.
+#![forbid(unsafe_code)]
 
+use crate::atomic::{temp_sibling, TempGuard};
 use crate::capture::{io, Capture};
 use crate::denoise::chroma::DenoiseReport;
 use crate::display::{write_rendered, BitDepth, RenderOptions};
@@ -22,11 +24,11 @@ pub const RECONSTRUCTION_FILES: [&str; 4] =
 pub const LINEAR_UNITS: &str =
     "mean photon detections per binary frame of an R, G or B pixel, dark counts removed";
 
-/// A staging directory for the files of one output directory.
+/// A staging directory for the files of one output directory: a temporary sibling of the
+/// target named and removed by [`crate::atomic`] (gone on drop, after a commit too).
 pub struct StagedDir {
     target: PathBuf,
-    staging: PathBuf,
-    committed: bool,
+    staging: TempGuard,
 }
 
 impl StagedDir {
@@ -42,56 +44,48 @@ impl StagedDir {
             _ => PathBuf::from("."),
         };
         std::fs::create_dir_all(&parent).map_err(|e| Error::io(&parent, e))?;
-        let staging = parent.join(format!(".{name}.partial-{}", std::process::id()));
+        // `.{name}.partial.{pid}-{n}.tmp`: "partial" says what it holds.
+        let staging = temp_sibling(&parent.join(format!("{name}.partial")))?;
         if staging.exists() {
             std::fs::remove_dir_all(&staging).ok();
         }
         std::fs::create_dir(&staging).map_err(|e| Error::io(&staging, e))?;
         Ok(StagedDir {
             target: target.to_path_buf(),
-            staging,
-            committed: false,
+            staging: TempGuard::dir(staging),
         })
     }
 
     /// The staging directory itself.
     pub fn dir(&self) -> &Path {
-        &self.staging
+        self.staging.path()
     }
 
     /// Path of `file` inside the staging directory.
     pub fn path(&self, file: &str) -> PathBuf {
-        self.staging.join(file)
+        self.dir().join(file)
     }
 
-    /// Moves every staged file into the target directory (created if needed).
-    pub fn commit(mut self) -> Result<PathBuf> {
+    /// Moves every staged file into the target directory (created if needed); the emptied
+    /// staging directory is removed when `self` drops.
+    pub fn commit(self) -> Result<PathBuf> {
         if self.target.exists() && !self.target.is_dir() {
             return Err(Error::format(&self.target, "exists and is not a directory"));
         }
         std::fs::create_dir_all(&self.target).map_err(|e| Error::io(&self.target, e))?;
-        let entries = std::fs::read_dir(&self.staging).map_err(|e| Error::io(&self.staging, e))?;
+        let staging = self.dir();
+        let entries = std::fs::read_dir(staging).map_err(|e| Error::io(staging, e))?;
         let mut names = Vec::new();
         for entry in entries {
-            names.push(entry.map_err(|e| Error::io(&self.staging, e))?.file_name());
+            names.push(entry.map_err(|e| Error::io(staging, e))?.file_name());
         }
         // `report.toml` last: its presence marks a complete reconstruction directory.
         names.sort_by_key(|n| n == "report.toml");
         for name in names {
             let dest = self.target.join(&name);
-            std::fs::rename(self.staging.join(&name), &dest).map_err(|e| Error::io(&dest, e))?;
+            std::fs::rename(staging.join(&name), &dest).map_err(|e| Error::io(&dest, e))?;
         }
-        std::fs::remove_dir_all(&self.staging).ok();
-        self.committed = true;
         Ok(self.target.clone())
-    }
-}
-
-impl Drop for StagedDir {
-    fn drop(&mut self) {
-        if !self.committed {
-            std::fs::remove_dir_all(&self.staging).ok();
-        }
     }
 }
 
@@ -186,4 +180,63 @@ pub fn report_frames(report: &toml::Table) -> Option<f64> {
         .map(|i| i as f64)
         .or(v.as_float())
         .filter(|t| *t > 0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entries(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    }
+
+    #[test]
+    fn an_interrupted_staged_dir_leaves_nothing() {
+        let tmp = tempfile::tempdir().unwrap();
+        let target = tmp.path().join("out");
+        {
+            let staged = StagedDir::new(&target).unwrap();
+            assert!(staged.dir().starts_with(tmp.path()));
+            assert!(staged.dir().is_dir());
+            std::fs::write(staged.path("linear.npy"), b"half").unwrap();
+        }
+        assert!(entries(tmp.path()).is_empty(), "{:?}", entries(tmp.path()));
+        // A commit that fails (the target is a file) leaves the file alone and no staging.
+        std::fs::write(&target, b"a file").unwrap();
+        let staged = StagedDir::new(&target).unwrap();
+        std::fs::write(staged.path("report.toml"), b"x").unwrap();
+        assert!(staged.commit().is_err());
+        assert_eq!(entries(tmp.path()), ["out"]);
+        assert_eq!(std::fs::read(&target).unwrap(), b"a file");
+    }
+
+    #[test]
+    fn a_committed_staged_dir_replaces_its_files_and_leaves_no_staging() {
+        let tmp = tempfile::tempdir().unwrap();
+        let target = tmp.path().join("out");
+        std::fs::create_dir(&target).unwrap();
+        std::fs::write(target.join("linear.npy"), b"old").unwrap();
+        std::fs::write(target.join("notes.txt"), b"kept").unwrap();
+        let first = StagedDir::new(&target).unwrap();
+        let second = StagedDir::new(&target).unwrap();
+        assert_ne!(
+            first.dir(),
+            second.dir(),
+            "each stage gets its own directory"
+        );
+        assert!(first.dir().to_string_lossy().contains("partial"));
+        drop(second);
+        std::fs::write(first.path("linear.npy"), b"new").unwrap();
+        std::fs::write(first.path("report.toml"), b"done").unwrap();
+        assert_eq!(first.commit().unwrap(), target);
+        assert_eq!(entries(tmp.path()), ["out"]);
+        assert_eq!(entries(&target), ["linear.npy", "notes.txt", "report.toml"]);
+        assert_eq!(std::fs::read(target.join("linear.npy")).unwrap(), b"new");
+        assert_eq!(std::fs::read(target.join("notes.txt")).unwrap(), b"kept");
+    }
 }

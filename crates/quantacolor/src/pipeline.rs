@@ -1,5 +1,6 @@
 //! Typed configuration and the stage sequence of a reconstruction. Every stage is also callable
 //! on its own (see the module of each stage).
+#![forbid(unsafe_code)]
 
 use crate::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use crate::capture::Capture;

@@ -1,5 +1,6 @@
 //! Progress reporting without terminal code: long stages call a [`Progress`] sink, which the CLI
 //! implements with a progress bar and tests leave silent.
+#![forbid(unsafe_code)]
 
 /// Receives progress updates from long-running stages. Implementations must be thread-safe
 /// because stages report from rayon workers.

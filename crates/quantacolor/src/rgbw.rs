@@ -3,6 +3,7 @@
 //! chromaticity. Used by the naive baseline ([`crate::naive`]) and by the burst merge
 //! ([`crate::merge`]). The fallbacks where W is missing or the RGB luminance is not positive are
 //! this project's own choices.
+#![forbid(unsafe_code)]
 
 use ndarray::{Array3, Axis};
 use rayon::prelude::*;

@@ -1,6 +1,7 @@
 //! Wall-clock timing of pipeline stages (reported in `report.toml` and by `bench speed`).
 //! Shared by [`crate::burst`] and [`crate::pipeline`] so that neither imports the other for it.
 //! Timings are reported, never used to decide anything, so outputs stay deterministic.
+#![forbid(unsafe_code)]
 
 use serde::{Deserialize, Serialize};
 use std::time::Instant;

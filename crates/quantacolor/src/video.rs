@@ -31,6 +31,7 @@
 //! rather than at r, so a moving object's position is off by its motion over that time.
 //! The naive method has no motion to reuse: it runs per frame
 //! ([`VideoReconstructor::fallback_reason`]).
+#![forbid(unsafe_code)]
 
 use crate::align::{align_grey_blocks, AffineMotion, Alignment, BlockPlan, FrameMotion};
 use crate::burst::{

@@ -3,6 +3,7 @@
 //! Alignment works on block sums: T binary frames are cut into consecutive blocks of B frames
 //! whose sums are multi-bit images with enough photons to match patches, while motion within a
 //! block stays a fraction of a pixel. The reference block is the one holding the reference frame.
+#![forbid(unsafe_code)]
 
 use crate::capture::BinaryFrames;
 use crate::error::{Error, Result};

@@ -5,6 +5,7 @@
 //! moves and nothing else, so each block sum is first turned into a grey image, normalised by
 //! the block length (mean detections per frame) so that blocks of different lengths compare.
 //! How depends on the CFA (see [`GreyMethod::detect`]).
+#![forbid(unsafe_code)]
 
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};

@@ -2,6 +2,7 @@
 //! measured at the blocks' centre frames, are interpolated linearly in time to every binary
 //! frame (extrapolated before the first and after the last centre), and bilinearly in space
 //! from tile centres to any pixel.
+#![deny(unsafe_code)]
 
 use super::blocks::BlockPlan;
 use super::patch::TileGrid;

@@ -13,6 +13,7 @@
 //! Tracking runs only when the block motion says the camera moves fast (see
 //! [`TrackConfig::trigger_px`]) and only on CFAs whose grey channel is W; afterwards the merge
 //! uses sub-blocks short enough for the tracked motion ([`split_for_merge`]).
+#![forbid(unsafe_code)]
 
 use super::grey::GreyMethod;
 use super::refine::{

@@ -1,5 +1,6 @@
 //! Typed `.npy` readers/writers and image files shared by every writer. Every output is
 //! written atomically through [`crate::atomic`]. Every error names the file and the problem.
+#![forbid(unsafe_code)]
 
 use super::npy::NpyHeader;
 use crate::atomic::write_atomic;

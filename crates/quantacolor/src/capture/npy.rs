@@ -1,5 +1,6 @@
 //! Minimal `.npy` header parsing (NumPy format versions 1–3), used to memory-map frame stacks
 //! without reading them.
+#![forbid(unsafe_code)]
 
 /// Element types the capture format accepts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

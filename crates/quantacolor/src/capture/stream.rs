@@ -2,6 +2,7 @@
 //! temporary directory, so converting 10^6 raw frames needs memory for one frame only. The
 //! directory is renamed into place by [`CaptureWriter::finish`]; dropping the writer (an error,
 //! a panic) removes it, leaving nothing behind and any previous capture untouched.
+#![forbid(unsafe_code)]
 
 use super::{
     commit_dir, npy, npy_writer, prepare_target, write_member, BinaryFrames, CaptureMeta,

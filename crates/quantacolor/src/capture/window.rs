@@ -1,5 +1,6 @@
 //! Frame windows `A:B`: the frames a command reads from a capture or a raw recording
 //! (`--frames` of `convert`, `reconstruct` and `align`).
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};

@@ -27,6 +27,7 @@
 //!   `top_fraction·(1 + ln(1/top_fraction)) ≈ 0.8 %` for a white (i.i.d.) pattern;
 //! - `peak_to_mean`: largest bin over the mean bin;
 //! - `chroma_power`: mean of `M_1² + M_2²` per pixel (how much chrominance is modulated at all).
+#![forbid(unsafe_code)]
 
 use super::io::{save_png, save_text};
 use super::{Cfa, Channel};

@@ -18,15 +18,15 @@
 //! The labelling starts in raster order like error diffusion (each site takes the allowed colour
 //! least present in its causal neighbourhood, plus random jitter) and is then refined by swaps.
 //! The jitter is what makes every seed give a different, aperiodic pattern: without it the
-//! greedy choice locks into a periodic layout (measured at 254x496: jitter 0.1 puts 88 % of the
-//! chroma energy into the top 0.1 % of bins). The defaults (σ_K = 1.5, jitter 1) were chosen by
-//! a scan (`scan_blue_noise_tuning` in `tests/cfa_analysis.rs`) trading baseband chrominance
-//! against peakiness: baseband share 0.008 and peak share 0.045, versus 0.049 / 0.005 for i.i.d.
-//! colours and 0.0027 / 0.032 for the fabricated sensor's pattern. Swaps rarely help because
+//! greedy choice locks into a periodic layout. The defaults (σ_K = 1.5, jitter 1) are this
+//! project's, chosen by a scan (`scan_blue_noise_tuning` in `tests/cfa_analysis.rs`) trading
+//! baseband chrominance against peakiness (figures: docs/tuning.md). Swaps rarely help because
 //! the neighbour rule forbids most of them.
+#![forbid(unsafe_code)]
 
 use super::lattice::SiteLattice;
 use crate::error::{Error, Result};
+use crate::filters::{gaussian_of_squared_distance, gaussian_taps_f64};
 use ndarray::Array2;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
@@ -160,7 +160,7 @@ fn initial_labels(
 ) -> Array2<u8> {
     let sigma = config.kernel_sigma;
     let r = (2.0 * sigma).ceil() as i64;
-    let weight = |di: i64, dj: i64| (-((di * di + dj * dj) as f64) / (2.0 * sigma * sigma)).exp();
+    let weight = |di: i64, dj: i64| gaussian_of_squared_distance(di * di + dj * dj, sigma);
     let mut labels = Array2::from_elem(valid.dim(), NONE);
     let (n, m) = valid.dim();
     for i in 0..n {
@@ -352,9 +352,7 @@ struct Kernel {
 
 impl Kernel {
     fn gaussian(sigma: f64, radius: i64) -> Self {
-        let taps = (-radius..=radius)
-            .map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp())
-            .collect();
+        let taps = gaussian_taps_f64(sigma, radius);
         Kernel { radius, taps }
     }
 

@@ -14,6 +14,7 @@
 //! of the raw frame, so PNG pixel `(y + 2, x)` is frame pixel `(y, x)`. Both choices put the
 //! colour sites at (odd row, odd column) of the frame (the offset is even) and give the same
 //! W/colour mask; only the R/G/B labels differ (tested).
+#![deny(unsafe_code)]
 
 use super::io::from_rgb_image;
 use super::Cfa;

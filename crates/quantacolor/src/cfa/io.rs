@@ -1,6 +1,7 @@
 //! Reading and writing CFAs: `cfa.npy` (uint8 codes, see docs/capture-format.md) and colour
 //! PNG pictures of the filter layout (pure red, green, blue = colour filters, white = W), the
 //! format of the real sensor's `rgbw_oh_bn_color_ss2_corrected.png` (paper §6, colour SPAD).
+#![forbid(unsafe_code)]
 
 use super::Cfa;
 use crate::atomic::write_atomic_synced;

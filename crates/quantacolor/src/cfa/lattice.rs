@@ -4,6 +4,7 @@
 //! `origin + i·a + j·b` with `a ⟂ b` and `|a| = |b|`, and all other pixels are W. Because the
 //! lattice is square, an isotropic filter in pixel space is isotropic in lattice coordinates
 //! `(i, j)`, so the blue-noise design works on the `(i, j)` grid.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 

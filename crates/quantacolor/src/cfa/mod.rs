@@ -9,6 +9,7 @@
 //! - [`io`]: `.npy` / colour `.png` reading and atomic writing;
 //! - [`analysis`]: luminance/chrominance spectra and aliasing scores (Fig. 9);
 //! - [`sheet`]: the side-by-side comparison picture (Fig. 8/9).
+#![deny(unsafe_code)]
 
 pub mod analysis;
 pub mod bluenoise;

@@ -1,4 +1,5 @@
 //! CFA patterns of the paper's comparison (§5, Fig. 8; supplement §2, Fig. 3).
+#![deny(unsafe_code)]
 
 use super::bluenoise::blue_noise_codes;
 use super::lattice::SiteLattice;

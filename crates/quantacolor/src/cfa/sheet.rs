@@ -1,6 +1,7 @@
 //! The CFA comparison sheet, laid out like paper Fig. 8/9: each pattern as a zoomed tile above
 //! its chrominance spectrum, with its aliasing scores ([`super::analysis`]) written underneath
 //! in a built-in 3x5 bitmap font (no font files needed).
+#![forbid(unsafe_code)]
 
 use super::analysis::{analyze, spectrum_image, AnalysisConfig, SpectralScores};
 use super::colorspad::{COLORSPAD_HEIGHT, COLORSPAD_WIDTH};

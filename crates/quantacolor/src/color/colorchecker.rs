@@ -2,6 +2,7 @@
 //! chart scene. Shared by the simulator (`crate::simulate::chart`, which draws the chart) and
 //! colour correction (`crate::display::ccm`, paper §7, Fig. 14, which measures it), so that
 //! neither imports the other.
+#![forbid(unsafe_code)]
 
 use super::srgb::srgb_to_linear;
 

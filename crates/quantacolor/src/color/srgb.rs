@@ -1,4 +1,5 @@
 //! The sRGB transfer function (IEC 61966-2-1).
+#![forbid(unsafe_code)]
 
 /// sRGB-encoded value in [0, 1] to linear.
 pub fn srgb_to_linear(v: f32) -> f32 {

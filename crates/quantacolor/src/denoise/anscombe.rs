@@ -11,6 +11,7 @@
 //! denoised value estimates E[A(X)], not A(E[X]). The exact unbiased inverse (Mäkitalo & Foi,
 //! IEEE TIP 2011, for the Poisson case; the same construction for the binomial) maps a value a
 //! to the p with E[A(X) | p] = a, computed here from the binomial distribution on a table.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use crate::model::{detection_probability, detection_probability_slope, PixelModel, Readout};

@@ -9,6 +9,7 @@
 //! reconstruction's own units (mean detections per frame), which the later noise-aware
 //! visualisation (supplement Eq. 9, thresholds in those units) and exposure steps rely on. The
 //! gain is kept in the TOML for information only.
+#![forbid(unsafe_code)]
 
 use crate::color::colorchecker::{colorchecker_patch_rects, srgb8_to_linear, COLORCHECKER_SRGB};
 use crate::error::{Error, Result};

@@ -1,4 +1,5 @@
 //! Automatic exposure and sRGB quantisation of linear RGB images.
+#![deny(unsafe_code)]
 
 use crate::color::srgb::linear_to_srgb;
 use ndarray::{s, Array3, ArrayView3, Axis};
@@ -6,16 +7,9 @@ use ndarray::{s, Array3, ArrayView3, Axis};
 /// Percentile of the per-pixel maximum channel that automatic exposure maps to white.
 pub const AUTO_EXPOSURE_PERCENTILE: f64 = 99.5;
 
-/// Value at percentile `p` (0–100) of the finite entries of `values` (nearest rank).
-pub fn percentile(values: impl Iterator<Item = f32>, p: f64) -> Option<f32> {
-    let mut v: Vec<f32> = values.filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return None;
-    }
-    let k = (((p / 100.0) * (v.len() - 1) as f64).round() as usize).min(v.len() - 1);
-    let (_, kth, _) = v.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
-    Some(*kth)
-}
+/// Value at percentile `p` (0–100) of the finite entries of `values` (nearest rank); lives in
+/// [`crate::stats`].
+pub use crate::stats::percentile;
 
 /// Scale that maps the [`AUTO_EXPOSURE_PERCENTILE`] of the per-pixel maximum channel of
 /// `linear` (H, W, 3) to 1. Returns 1 for an all-dark image.

@@ -33,6 +33,7 @@
 //! (not a Gaussian kernel) so that its adjoint is exact and the normal equations stay symmetric
 //! for CG; the contrast-equalisation variant is not implemented; `detail_factor` scales the
 //! target contrasts of the finest level only (1 = the paper's operator).
+#![forbid(unsafe_code)]
 
 use super::exposure::percentile;
 use ndarray::{Array2, ArrayView2};

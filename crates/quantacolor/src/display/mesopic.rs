@@ -31,8 +31,10 @@
 //! measured noise (project heuristic): `L0 = log10(T_eff / T)`, where `T_eff` is the frame count
 //! whose photon noise equals the noise measured in the image, so a merge or denoiser that
 //! averaged more than `T` frames' worth of noise away keeps proportionally more colour.
+#![deny(unsafe_code)]
 
 use crate::error::{Error, Result};
+use crate::stats::{median, select_floor_rank};
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3, Axis, Zip};
 use serde::{Deserialize, Serialize};
 
@@ -250,16 +252,6 @@ fn bin(x: ArrayView2<f32>, b: usize) -> Array2<f32> {
     })
 }
 
-/// Median of `v` (empty: `None`).
-fn median(v: &mut [f32]) -> Option<f32> {
-    if v.is_empty() {
-        return None;
-    }
-    let k = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
-    Some(*m)
-}
-
 /// The number of frames `T_eff` whose photon noise matches the noise measured in `linear`
 /// (H, W, 3; detections per frame), project heuristic behind `--mesopic auto`.
 ///
@@ -312,9 +304,8 @@ pub fn effective_frames(linear: ArrayView3<f32>, w_weights: [f64; 3]) -> Result<
             continue;
         }
         let mut abs: Vec<f32> = z.iter().map(|v| v.abs()).collect();
-        let k = ((abs.len() as f64 * NOISE_QUANTILE) as usize).min(abs.len() - 1);
-        let (_, q, _) = abs.select_nth_unstable_by(k, |a, b| a.total_cmp(b));
-        let sigma = *q as f64 / NOISE_QUANTILE_OF_UNIT_NORMAL;
+        let q = select_floor_rank(&mut abs, NOISE_QUANTILE).expect("at least 64 residuals");
+        let sigma = q as f64 / NOISE_QUANTILE_OF_UNIT_NORMAL;
         let t_b = if sigma > 0.0 {
             (8.0 / 9.0) / ((b * b) as f64 * sigma * sigma)
         } else {

@@ -2,6 +2,7 @@
 //! colour correction ([`ccm`]), noise-aware low-light visualisation ([`mesopic`]), exposure and
 //! tone mapping ([`tonemap`], [`mantiuk`]), sRGB encoding ([`crate::color::srgb`], [`exposure`]), all chained by
 //! [`render`].
+#![deny(unsafe_code)]
 
 pub mod ccm;
 pub mod exposure;

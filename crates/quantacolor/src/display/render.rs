@@ -1,5 +1,6 @@
 //! The display pipeline for linear reconstructions (paper §7, Fig. 14 and Fig. 20; supplement
 //! §4): colour correction -> noise-aware low-light blend -> exposure -> tone map -> sRGB.
+#![forbid(unsafe_code)]
 
 use super::ccm::ColorMatrix;
 use super::mesopic::{mesopic_blend, MesopicConfig, MesopicParams};

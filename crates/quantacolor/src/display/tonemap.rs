@@ -1,6 +1,7 @@
 //! Tone mapping of linear RGB to display-referred linear RGB in [0, 1] (paper §7: the figures of
 //! HDR scenes use Mantiuk et al. 2006). Luminance here is Rec. 709 / sRGB `Y` (the image is
 //! linear sRGB after colour correction).
+#![forbid(unsafe_code)]
 
 use super::exposure::{auto_exposure_scale, percentile};
 use super::mantiuk::{display_luminance, process_log_luminance, Mantiuk06Config};

@@ -5,6 +5,7 @@
 //! The paper's observation: with a static camera the blue-noise pattern beats the random one
 //! (no clumps of one colour, no large gaps) and the regular one (no periodic colour aliasing);
 //! motion lets every pattern see each point through several filters and narrows the gaps.
+#![forbid(unsafe_code)]
 
 use super::common::{contact_sheet, csv, scene_or, score, trial};
 use super::plot::{self, LinePlot, Series};

@@ -1,5 +1,6 @@
 //! Helpers shared by the simulated experiments: simulate a capture, reconstruct it (burst or
 //! naive, no denoising), score it, and build CSV text and contact sheets.
+#![deny(unsafe_code)]
 
 use crate::cfa::Cfa;
 use crate::denoise::chroma::DenoiseMethod;

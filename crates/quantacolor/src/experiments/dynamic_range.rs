@@ -17,6 +17,7 @@
 //! the roles of W and colour swap and the gap is `40·|log10(3w)|`. The conventional reference is
 //! the Bayer CMOS of Table 1 (240 fps, 2.4 e- read noise, 1 e-/s, 10 bits at 1 e-/DN, so a full
 //! well of 1023 e-) over the same 1 s: 240 frames summed, [`model::conventional_dynamic_range`].
+#![forbid(unsafe_code)]
 
 use super::common::csv;
 use super::plot::{self, LinePlot, Series};

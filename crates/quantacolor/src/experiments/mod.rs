@@ -19,6 +19,7 @@
 //!
 //! Nothing is written here: the caller (the `quantacolor experiment` command) writes the returned
 //! [`Artifact`]s atomically. The same options and seed give identical bytes.
+#![deny(unsafe_code)]
 
 pub mod cfa;
 pub mod dynamic_range;

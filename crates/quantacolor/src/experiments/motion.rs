@@ -6,6 +6,7 @@
 //! through different colour filters over the burst, so the merge demosaics from real samples
 //! instead of interpolating — and the biggest gain comes between 0 and 1 px, while naive
 //! averaging of the same frames only blurs more as the radius grows.
+#![forbid(unsafe_code)]
 
 use super::common::{contact_sheet, csv, scene_or, score, trial};
 use super::plot::{self, LinePlot, Series};

@@ -20,6 +20,7 @@
 //! The paper's observations tested here: a SPAD with the RGBW CFA beats the conventional sensor
 //! at night (no read noise) and matches it in daylight; jots (higher quantum efficiency, no dark
 //! counts, but 1 kfps) win when the motion is slow and lose when it is fast (their frames blur).
+#![forbid(unsafe_code)]
 
 use super::common::{csv, score, tone_mapped_sheet, trial};
 use super::plot::{self, LinePlot, Series};

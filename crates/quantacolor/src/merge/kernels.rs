@@ -1,15 +1,18 @@
 //! Anisotropic merge kernels (Wronski et al. 2019, §5.1.2; paper §4.2): the local structure
 //! tensor of the reference image decides, per pixel, how far a sample may sit from the output
 //! position along and across the local edge.
+#![deny(unsafe_code)]
 
 use super::warp::positive;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
+use crate::stats;
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-/// Kernel-shape parameters (Wronski et al. 2019, §5.1.2; DESIGN "Algorithm facts").
+/// Kernel-shape parameters (Wronski et al. 2019, "Handheld Multi-Frame Super-Resolution",
+/// §5.1.2 and Eq. 4–5; the ranges that differ from theirs are this project's, as noted).
 ///
 /// Kernel standard deviations are in reference pixels for a channel with one site per pixel;
 /// [`KernelField::channel_scale`] widens them for sparse channels.
@@ -36,14 +39,9 @@ pub struct KernelConfig {
     /// Floor on every kernel std (px): narrower kernels than this underflow in f32 for samples
     /// one pixel away and leave holes.
     pub min_std: f32, // 0.25 px
-    /// At output scale s > 1 (super-resolution) the kernel stds are divided by s^exponent:
-    /// kernels sized for the 1x grid over-smooth a finer grid that frame-granular motion
-    /// samples densely (this project's heuristic; Wronski et al. 2019 size kernels on the
-    /// output grid). Measured with `bench quality` on the 2x-detail captures (2000 frames,
-    /// scale 2 against bicubic upsampling of the 1x result): exponent 0 +0.25 / +0.30 dB
-    /// (tuning / validation), 0.5 +1.18 / +1.32 dB, 1 +1.41 / +2.05 dB. 0.5 is the default:
-    /// narrower kernels trade noise for detail, and fewer frames than these have not been
-    /// measured.
+    /// At output scale s > 1 the kernel stds are divided by s^exponent, as 1x kernels over-smooth
+    /// the finer grid (this project's heuristic; Wronski et al. 2019 size kernels on the output
+    /// grid). Measurements behind 0.5: docs/tuning.md.
     pub output_scale_exponent: f32, // 0.5 (dimensionless)
 }
 
@@ -110,15 +108,9 @@ impl KernelField {
     }
 }
 
-/// Value at the `q`-quantile of `values` (finite values only; 0 if none).
+/// Value at the `q`-quantile of `values` (finite values only, nearest rank; 0 if none).
 fn quantile(values: &Array2<f32>, q: f64) -> f32 {
-    let mut v: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    if v.is_empty() {
-        return 0.0;
-    }
-    let i = ((v.len() - 1) as f64 * q).round() as usize;
-    let (_, x, _) = v.select_nth_unstable_by(i, f32::total_cmp);
-    *x
+    stats::quantile(values.iter().copied(), q).unwrap_or(0.0)
 }
 
 /// Kernel covariances from the structure tensor of `reference` (Wronski et al. 2019, Eq. 4–5).

@@ -2,6 +2,7 @@
 //! the reference grid and merged with the reference block by a per-frequency Wiener filter over
 //! overlapping DFT tiles (HDR+, Hasinoff et al. 2016, §5). The result is a low-noise grey image
 //! registered to the reference block; it steers the merge kernels and the robustness weights.
+#![forbid(unsafe_code)]
 
 use super::warp::{positive, warp_to_reference};
 use super::GreyNoise;

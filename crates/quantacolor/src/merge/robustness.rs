@@ -2,6 +2,7 @@
 //! warped content disagrees with the reference by more than the local variability and the
 //! photon noise (binomial, or Gaussian–Poisson for multi-bit frames) explain, its samples are
 //! rejected from the merge.
+#![forbid(unsafe_code)]
 
 use super::warp::{check_flow, warp_checked};
 use super::GreyNoise;

@@ -23,6 +23,7 @@
 //! im2col (the patch of every output pixel as one row, built band by band of output rows)
 //! times the `(k·k·C_in, C_out)` weight matrix (`ndarray`'s `matrixmultiply` GEMM), bands in
 //! parallel with rayon, and the two images in parallel.
+#![deny(unsafe_code)]
 
 use std::io::Cursor;
 use std::sync::OnceLock;

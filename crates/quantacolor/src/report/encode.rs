@@ -6,6 +6,7 @@
 //! bits: relative error at most 2^-11 down to 2^-14 · 2^-k (29 stops below the maximum), an
 //! absolute error of at most 2^-25 · 2^-k below that (binary16 subnormals). `±∞` and NaN are
 //! kept (the display pipeline maps them to 0 like non-finite input to `quantacolor display`).
+#![forbid(unsafe_code)]
 
 use half::f16;
 use ndarray::{Array3, ArrayView3};

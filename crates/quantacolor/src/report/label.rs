@@ -1,5 +1,6 @@
 //! A comparison strip with a label under each panel (the demo's `comparison.png`), written
 //! with the CFA sheet's built-in 3x5 pixel font ([`crate::cfa::sheet::draw_text`]).
+#![forbid(unsafe_code)]
 
 use crate::cfa::sheet::draw_text;
 use crate::display::hstack;

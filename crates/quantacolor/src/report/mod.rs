@@ -12,6 +12,7 @@
 //! [`crate::display::render_srgb8`] at automatic exposure without the low-light view, and says
 //! so. The page layout, the binary16 format and the study protocol's file format are the
 //! project's own; the questions are the paper's (supplement §4).
+#![forbid(unsafe_code)]
 
 pub mod encode;
 pub mod label;

@@ -9,6 +9,7 @@
 //! exactly `quantacolor display` output), and votes are cast by clicking an image or pressing
 //! its number. The page offers the votes as a JSON file ([`VotesFile`], project format);
 //! [`tally`] adds up any number of them.
+#![forbid(unsafe_code)]
 
 use super::{html_escape, js_assignment, png_data_url, write_text, ResultDir, REPORT_CSS};
 use crate::display::{render_srgb8, ColorMatrix, RenderOptions, ToneMap};

@@ -2,6 +2,7 @@
 //! ColorChecker patches, a Siemens star, fine gratings, a fence, small high-contrast glyphs and a
 //! smooth gradient, laid out relative to the sensor size. Values are linear RGB reflectances
 //! (white patch ≈ 0.9); the HDR variant adds a light source 1000x brighter than the white patch.
+#![forbid(unsafe_code)]
 
 use crate::color::colorchecker::{srgb8_to_linear, COLORCHECKER_AREA, COLORCHECKER_SRGB};
 use crate::color::srgb::srgb_to_linear;

@@ -24,6 +24,7 @@
 //!
 //! Everything is seeded: the same configuration, scene and seed give identical bytes, whatever
 //! the number of threads (each frame has its own random stream).
+#![deny(unsafe_code)]
 
 pub mod chart;
 pub mod motion;

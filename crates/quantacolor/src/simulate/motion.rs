@@ -12,6 +12,7 @@
 //! is the identity there. The optional object layer (a textured disc) moves over the static
 //! background by its own translation `o_t` on top of the camera map. [`Motion`] is `serde`
 //! serialisable and is written into a capture as `motion.toml`.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use rand::{Rng, SeedableRng};
@@ -172,6 +173,40 @@ pub struct Motion {
     pub object: Option<ObjectTrack>,
 }
 
+/// Errors unless the burst has a frame and `reference_frame` is one of them.
+fn check_frames(frames: usize, reference_frame: usize) -> Result<()> {
+    if frames == 0 {
+        return Err(Error::invalid("motion needs at least one frame"));
+    }
+    if reference_frame >= frames {
+        return Err(Error::invalid(format!(
+            "reference frame {reference_frame} is outside the burst of {frames} frames"
+        )));
+    }
+    Ok(())
+}
+
+/// The handheld models' `(dy, dx, θ)` per frame: three [`smooth_random`] signals drawn in that
+/// order from the seeded generator, each zero at `reference_frame` and scaled to its peak
+/// (`amplitude_px` pixels for dy and dx, `rotation_deg` degrees for θ, in radians).
+fn handheld_signals(
+    frames: usize,
+    reference_frame: usize,
+    amplitude_px: f64,
+    rotation_deg: f64,
+    cycles: f64,
+    seed: u64,
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x6d6f_7469_6f6e_0001);
+    let mut dy = smooth_random(frames, cycles, &mut rng);
+    let mut dx = smooth_random(frames, cycles, &mut rng);
+    let mut th = smooth_random(frames, cycles, &mut rng);
+    normalise_to_peak(&mut dy, reference_frame, amplitude_px.abs());
+    normalise_to_peak(&mut dx, reference_frame, amplitude_px.abs());
+    normalise_to_peak(&mut th, reference_frame, rotation_deg.abs().to_radians());
+    (dy, dx, th)
+}
+
 /// Scales `signal − signal[reference]` so that its largest magnitude is `peak`.
 fn normalise_to_peak(signal: &mut [f64], reference: usize, peak: f64) {
     let r = signal[reference];
@@ -214,14 +249,7 @@ impl Motion {
         width: usize,
         seed: u64,
     ) -> Result<Motion> {
-        if frames == 0 {
-            return Err(Error::invalid("motion needs at least one frame"));
-        }
-        if reference_frame >= frames {
-            return Err(Error::invalid(format!(
-                "reference frame {reference_frame} is outside the burst of {frames} frames"
-            )));
-        }
+        check_frames(frames, reference_frame)?;
         let zeros = vec![0.0; frames];
         let rel = |t: usize| t as f64 - reference_frame as f64;
         let mut motion = Motion {
@@ -268,14 +296,14 @@ impl Motion {
                 } else {
                     "fast-handheld".into()
                 };
-                let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x6d6f_7469_6f6e_0001);
-                let mut dy = smooth_random(frames, cycles, &mut rng);
-                let mut dx = smooth_random(frames, cycles, &mut rng);
-                let mut th = smooth_random(frames, cycles, &mut rng);
-                normalise_to_peak(&mut dy, reference_frame, amplitude_px.abs());
-                normalise_to_peak(&mut dx, reference_frame, amplitude_px.abs());
-                normalise_to_peak(&mut th, reference_frame, rotation_deg.abs().to_radians());
-                (motion.dy, motion.dx, motion.theta_rad) = (dy, dx, th);
+                (motion.dy, motion.dx, motion.theta_rad) = handheld_signals(
+                    frames,
+                    reference_frame,
+                    amplitude_px,
+                    rotation_deg,
+                    cycles,
+                    seed,
+                );
             }
             MotionConfig::Circular {
                 radius_px,

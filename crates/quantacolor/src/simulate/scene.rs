@@ -10,6 +10,7 @@
 //! [`super::SimulationConfig::pixel_supersampling`]) it is 1/s pixel: the raster then keeps the
 //! scene's detail finer than a pixel, and the renderer integrates each pixel over its s x s
 //! sub-pixel samples instead.
+#![deny(unsafe_code)]
 
 use super::chart;
 use crate::color::srgb::srgb_to_linear;

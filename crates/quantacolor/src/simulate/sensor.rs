@@ -1,5 +1,6 @@
 //! Sensor models of paper Table 1 (SPAD, jot, conventional CMOS), the light-level definition and
 //! per-pixel dark-count maps with hot pixels.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use ndarray::Array2;

@@ -1,5 +1,6 @@
 //! Raw recordings split over many files: listing them in natural path order and reading
 //! fixed-size frames across file boundaries, one frame in memory at a time.
+#![forbid(unsafe_code)]
 
 use crate::error::{Error, Result};
 use std::cmp::Ordering;

@@ -18,6 +18,7 @@
 //!   column-major reshape followed by a 90° clockwise rotation); a Python port unpacks the
 //!   first 256 frames, ignores what follows, and shows the frame rotated 90° counter-clockwise
 //!   (`transpose` + `flip`, i.e. `np.rot90`).
+#![forbid(unsafe_code)]
 
 /// Orientation of SPAD512S frames in the capture.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
