@@ -52,7 +52,9 @@ impl Isa {
         *CURRENT.get_or_init(|| {
             let native = Isa::native();
             match std::env::var(ISA_ENV) {
-                Ok(value) => Isa::from_env_value(&value).map_or(native, |wanted| wanted.min(native)),
+                Ok(value) => {
+                    Isa::from_env_value(&value).map_or(native, |wanted| wanted.min(native))
+                }
                 Err(_) => native,
             }
         })

@@ -10,6 +10,7 @@
 use crate::capture::frames::FrameLayout;
 use crate::capture::BinaryFrames;
 use crate::cfa::Cfa;
+use crate::cpu::Isa;
 use crate::error::{Error, Result};
 use crate::model::{
     detection_probability, mle_flux, mle_variance_from_probability, SATURATION_MARGIN,
@@ -146,7 +147,19 @@ impl HotPixelCorrector {
 
     /// Per-pixel count of ones (sum of samples, for multi-bit frames) over `range` (`(H, W)`),
     /// with each hot pixel's sample in frame `t` replaced by the sample of candidate number `draw(seed, pixel, t) mod k` (supplement §1.4).
+    /// The draws run on the process's instruction set ([`Isa::current`]).
     pub fn corrected_block_sum(&self, frames: &BinaryFrames, range: Range<usize>) -> Array2<u32> {
+        self.corrected_block_sum_on(frames, range, Isa::current())
+    }
+
+    /// [`Self::corrected_block_sum`] with the draws on `isa` (every instruction set gives the
+    /// same sums).
+    fn corrected_block_sum_on(
+        &self,
+        frames: &BinaryFrames,
+        range: Range<usize>,
+        isa: Isa,
+    ) -> Array2<u32> {
         assert_eq!(
             (frames.height(), frames.width()),
             (self.height, self.width),
@@ -164,7 +177,7 @@ impl HotPixelCorrector {
             .zip(self.candidates.par_chunks(HOT_GROUP))
             .map(|(hot, candidates)| {
                 if packed {
-                    self.drawn_counts_packed(frames, range.clone(), hot, candidates)
+                    self.drawn_counts_packed(frames, range.clone(), hot, candidates, isa)
                 } else {
                     self.drawn_counts_unpacked(frames, range.clone(), hot, candidates)
                 }
@@ -179,13 +192,14 @@ impl HotPixelCorrector {
     }
 
     /// The counts over `range` of the hot pixels `hot` (one group) with each frame's sample
-    /// drawn from the pixel's `candidates`, read from packed frames.
+    /// drawn from the pixel's `candidates`, read from packed frames; the draws on `isa`.
     fn drawn_counts_packed(
         &self,
         frames: &BinaryFrames,
         range: Range<usize>,
         hot: &[usize],
         candidates: &[Vec<(u32, u32)>],
+        isa: Isa,
     ) -> Vec<u32> {
         let row_bytes = frames.width().div_ceil(8);
         let mut counts = vec![0u32; hot.len()];
@@ -217,7 +231,7 @@ impl HotPixelCorrector {
         // one vector) and the 4-byte loads of the group's bytes ending inside a
         // frame: the draws and reads fused, eight pixels at a time ([`HotSites`]).
         let frame_bytes = frames.height() * row_bytes;
-        if let Some(sites8) = HotSites::new(&sites, &spans, hot, frame_bytes, &span) {
+        if let Some(sites8) = HotSites::new(&sites, &spans, hot, frame_bytes, &span, isa) {
             sites8.count_drawn(&self.key, frames, range.clone(), &span, &mut counts);
             return counts;
         }
@@ -237,7 +251,7 @@ impl HotPixelCorrector {
             for &idx in hot {
                 jobs.extend((first..first + count).map(|b| (idx as u64, b as u64)));
             }
-            chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g]);
+            chacha8_blocks(&self.key, &jobs, &mut blocks[..count * g], isa);
             let offset = t0 - first * BLOCK_WORDS;
             for (i, (run, &(start, n))) in blocks[..count * g]
                 .chunks_exact(count)
@@ -321,18 +335,19 @@ struct HotSites {
 }
 
 impl HotSites {
-    /// `None` without AVX2, when a pixel has more than eight candidates, or when the 4-byte
-    /// gathers from the group's bytes (`span`) would reach past a frame of `frame_bytes`.
+    /// `None` when `isa` lacks AVX2, when a pixel has more than eight candidates, or when the
+    /// 4-byte gathers from the group's bytes (`span`) would reach past a frame of `frame_bytes`.
     fn new(
         sites: &[u32],
         spans: &[(usize, u64)],
         hot: &[usize],
         frame_bytes: usize,
         span: &Range<usize>,
+        isa: Isa,
     ) -> Option<HotSites> {
         #[cfg(target_arch = "x86_64")]
         {
-            let fits = std::arch::is_x86_feature_detected!("avx2")
+            let fits = isa.avx2()
                 && !spans.is_empty()
                 && spans.len() == hot.len()
                 && spans.iter().all(|&(_, n)| (1..=8).contains(&n))
@@ -358,7 +373,7 @@ impl HotSites {
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
-            let _ = (sites, spans, hot, frame_bytes, span);
+            let _ = (sites, spans, hot, frame_bytes, span, isa);
             None
         }
     }
@@ -376,7 +391,8 @@ impl HotSites {
     ) {
         #[cfg(target_arch = "x86_64")]
         {
-            // SAFETY: `new` checked AVX2 and that the gathers stay inside a frame.
+            // SAFETY: `new` checked that its `Isa` has AVX2 (an `Isa` never holds a feature the
+            // CPU lacks) and that the gathers stay inside a frame.
             unsafe { self.count_drawn_avx2(key, frames, range, span, counts) };
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -468,21 +484,23 @@ const CHACHA_CONSTANTS: [u32; 4] = [0x6170_7865, 0x3320_646e, 0x7962_2d32, 0x6b2
 /// of that block. The generator's own refill makes four consecutive blocks of one stream at a
 /// time; here any eight blocks go side by side, one per 32-bit lane (AVX2), so that the few
 /// blocks each hot pixel needs per chunk of frames are made at full width. Integer arithmetic:
-/// every path gives the same words.
-fn chacha8_blocks(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u32; BLOCK_WORDS]]) {
+/// every path gives the same words (eight lanes where `isa` has AVX2).
+fn chacha8_blocks(key: &[u32; 8], jobs: &[(u64, u64)], out: &mut [[u32; BLOCK_WORDS]], isa: Isa) {
     assert_eq!(jobs.len(), out.len(), "one output block per job");
     #[allow(unused_mut)]
     let mut done = 0;
     #[cfg(target_arch = "x86_64")]
     {
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if isa.avx2() {
             for (jobs, out) in jobs.chunks_exact(8).zip(out.chunks_exact_mut(8)) {
-                // SAFETY: AVX2 checked just above.
+                // SAFETY: `isa` has AVX2, so the CPU has (an `Isa` never exceeds it).
                 unsafe { chacha8_blocks_avx2(key, jobs, out) };
                 done += 8;
             }
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = isa;
     for (&(stream, block), out) in jobs[done..].iter().zip(&mut out[done..]) {
         *out = chacha8_block(key, stream, block);
     }
@@ -832,15 +850,17 @@ mod tests {
                 (stream, i * 7 + ((i % 4) << 33))
             })
             .collect();
-        let mut got = vec![[0u32; BLOCK_WORDS]; jobs.len()];
-        chacha8_blocks(&corrector.key, &jobs, &mut got);
-        for (&(stream, block), got) in jobs.iter().zip(&got) {
-            let mut rng = ChaCha8Rng::seed_from_u64(77);
-            rng.set_stream(stream);
-            rng.set_word_pos(block as u128 * BLOCK_WORDS as u128);
-            let expected: [u32; BLOCK_WORDS] = std::array::from_fn(|_| rng.next_u32());
-            assert_eq!(*got, expected, "stream {stream} block {block}");
-            assert_eq!(chacha8_block(&corrector.key, stream, block), expected);
+        for isa in [Isa::generic(), Isa::current()] {
+            let mut got = vec![[0u32; BLOCK_WORDS]; jobs.len()];
+            chacha8_blocks(&corrector.key, &jobs, &mut got, isa);
+            for (&(stream, block), got) in jobs.iter().zip(&got) {
+                let mut rng = ChaCha8Rng::seed_from_u64(77);
+                rng.set_stream(stream);
+                rng.set_word_pos(block as u128 * BLOCK_WORDS as u128);
+                let expected: [u32; BLOCK_WORDS] = std::array::from_fn(|_| rng.next_u32());
+                assert_eq!(*got, expected, "{isa:?}: stream {stream} block {block}");
+                assert_eq!(chacha8_block(&corrector.key, stream, block), expected);
+            }
         }
     }
 
@@ -871,17 +891,26 @@ mod tests {
         assert!(corrector.hot_count() > 3 * HOT_GROUP);
         assert_ne!(corrector.hot_count() % 8, 0, "a padded last group");
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
+        if Isa::current().avx2() {
             // The vector path takes groups of up to eight candidates a pixel, not more.
             let spans = [(0, k.min(corrector.candidates[0].len()) as u64)];
             let sites: Vec<u32> = (0..k as u32).collect();
             assert_eq!(
-                HotSites::new(&sites, &spans, &[0], 64, &(0..8)).is_some(),
+                HotSites::new(&sites, &spans, &[0], 64, &(0..8), Isa::current()).is_some(),
                 k <= 8
             );
         }
         let range = 5..t - 3;
         let got = corrector.corrected_block_sum(&frames, range.clone());
+        // The AVX2 paths (where the CPU has them) and the portable ones give the same sums.
+        assert_eq!(
+            corrector.corrected_block_sum_on(&frames, range.clone(), Isa::current()),
+            got
+        );
+        assert_eq!(
+            corrector.corrected_block_sum_on(&frames, range.clone(), Isa::generic()),
+            got
+        );
         let mut expected = frames.sum_range(range.clone());
         for (&idx, cands) in corrector.hot.iter().zip(&corrector.candidates) {
             let mut stream = corrector.stream(idx, range.start);
