@@ -50,9 +50,8 @@ pub(super) fn row_sums(
     map: &RowMap,
 ) -> RowSums {
     let (h, w) = level.dims();
-    let planes_fit = planes.map_or(true, |p| {
-        p.width == w && p.planes.iter().all(|q| q.len() == h * w)
-    });
+    let planes_fit =
+        planes.is_none_or(|p| p.width == w && p.planes.iter().all(|q| q.len() == h * w));
     assert!(
         isa.avx2_fma() && row_sums_avx2_fits(level) && planes_fit,
         "the AVX2 row sums need AVX2, FMA, i32 indices and the level's planes"
