@@ -38,12 +38,9 @@ use std::ops::Range;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct HotPixelConfig {
-    /// Number of nearest same-colour, non-hot pixels a hot pixel draws from (default 8).
-    ///
-    /// Eight is the ring of nearest sites on any regular colour lattice (the 8-neighbourhood
-    /// on the sub-lattice of one colour), so replacements stay within about one lattice spacing
-    /// while drawing from enough pixels that the replacement is not a copy of a single neighbour
-    /// (a copied neighbour would duplicate its noise and texture at a fixed offset).
+    /// Number of nearest same-colour, non-hot pixels a hot pixel draws from (default 8: the
+    /// ring of nearest sites of one colour's lattice, within about one lattice spacing, yet not
+    /// a copy of a single neighbour's noise and texture; docs/tuning.md).
     pub k: usize,
     /// Seed of the per-(pixel, frame) draws.
     pub seed: u64,
