@@ -6,6 +6,7 @@
 //! the number of ones (binary) or the sum of digital numbers (multi-bit): the merge's "counts".
 
 use super::npy::{NpyDtype, NpyHeader};
+use crate::cpu::Isa;
 use crate::error::{Error, Result};
 use memmap2::Mmap;
 use ndarray::{Array2, Array3};
@@ -321,8 +322,14 @@ impl BinaryFrames {
 
     /// Per-pixel count of ones (binary) or sum of digital numbers (multi-bit) over `frames`,
     /// (H, W); parallel over rows. Multi-bit sums saturate at `u32::MAX` (2^16 frames of 16-bit
-    /// full scale).
+    /// full scale). Packed frames are summed on the process's instruction set
+    /// ([`Isa::current`]).
     pub fn sum_range(&self, frames: Range<usize>) -> Array2<u32> {
+        self.sum_range_on(frames, Isa::current())
+    }
+
+    /// [`Self::sum_range`] on `isa` (every instruction set gives the same sums).
+    fn sum_range_on(&self, frames: Range<usize>, isa: Isa) -> Array2<u32> {
         assert!(
             frames.start <= frames.end && frames.end <= self.frame_count,
             "frame range {frames:?} outside 0..{}",
@@ -342,12 +349,12 @@ impl BinaryFrames {
                     .enumerate()
                     .for_each(|(band, out)| {
                         let y0 = band * SUM_BAND_ROWS;
-                        self.sum_band_packed(start..end, y0..y0 + out.len() / w, out)
+                        self.sum_band_packed(start..end, y0..y0 + out.len() / w, out, isa)
                     });
             } else {
                 out.par_chunks_mut(w)
                     .enumerate()
-                    .for_each(|(y, out)| self.sum_row(start..end, y, out));
+                    .for_each(|(y, out)| self.sum_row(start..end, y, out, isa));
             }
             self.release(start..end);
             start = end;
@@ -361,15 +368,18 @@ impl BinaryFrames {
     /// pixel held in four words, and that count into eight bit-plane words (a count below 256
     /// per pixel), which are spread into `out` every [`PLANE_FLUSH`] frames. A few logic
     /// operations per word of eight frames instead of a table look-up per byte of every frame;
-    /// the counts are the same integers.
-    fn sum_band_packed(&self, frames: Range<usize>, rows: Range<usize>, out: &mut [u32]) {
+    /// the counts are the same integers (compiled for AVX2 where `isa` has it).
+    fn sum_band_packed(&self, frames: Range<usize>, rows: Range<usize>, out: &mut [u32], isa: Isa) {
         #[cfg(target_arch = "x86_64")]
         {
-            if std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU supports AVX2 (checked just above).
+            if isa.avx2() {
+                // SAFETY: `isa` has AVX2, so the CPU has (an `Isa` never holds a feature the
+                // CPU lacks).
                 return unsafe { self.sum_band_packed_avx2(frames, rows, out) };
             }
         }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = isa;
         self.sum_band_packed_generic(frames, rows, out)
     }
 
@@ -502,10 +512,10 @@ impl BinaryFrames {
     }
 
     /// Adds row `y`'s samples over `frames` to `out` (unpacked and multi-bit frames; packed
-    /// ones are summed by [`Self::sum_band_packed`]).
-    fn sum_row(&self, frames: Range<usize>, y: usize, out: &mut [u32]) {
+    /// ones are summed by [`Self::sum_band_packed`], on `isa`).
+    fn sum_row(&self, frames: Range<usize>, y: usize, out: &mut [u32], isa: Isa) {
         match self.layout {
-            FrameLayout::Packed => self.sum_band_packed(frames, y..y + 1, out),
+            FrameLayout::Packed => self.sum_band_packed(frames, y..y + 1, out, isa),
             FrameLayout::Unpacked => {
                 for t in frames {
                     for (acc, &v) in out.iter_mut().zip(self.raw_row(t, y)) {
@@ -761,6 +771,15 @@ mod tests {
                     expected,
                     "{t} {h} {w} {range:?}"
                 );
+                // The AVX2 build of the bit-sliced sums (where the CPU has it) and the
+                // portable one agree exactly.
+                for isa in [Isa::generic(), Isa::current()] {
+                    assert_eq!(
+                        frames.sum_range_on(range.clone(), isa),
+                        expected,
+                        "{isa:?}: {t} {h} {w} {range:?}"
+                    );
+                }
             }
         }
     }

@@ -1,0 +1,187 @@
+//! The camera trajectory at single-frame resolution, fitted to every detected photon: this
+//! project's own stage, not the paper's — a piecewise-linear camera trajectory fitted to the
+//! individual photons by maximum likelihood, with a smoothness prior on its acceleration.
+//!
+//! The paper (§4.1) and Quanta Burst Photography (Ma et al. 2020, §4.2) align block sums and
+//! interpolate their motion in time; [`super::track`] measures fast motion on sub-blocks of
+//! ~10 frames. Both see a sub-block as one image, so under fast shake (1–2 px per frame) a
+//! sub-block is a streak, and its fit lands anywhere along it: the quality suite measured a
+//! median end-point error of 2–3 px on fast handheld captures after tracking.
+//!
+//! Here the inverse camera map of every frame (frame → reference, affine about the image
+//! centre) is a piecewise-linear function of time through *knots* every few frames, and the
+//! knots are fitted jointly to the binary frames themselves by maximum likelihood:
+//!
+//! - each grey site (W, not hot) of frame `f` is a Bernoulli trial whose success probability is
+//!   the template `p` (the mean bit rate per frame at that scene point, built from all frames
+//!   at the current trajectory) at the site's reference position; the log-likelihood is
+//!   `Σ_detections log p + Σ_no-detection log(1 − p)`, the single-photon form of the paper's
+//!   binomial model (Eq. 2–3);
+//! - Fisher scoring (Gauss–Newton for this likelihood) on the knot parameters, coarse to fine
+//!   over template blur σ, the template rebuilt from the updated trajectory every iteration;
+//! - a Gaussian prior on the trajectory's acceleration (second differences of the knots) keeps
+//!   knots whose frames hold few photons or little texture on the path of their neighbours.
+//!
+//! The normal equations are banded (a knot couples to two neighbours on each side), so one
+//! iteration costs one pass over the frames' sites plus a banded Cholesky solve; memory is
+//! O(number of knots), not O(T · H · W).
+//!
+//! The steps, one file each: `config` (the settings), `knots` (the piecewise-linear
+//! trajectory), `sites` (the grey sites and their detections), `template` (the template from
+//! all frames along the trajectory), `likelihood` (each frame's score and information),
+//! `solve` (the banded scoring step with the prior); `x86` holds their AVX2 kernels.
+
+// Index loops mirror the matrix algebra (band offsets, symmetric fills).
+#![allow(clippy::needless_range_loop)]
+
+mod config;
+mod knots;
+mod likelihood;
+mod sites;
+mod solve;
+mod template;
+#[cfg(target_arch = "x86_64")]
+mod x86;
+
+pub use config::TrajectoryConfig;
+
+use super::grey::GreyMethod;
+use super::refine::{template_level, FrameMotion};
+use crate::capture::Capture;
+use crate::cfa::Channel;
+use crate::cpu::Isa;
+use crate::error::Result;
+use crate::progress::Progress;
+use knots::Trajectory;
+use likelihood::ScoreTemplate;
+use sites::Sites;
+use solve::scoring_step;
+use std::ops::Range;
+use template::build_template;
+
+/// Fits the camera trajectory of every frame to the photons (see the module documentation),
+/// starting from `motion`'s camera, and replaces `motion`'s sub-blocks by runs of frames within
+/// one block over which the fitted camera moves at most `max_sub_block_motion_px`. Runs only
+/// on binary frames whose grey channel is W; returns whether it ran. The stage's entry: the
+/// instruction set of its kernels is taken here ([`Isa::current`]).
+pub fn fit_photon_trajectory(
+    capture: &Capture,
+    grey_method: GreyMethod,
+    motion: &mut FrameMotion,
+    config: &TrajectoryConfig,
+    max_sub_block_motion_px: f64,
+    progress: &dyn Progress,
+) -> Result<bool> {
+    let frames = &capture.frames;
+    let isa = Isa::current();
+    if config.enabled {
+        config.validate()?;
+    }
+    if !config.enabled
+        || frames.is_multibit()
+        || !matches!(grey_method, GreyMethod::InterpolateW)
+        || frames.frame_count() < 2
+    {
+        return Ok(false);
+    }
+    let (h, w) = (motion.height, motion.width);
+    let hot = capture.hot_pixels.as_ref();
+    let sites = Sites::new(
+        w,
+        (0..h)
+            .map(|y| {
+                (0..w)
+                    .filter(|&x| {
+                        capture.cfa.channel(y, x) == Channel::W && !hot.is_some_and(|m| m[[y, x]])
+                    })
+                    .map(|x| x as u16)
+                    .collect()
+            })
+            .collect(),
+        motion.centre(),
+    );
+    if sites.count() == 0 {
+        return Ok(false);
+    }
+    let half = motion.half_size();
+    let margin = config.margin_px;
+    let mut trajectory = Trajectory::new(frames.frame_count(), config.knot_frames);
+    for (k, &t) in trajectory.times.clone().iter().enumerate() {
+        if let Some(inverse) = motion.camera_at(t as f64).inverse() {
+            trajectory.knots[k] = inverse.params();
+        }
+    }
+    progress.start(
+        "photon trajectory",
+        (config.sigmas_px.len() * config.iterations) as u64,
+    );
+    let early_sites =
+        (config.early_row_step > 1).then(|| sites.every_nth_row(config.early_row_step));
+    let last_iteration = config.sigmas_px.len() * config.iterations;
+    let iterations = config
+        .sigmas_px
+        .iter()
+        .flat_map(|&sigma| std::iter::repeat_n(sigma, config.iterations))
+        .enumerate();
+    for (iteration, sigma) in iterations {
+        let sites = match &early_sites {
+            Some(early) if iteration + 1 < last_iteration => early,
+            _ => &sites,
+        };
+        let template = build_template(frames, sites, &trajectory, h, margin, isa);
+        let level = template_level(&template, sigma);
+        scoring_step(
+            frames,
+            sites,
+            &mut trajectory,
+            &ScoreTemplate::new(&level, isa),
+            config,
+            half,
+            margin as f64,
+        );
+        progress.advance(1);
+    }
+    progress.finish();
+    set_frame_camera(motion, &trajectory, max_sub_block_motion_px);
+    Ok(true)
+}
+
+/// Replaces the sub-blocks of `motion` by runs of consecutive frames inside one block over
+/// which `trajectory`'s camera moves at most `max_motion_px` (px at the image corners), each at
+/// the camera of its centre, with zero motion at the reference frame.
+fn set_frame_camera(motion: &mut FrameMotion, trajectory: &Trajectory, max_motion_px: f64) {
+    let half = motion.half_size();
+    let forward = |t: f64| {
+        trajectory
+            .inverse_camera_at(t)
+            .inverse()
+            .unwrap_or_default()
+    };
+    let undo = forward(motion.plan.reference_frame as f64)
+        .inverse()
+        .unwrap_or_default();
+    let camera_at = |t: f64| forward(t).after(&undo);
+    let mut sub_blocks: Vec<Range<usize>> = Vec::new();
+    let mut block_of = Vec::new();
+    let mut camera = Vec::new();
+    for (b, block) in motion.plan.blocks.iter().enumerate() {
+        let mut start = block.start;
+        while start < block.end {
+            let first = camera_at(start as f64);
+            let mut end = start + 1;
+            while end < block.end && camera_at(end as f64).distance(&first, half) <= max_motion_px {
+                end += 1;
+            }
+            camera.push(camera_at((start + end - 1) as f64 / 2.0));
+            sub_blocks.push(start..end);
+            block_of.push(b);
+            start = end;
+        }
+    }
+    motion.sub_blocks = sub_blocks;
+    motion.block_of = block_of;
+    motion.camera = camera;
+}
+
+#[cfg(test)]
+mod tests;
