@@ -1,6 +1,8 @@
 //! Tests of hot-pixel correction: the ChaCha8 blocks against rand_chacha, the grouped draws
 //! (AVX2 and portable) against a per-pixel loop.
 
+#![forbid(unsafe_code)]
+
 use super::chacha::{chacha8_block, chacha8_blocks};
 use super::*;
 use crate::capture::frames::pack_bits;
