@@ -608,6 +608,17 @@ mod tests {
     }
 
     #[test]
+    fn keys_weights_interpolate_and_sum_to_one() {
+        assert_eq!(keys(0.0), 1.0);
+        assert_eq!(keys(1.0), 0.0);
+        assert_eq!(keys(2.0), 0.0);
+        for f in [0.1f32, 0.25, 0.5, 0.75] {
+            let sum: f32 = (0..4).map(|k| keys(f - (k as f32 - 1.0))).sum();
+            assert!((sum - 1.0).abs() < 1e-6, "{f}: {sum}");
+        }
+    }
+
+    #[test]
     fn bicubic_reproduces_a_quadratic_away_from_the_edges() {
         // Keys' a = −0.5 kernel reproduces polynomials up to degree 2.
         let f = |y: f32, x: f32| 0.3 + 0.02 * y - 0.01 * x + 0.001 * x * x + 0.002 * x * y;

@@ -2,11 +2,10 @@
 //! baseline measured in the same run; nothing here is asserted by the test suite.
 //!
 //! One file per subcommand: [`quality`] (with its captures in [`suite`] and its report in
-//! [`markdown`]), [`speed`], [`video`] and [`denoise`]; [`common`] holds shared helpers.
+//! [`markdown`]), [`speed`], [`video`] and [`denoise`].
 
 #![forbid(unsafe_code)]
 
-mod common;
 mod denoise;
 mod markdown;
 mod quality;

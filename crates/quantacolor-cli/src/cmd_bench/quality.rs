@@ -4,7 +4,6 @@
 
 #![forbid(unsafe_code)]
 
-use super::common::{bicubic_upsample, median};
 use super::markdown::report;
 use super::suite::{simulate_case, suite, Case};
 use super::SuiteSet;
@@ -16,11 +15,13 @@ use quantacolor::burst::{
 };
 use quantacolor::capture::Capture;
 use quantacolor::denoise::chroma::{denoise_linear, DenoiseConfig, DenoiseMethod};
+use quantacolor::filters::bicubic_upsample;
 use quantacolor::metrics::{evaluate, evaluate_lpips, EvalOptions, Scores};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
 use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
 use quantacolor::progress::{Progress, Silent};
 use quantacolor::simulate::{Motion, SimulatedCapture};
+use quantacolor::stats::median_f64;
 use std::path::Path;
 use std::time::Instant;
 
@@ -94,7 +95,7 @@ fn median_epe(
             }
         }
     }
-    (median(&mut errors), median(&mut magnitudes))
+    (median_f64(&mut errors), median_f64(&mut magnitudes))
 }
 
 /// Runs every method on one capture: simulate it, reconstruct and score every column

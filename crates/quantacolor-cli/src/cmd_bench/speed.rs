@@ -3,7 +3,6 @@
 
 #![forbid(unsafe_code)]
 
-use super::common::median;
 use anyhow::Result;
 use quantacolor::burst::reconstruct_burst;
 use quantacolor::capture::Capture;
@@ -13,6 +12,7 @@ use quantacolor::naive::{reconstruct_naive, NaiveConfig};
 use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
 use quantacolor::progress::{Progress, Silent};
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
+use quantacolor::stats::median_f64;
 use quantacolor::timing::StageTiming;
 use std::time::Instant;
 
@@ -58,7 +58,7 @@ pub(super) fn speed(
     )?;
     let capture = sim.to_capture()?;
     let (mut naive_times, mut whole_runs) = time_rounds(&capture, pipeline, frames, runs)?;
-    let naive_s = median(&mut naive_times);
+    let naive_s = median_f64(&mut naive_times);
     whole_runs.sort_by(|a, b| a.whole_s.total_cmp(&b.whole_s));
     let whole_range = (
         whole_runs[0].whole_s,

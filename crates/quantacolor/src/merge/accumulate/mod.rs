@@ -57,7 +57,8 @@ const LANES: usize = 8;
 const SUMS: usize = 12;
 
 /// Streaming form of [`demosaic_merge`] whose cost does not grow with the number of sub-blocks
-/// times the kernel footprint (DESIGN "Motion at the sensor's time resolution").
+/// times the kernel footprint, so motion at (close to) frame granularity costs about as much as
+/// motion per block.
 ///
 /// [`MergeAccumulator::add`] only *splats*: every CFA site of a sub-block is moved to its
 /// reference-grid position p (the inverse of the sub-block's flow, by fixed-point iteration)
