@@ -43,9 +43,8 @@ pub struct RefineConfig {
     /// project's economy, not the paper's; off by default (it loses accuracy on weak texture).
     pub fine_thinning: usize, // 0 (every iteration over every bin)
     /// Share of the Fisher information about each affine parameter that the finest level's bins
-    /// keep ([`most_informative_bins`](super::bins::most_informative_bins); 1 = every bin, the
-    /// default). This project's heuristic, not the paper's (Ma et al. 2023 §4.1 aligns blocks
-    /// only).
+    /// keep ([`most_informative_bins`](super::bins::most_informative_bins); 1 = every bin). This
+    /// project's heuristic, not the paper's (its §4.1 aligns blocks only).
     pub fine_information: f64, // 1 (every bin)
     /// Most passes of template and fit: each pass rebuilds the templates from the block motion
     /// of the previous one (templates warped by a motion that is off are blurred and shifted).
