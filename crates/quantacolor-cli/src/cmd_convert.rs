@@ -57,7 +57,7 @@ pub struct ConvertArgs {
     #[arg(long)]
     pub exposure_s: Option<f64>,
     /// Frames to convert, A:B (A included, B excluded; either may be omitted).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub frames: Option<FrameWindow>,
     /// Hot-pixel mask, bool (H, W) .npy (default: the shipped mask with --colorspad, else
     /// detected from the frames).

@@ -4,11 +4,12 @@
 
 #![forbid(unsafe_code)]
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 use clap::Args;
+use ndarray::Array3;
 use quantacolor::capture::io;
 use quantacolor::metrics::{evaluate, evaluate_lpips, EvalOptions, LPIPS_MIN_SIZE};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
@@ -28,8 +29,8 @@ pub struct EvalArgs {
 }
 
 pub fn run(args: &EvalArgs) -> Result<()> {
-    let estimate = io::read_npy_3d::<f32>(&args.estimate)?;
-    let truth = io::read_npy_3d::<f32>(&args.ground_truth)?;
+    let estimate = read_image(&args.estimate, "linear.npy")?;
+    let truth = read_image(&args.ground_truth, "ground_truth.npy")?;
     let opts = EvalOptions {
         border: args.border,
         normalize_percentile: (args.normalize_percentile > 0.0)
@@ -55,4 +56,17 @@ pub fn run(args: &EvalArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// An (H, W, 3) float32 image from `path`; a directory (a reconstruction or capture folder given
+/// where its file was meant) is an error naming the file inside it that was probably meant.
+fn read_image(path: &Path, usual_file: &str) -> Result<Array3<f32>> {
+    if path.is_dir() {
+        bail!(
+            "{} is a directory: give the .npy file inside it (e.g. {})",
+            path.display(),
+            path.join(usual_file).display()
+        );
+    }
+    Ok(io::read_npy_3d::<f32>(path)?)
 }

@@ -20,7 +20,7 @@ pub struct InspectArgs {
     #[arg(long)]
     pub preview: Option<PathBuf>,
     /// Inspect only frames A:B.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub frames: Option<FrameWindow>,
 }
 

@@ -89,7 +89,7 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub ccm: Option<PathBuf>,
     /// Use only frames A:B of the capture (they become frames 0..B-A).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true)]
     pub frames: Option<quantacolor::capture::FrameWindow>,
     /// Do not detect hot pixels when the capture names no mask.
     #[arg(long)]

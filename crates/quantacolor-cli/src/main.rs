@@ -19,7 +19,7 @@ mod config_file;
 mod output;
 mod progress;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 use std::process::ExitCode;
 
 /// Colour burst photography for single-photon cameras (Ma et al., "Seeing Photons in Color",
@@ -82,13 +82,24 @@ fn check_isa_env() -> Result<(), String> {
     }
 }
 
+/// The command line, with negative numbers taken as option values in every subcommand, so that
+/// `--sigma-y -1` reaches the option's own check instead of clap's "unexpected argument".
+fn command() -> clap::Command {
+    fn negative_numbers_are_values(command: clap::Command) -> clap::Command {
+        command
+            .allow_negative_numbers(true)
+            .mut_subcommands(negative_numbers_are_values)
+    }
+    negative_numbers_are_values(Cli::command())
+}
+
 fn main() -> ExitCode {
     allocator::keep_freed_memory();
     if let Err(message) = check_isa_env() {
         eprintln!("error: {message}");
         return ExitCode::from(2);
     }
-    let cli = Cli::parse();
+    let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
     let progress = progress::TerminalProgress::new();
     let result = match &cli.command {
         Command::Demo(args) => cmd_demo::run(args, &progress),

@@ -606,3 +606,36 @@ fn an_unknown_quantacolor_isa_exits_2_naming_the_variable_value_and_choices() {
         assert!(err.contains(word), "error {err:?} does not name {word}");
     }
 }
+
+/// Negative numbers are option values (`--sigma-y -1` reaches the option's own check, not
+/// clap's "unexpected argument"), and `eval` given a folder names the file that was meant.
+#[test]
+fn negative_values_reach_their_checks_and_eval_names_the_file_in_a_folder() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "1");
+    let (cap_s, out) = (cap.to_str().unwrap(), tmp.path().join("out"));
+    for (option, value, names) in [
+        ("--sigma-y", "-1", "--sigma-y must be a non-negative number"),
+        ("--block-size", "-3", "invalid value '-3' for '--block-size"),
+        ("--frames", "-10:5", "frame window \"-10:5\""),
+    ] {
+        let args = [
+            "reconstruct",
+            cap_s,
+            "--out",
+            out.to_str().unwrap(),
+            option,
+            value,
+        ];
+        let err = expect_failure(&args, names);
+        assert!(!err.contains("unexpected argument"), "{err}");
+        assert!(!out.exists());
+    }
+    let truth = cap.join("ground_truth.npy");
+    let err = expect_failure(&["eval", cap_s, truth.to_str().unwrap()], "is a directory");
+    assert!(
+        err.contains(&cap.join("linear.npy").display().to_string()),
+        "{err}"
+    );
+}
