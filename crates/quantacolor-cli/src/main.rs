@@ -1,6 +1,7 @@
 //! `quantacolor`: command-line interface to the quantacolor library.
 
 mod allocator;
+mod closed_pipe;
 mod cmd_align;
 mod cmd_bench;
 mod cmd_calibrate_color;
@@ -95,6 +96,7 @@ fn command() -> clap::Command {
 
 fn main() -> ExitCode {
     allocator::keep_freed_memory();
+    closed_pipe::end_quietly_on_closed_pipe();
     if let Err(message) = check_isa_env() {
         eprintln!("error: {message}");
         return ExitCode::from(2);

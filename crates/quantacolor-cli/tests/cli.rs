@@ -639,3 +639,31 @@ fn negative_values_reach_their_checks_and_eval_names_the_file_in_a_folder() {
         "{err}"
     );
 }
+
+/// Output into a pipe that closes early (`quantacolor eval … | head -1`) ends the program
+/// quietly, by SIGPIPE as a C tool ends, not with a panic.
+#[cfg(unix)]
+#[test]
+fn a_closed_stdout_pipe_ends_the_program_without_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "1");
+    let truth = cap.join("ground_truth.npy");
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_quantacolor"))
+        .args(["eval", truth.to_str().unwrap(), truth.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader goes away before the scores are printed
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(
+        out.status.signal(),
+        Some(libc::SIGPIPE),
+        "{:?}: {err}",
+        out.status
+    );
+}
