@@ -28,9 +28,10 @@
 #![forbid(unsafe_code)]
 
 use crate::align::{
-    align, fit_photon_trajectory, plan_sub_blocks, refine_camera_motion, shortest_sub_block,
-    split_for_merge, steady_block_smear, track_fast_camera_motion, AlignConfig, Alignment,
-    BlockConfig, FrameMotion, GreyMethod, RefineConfig, TrackConfig, TrajectoryConfig,
+    align, fast_motion_spans, fit_photon_trajectory, fit_photon_trajectory_over, plan_sub_blocks,
+    refine_camera_motion, shortest_sub_block, split_for_merge, split_for_merge_in,
+    steady_block_smear, track_fast_camera_motion, track_span, AlignConfig, Alignment, BlockConfig,
+    FrameMotion, GreyMethod, RefineConfig, TrackConfig, TrajectoryConfig, TrajectorySpan,
 };
 use crate::capture::Capture;
 use crate::error::{Error, Result};
@@ -237,8 +238,14 @@ pub(crate) fn estimate_motion(
     // The fastest camera whose shortest sub-blocks stay within the refinement's bound.
     let followable_px_per_frame = config.refine.max_sub_block_motion_px
         / shortest_sub_block(detections_per_frame, &config.refine) as f64;
-    let tracked = oracle.is_none()
-        && config.refine.enabled
+    let estimating = oracle.is_none() && config.refine.enabled;
+    let spans = if estimating && matches!(alignment.grey_method, GreyMethod::InterpolateW) {
+        fast_motion_spans(&motion, &config.track, followable_px_per_frame)
+    } else {
+        Vec::new()
+    };
+    let throughout = spans.len() == 1 && spans[0] == (0..motion.plan.len());
+    let mut tracked = throughout
         && follow_fast_motion(
             capture,
             alignment.grey_method,
@@ -248,7 +255,7 @@ pub(crate) fn estimate_motion(
             laps,
             progress,
         )?;
-    if !tracked && oracle.is_none() && config.refine.enabled {
+    if !tracked && estimating {
         refine_camera_motion(
             capture,
             alignment.grey_method,
@@ -258,6 +265,16 @@ pub(crate) fn estimate_motion(
             progress,
         )?;
         laps.lap("motion refinement");
+        if !throughout {
+            let spans = MotionSpans {
+                capture,
+                grey_method: alignment.grey_method,
+                config,
+                spans: &spans,
+                followable_px_per_frame,
+            };
+            tracked = spans.follow(&mut motion, laps, progress)?;
+        }
     }
     Ok(EstimatedMotion {
         alignment,
@@ -328,6 +345,112 @@ fn follow_fast_motion(
         split_for_merge(motion, config.refine.max_sub_block_motion_px);
     }
     Ok(true)
+}
+
+/// Stage 2 where the camera moves fast in some spans of blocks only ([`fast_motion_spans`]):
+/// after the refinement of every sub-block, each span is tracked ([`track_span`]) and its
+/// photon trajectory fitted over its own frames ([`fit_photon_trajectory_over`]), or its
+/// sub-blocks split for the merge; time and memory follow the spans, not the recording.
+struct MotionSpans<'a> {
+    capture: &'a Capture,
+    grey_method: GreyMethod,
+    config: &'a BurstConfig,
+    spans: &'a [Range<usize>],
+    /// The fastest camera the refinement follows (px per frame at the image corners).
+    followable_px_per_frame: f64,
+}
+
+impl MotionSpans<'_> {
+    /// Follows every span; returns whether any was tracked. Each stage's time is added up in
+    /// `laps`.
+    fn follow(
+        &self,
+        motion: &mut FrameMotion,
+        laps: &mut Laps,
+        progress: &dyn Progress,
+    ) -> Result<bool> {
+        let config = self.config;
+        let max_motion_px = config.refine.max_sub_block_motion_px;
+        let mut tracked = false;
+        for blocks in self.spans {
+            let Some(anchor_frame) = track_span(
+                self.capture,
+                self.grey_method,
+                motion,
+                blocks.clone(),
+                &config.track,
+                progress,
+            )?
+            else {
+                continue;
+            };
+            tracked = true;
+            laps.lap("fast motion tracking");
+            let Some(sub_blocks) =
+                trajectory_sub_blocks(motion, blocks, self.followable_px_per_frame)
+            else {
+                continue;
+            };
+            let reference = motion.plan.reference_frame;
+            let frames = motion.sub_blocks[sub_blocks.start].start
+                ..motion.sub_blocks[sub_blocks.end - 1].end;
+            let anchor_frame = if frames.contains(&reference) && anchor_frame == reference {
+                reference
+            } else {
+                let first = &motion.sub_blocks[sub_blocks.start];
+                (first.start + first.end - 1) / 2
+            };
+            let span = TrajectorySpan {
+                sub_blocks,
+                anchor_frame,
+            };
+            if fit_photon_trajectory_over(
+                self.capture,
+                self.grey_method,
+                motion,
+                &span,
+                &config.trajectory,
+                max_motion_px,
+                progress,
+            )? {
+                laps.lap("photon trajectory");
+            } else {
+                split_for_merge_in(motion, blocks.clone(), max_motion_px);
+            }
+        }
+        Ok(tracked)
+    }
+}
+
+/// Frames a photon trajectory is fitted to at least: its template is made of its own frames.
+const MIN_TRAJECTORY_FRAMES: usize = 512;
+
+/// The sub-blocks of the blocks `blocks` of a tracked `motion` that the photon trajectory is
+/// fitted to: from the first to the last whose tracked camera moves faster than
+/// `followable_px_per_frame` inside it (a jolt, a burst of shake: faster than the refinement
+/// follows), widened by slower sub-blocks on both sides to [`MIN_TRAJECTORY_FRAMES`] where the
+/// blocks hold them; `None` when none moves that fast. This project's heuristic: the slower
+/// sub-blocks keep their tracked cameras.
+fn trajectory_sub_blocks(
+    motion: &FrameMotion,
+    blocks: &Range<usize>,
+    followable_px_per_frame: f64,
+) -> Option<Range<usize>> {
+    let first = motion.block_of.partition_point(|&b| b < blocks.start);
+    let last = motion.block_of.partition_point(|&b| b < blocks.end);
+    let fast: Vec<usize> = (first..last)
+        .filter(|&k| {
+            let frames = motion.sub_blocks[k].len().max(1) as f64;
+            motion.sub_block_travel(k) > followable_px_per_frame * frames
+        })
+        .collect();
+    let (mut lo, mut hi) = (*fast.first()?, *fast.last()? + 1);
+    let frames = |lo: usize, hi: usize| motion.sub_blocks[hi - 1].end - motion.sub_blocks[lo].start;
+    while frames(lo, hi) < MIN_TRAJECTORY_FRAMES && (lo > first || hi < last) {
+        lo = lo.saturating_sub(1).max(first);
+        hi = (hi + 1).min(last);
+    }
+    Some(lo..hi)
 }
 
 /// Stage 1: the block alignment of `align_config` and the block motion it gives (camera and

@@ -38,9 +38,15 @@ impl Laps {
         }
     }
 
-    /// Records the time since the previous lap as `stage` and starts the next lap.
+    /// Records the time since the previous lap as `stage` (added to its time when the stage
+    /// ran before: a stage run once per span of frames is reported once) and starts the next
+    /// lap.
     pub fn lap(&mut self, stage: &str) {
-        self.timings.push(StageTiming::since(stage, self.last));
+        let timing = StageTiming::since(stage, self.last);
+        match self.timings.iter_mut().find(|t| t.stage == stage) {
+            Some(earlier) => earlier.seconds += timing.seconds,
+            None => self.timings.push(timing),
+        }
         self.last = Instant::now();
     }
 }
@@ -63,5 +69,10 @@ mod tests {
         let names: Vec<_> = laps.timings.iter().map(|t| t.stage.as_str()).collect();
         assert_eq!(names, ["align", "merge"]);
         assert!(laps.timings.iter().all(|t| t.seconds >= 0.0));
+        std::thread::sleep(std::time::Duration::from_millis(2));
+        laps.lap("align");
+        let names: Vec<_> = laps.timings.iter().map(|t| t.stage.as_str()).collect();
+        assert_eq!(names, ["align", "merge"], "a stage run again is added to");
+        assert!(laps.timings[0].seconds >= 0.002);
     }
 }

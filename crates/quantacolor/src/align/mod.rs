@@ -35,8 +35,13 @@ pub use refine::{
     plan_sub_blocks, refine_camera_motion, shortest_sub_block, AffineMotion, FrameMotion,
     RefineConfig, RefineLevel,
 };
-pub use track::{split_for_merge, steady_block_smear, track_fast_camera_motion, TrackConfig};
-pub use trajectory::{fit_photon_trajectory, TrajectoryConfig};
+pub use track::{
+    fast_motion_spans, split_for_merge, split_for_merge_in, steady_block_smear,
+    track_fast_camera_motion, track_span, TrackConfig,
+};
+pub use trajectory::{
+    fit_photon_trajectory, fit_photon_trajectory_over, TrajectoryConfig, TrajectorySpan,
+};
 
 use crate::atomic::write_atomic_synced;
 use crate::capture::BinaryFrames;

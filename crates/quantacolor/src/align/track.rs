@@ -131,21 +131,83 @@ const MIN_RMS_SHARE: f64 = 0.65;
 /// camera's linear part that knows what the photons left unobserved (as the similarity prior
 /// of [`super::refine`] does) would be the better fix.
 fn moves_fast(motion: &FrameMotion, config: &TrackConfig, followable_px_per_frame: f64) -> bool {
+    fast_block_pairs(motion, config, followable_px_per_frame)
+        .iter()
+        .any(|&fast| fast)
+}
+
+/// For every two consecutive blocks `i`, `i + 1` of `motion`'s plan, whether the camera moves
+/// fast between them (the test of [`moves_fast`]).
+fn fast_block_pairs(
+    motion: &FrameMotion,
+    config: &TrackConfig,
+    followable_px_per_frame: f64,
+) -> Vec<bool> {
     let half = motion.half_size();
     let times = motion.plan.center_frames();
     let cameras: Vec<AffineMotion> = times.iter().map(|&t| motion.camera_at(t)).collect();
     let off_path = off_constant_velocity(&cameras, &times, half);
     let trigger = config.trigger_px;
-    (0..cameras.len().saturating_sub(1)).any(|i| {
-        let (a, b) = (&cameras[i], &cameras[i + 1]);
-        let streak = a.distance(b, half);
-        let streaks = streak > trigger && a.rms_distance(b, half) > MIN_RMS_SHARE * trigger;
-        let offs = [off_path[i], off_path[i + 1]];
-        let steady = offs.iter().any(Option::is_some)
-            && offs.iter().flatten().all(|&off| off <= config.steady_px);
-        let followable = streak / (times[i + 1] - times[i]).max(1.0) <= followable_px_per_frame;
-        streaks && !(steady && followable)
-    })
+    (0..cameras.len().saturating_sub(1))
+        .map(|i| {
+            let (a, b) = (&cameras[i], &cameras[i + 1]);
+            let streak = a.distance(b, half);
+            let streaks = streak > trigger && a.rms_distance(b, half) > MIN_RMS_SHARE * trigger;
+            let offs = [off_path[i], off_path[i + 1]];
+            let steady = offs.iter().any(Option::is_some)
+                && offs.iter().flatten().all(|&off| off <= config.steady_px);
+            let followable = streak / (times[i + 1] - times[i]).max(1.0) <= followable_px_per_frame;
+            streaks && !(steady && followable)
+        })
+        .collect()
+}
+
+/// Blocks on each side of two fast-moving blocks that are tracked with them: the slow block
+/// the tracking of a span starts from.
+const SPAN_MARGIN_BLOCKS: usize = 1;
+
+/// Slow stretches shorter than this many blocks, between two spans or at an end of the
+/// capture, are tracked with their spans rather than left to the refinement.
+const MIN_SLOW_BLOCKS: usize = 4;
+
+/// The spans of consecutive blocks of `motion`'s plan that fast-motion tracking and the photon
+/// trajectory must follow, in time order: every two blocks between which the camera moves fast
+/// ([`moves_fast`]) with [`SPAN_MARGIN_BLOCKS`] on each side, spans that meet merged, and slow
+/// stretches shorter than [`MIN_SLOW_BLOCKS`] absorbed. Empty when nothing moves fast; one span
+/// of every block when the capture moves fast throughout. This project's heuristic: motion is
+/// handled locally in time, so a recording that is jolted once is tracked around the jolt
+/// only, and the rest keeps the block and sub-block refinement.
+pub fn fast_motion_spans(
+    motion: &FrameMotion,
+    config: &TrackConfig,
+    followable_px_per_frame: f64,
+) -> Vec<std::ops::Range<usize>> {
+    let pairs = fast_block_pairs(motion, config, followable_px_per_frame);
+    spans_of_fast_pairs(&pairs, motion.plan.len())
+}
+
+/// [`fast_motion_spans`] of the fast pairs `pairs` (pair `i` = blocks `i`, `i + 1`) of
+/// `n_blocks` blocks.
+fn spans_of_fast_pairs(pairs: &[bool], n_blocks: usize) -> Vec<std::ops::Range<usize>> {
+    let mut spans: Vec<std::ops::Range<usize>> = Vec::new();
+    for (i, _) in pairs.iter().enumerate().filter(|(_, &fast)| fast) {
+        let span = i.saturating_sub(SPAN_MARGIN_BLOCKS)..(i + 2 + SPAN_MARGIN_BLOCKS).min(n_blocks);
+        match spans.last_mut() {
+            Some(last) if span.start < last.end + MIN_SLOW_BLOCKS => last.end = span.end,
+            _ => spans.push(span),
+        }
+    }
+    if let Some(first) = spans.first_mut() {
+        if first.start < MIN_SLOW_BLOCKS {
+            first.start = 0;
+        }
+    }
+    if let Some(last) = spans.last_mut() {
+        if last.end + MIN_SLOW_BLOCKS > n_blocks {
+            last.end = n_blocks;
+        }
+    }
+    spans
 }
 
 /// Camera motion (px at the image corners) that one block of `motion`'s plan collects when the
@@ -312,30 +374,134 @@ pub fn track_fast_camera_motion(
     {
         return Ok(false);
     }
-    let tracker = Tracker::new(capture, grey_method, motion, config);
     let n = motion.sub_blocks.len();
     let first = motion
         .sub_blocks
         .iter()
         .position(|r| r.contains(&motion.plan.reference_frame))
         .unwrap_or(0);
-    let mut camera = vec![AffineMotion::default(); n];
-    let mut mosaic = Mosaic::of_w_sites(capture, (motion.height, motion.width));
-    progress.start("fast motion tracking", n as u64);
-    tracker.add_sub_block(&mut mosaic, first, &tracker.counts(first), &camera[first]);
-    progress.advance(1);
-    // Outward from the reference's sub-block: forward in time, then backward, each direction
-    // fitted to the mosaic of every sub-block tracked before it.
-    for forward in [true, false] {
-        tracker.track_outward(first, forward, &mut camera, &mut mosaic, progress);
-    }
-    progress.finish();
-    if median_linear_part(&camera).is_some_and(|v| v > config.max_linear) {
+    let camera = vec![AffineMotion::default(); n];
+    let Some(camera) = track_from(
+        capture,
+        grey_method,
+        motion,
+        config,
+        0..n,
+        first,
+        camera,
+        progress,
+    ) else {
         return Ok(false);
-    }
+    };
     motion.camera = camera;
     motion.anchor_at_reference();
     Ok(true)
+}
+
+/// Tracks the sub-blocks of `motion` in the consecutive blocks `blocks` only (a span of
+/// [`fast_motion_spans`]), outward from a seed sub-block whose camera is kept: the one holding
+/// the reference frame when the span holds it (zero camera), else the middle sub-block of the
+/// span's first block, or of its last when the span starts the capture (the slow margin
+/// blocks, whose camera the refinement measured). The other sub-blocks are left as they are;
+/// the span's local residual is dropped (streak matching, not motion). Returns the seed's
+/// centre frame (where a trajectory fitted to the span keeps its camera), `None` when the
+/// tracking failed ([`TrackConfig::max_linear`]) and nothing was changed.
+pub fn track_span(
+    capture: &Capture,
+    grey_method: GreyMethod,
+    motion: &mut FrameMotion,
+    blocks: std::ops::Range<usize>,
+    config: &TrackConfig,
+    progress: &dyn Progress,
+) -> Result<Option<usize>> {
+    if !matches!(grey_method, GreyMethod::InterpolateW) || blocks.is_empty() {
+        return Ok(None);
+    }
+    let first = motion.block_of.partition_point(|&b| b < blocks.start);
+    let last = motion.block_of.partition_point(|&b| b < blocks.end);
+    if first >= last {
+        return Ok(None);
+    }
+    let reference = motion.plan.reference_frame;
+    let holds_reference = (first..last).find(|&k| motion.sub_blocks[k].contains(&reference));
+    let mut camera = motion.camera.clone();
+    let seed = match holds_reference {
+        Some(k) => {
+            camera[k] = AffineMotion::default();
+            k
+        }
+        None => {
+            let margin = if blocks.start > 0 {
+                blocks.start
+            } else {
+                blocks.end - 1
+            };
+            let own: Vec<usize> = (first..last)
+                .filter(|&k| motion.block_of[k] == margin)
+                .collect();
+            own[own.len() / 2]
+        }
+    };
+    let seed_frame = {
+        let r = &motion.sub_blocks[seed];
+        (r.start + r.end - 1) / 2
+    };
+    let Some(camera) = track_from(
+        capture,
+        grey_method,
+        motion,
+        config,
+        first..last,
+        seed,
+        camera,
+        progress,
+    ) else {
+        return Ok(None);
+    };
+    motion.camera[first..last].copy_from_slice(&camera[first..last]);
+    if holds_reference.is_some() {
+        let undo = motion.camera_at(reference as f64).inverse();
+        if let Some(undo) = undo {
+            for c in &mut motion.camera[first..last] {
+                *c = c.after(&undo);
+            }
+        }
+    }
+    motion.drop_local_motion_in(blocks);
+    Ok(Some(match holds_reference {
+        Some(_) => reference,
+        None => seed_frame,
+    }))
+}
+
+/// The cameras of the sub-blocks `range` tracked outward from sub-block `seed` (forward in
+/// time, then backward, each direction fitted to the mosaic of every sub-block tracked before
+/// it), starting from `camera` (of every sub-block; `camera[seed]` is kept); `None` when the
+/// tracked cameras' median linear part exceeds [`TrackConfig::max_linear`].
+#[allow(clippy::too_many_arguments)]
+fn track_from(
+    capture: &Capture,
+    grey_method: GreyMethod,
+    motion: &FrameMotion,
+    config: &TrackConfig,
+    range: std::ops::Range<usize>,
+    seed: usize,
+    mut camera: Vec<AffineMotion>,
+    progress: &dyn Progress,
+) -> Option<Vec<AffineMotion>> {
+    let tracker = Tracker::new(capture, grey_method, motion, config, range.clone());
+    let mut mosaic = Mosaic::of_w_sites(capture, (motion.height, motion.width));
+    progress.start("fast motion tracking", range.len() as u64);
+    tracker.add_sub_block(&mut mosaic, seed, &tracker.counts(seed), &camera[seed]);
+    progress.advance(1);
+    for forward in [true, false] {
+        tracker.track_outward(seed, forward, &mut camera, &mut mosaic, progress);
+    }
+    progress.finish();
+    if median_linear_part(&camera[range]).is_some_and(|v| v > config.max_linear) {
+        return None;
+    }
+    Some(camera)
 }
 
 /// What [`track_fast_camera_motion`] fits each sub-block with.
@@ -346,6 +512,8 @@ struct Tracker<'a> {
     layouts: Vec<BinLayout>,
     centres: Vec<f64>,
     centre: [f64; 2],
+    /// The sub-blocks tracked.
+    range: std::ops::Range<usize>,
 }
 
 impl<'a> Tracker<'a> {
@@ -354,6 +522,7 @@ impl<'a> Tracker<'a> {
         grey_method: GreyMethod,
         motion: &'a FrameMotion,
         config: &'a TrackConfig,
+        range: std::ops::Range<usize>,
     ) -> Self {
         let hot = capture.hot_pixels.as_ref();
         let layouts = config
@@ -368,6 +537,7 @@ impl<'a> Tracker<'a> {
             layouts,
             centres: motion.sub_block_centres(),
             centre: motion.centre(),
+            range,
         }
     }
 
@@ -387,7 +557,7 @@ impl<'a> Tracker<'a> {
         mosaic.add(counts, self.motion.sub_blocks[k].len(), camera, self.centre);
     }
 
-    /// Tracks the sub-blocks after `first` (`forward`) or before it, one at a time, each from
+    /// Tracks the sub-blocks of the tracker's range after `first` (`forward`) or before it, one at a time, each from
     /// the motion extrapolated from the two tracked before it, fitted to the mosaic, then added
     /// to it.
     fn track_outward(
@@ -398,12 +568,11 @@ impl<'a> Tracker<'a> {
         mosaic: &mut Mosaic,
         progress: &dyn Progress,
     ) {
-        let n = camera.len();
         let mut templates: Option<TemplateLevels> = None;
         let (mut k, mut previous) = (first, None::<usize>);
         loop {
             let next = if forward { k + 1 } else { k.wrapping_sub(1) };
-            if next >= n {
+            if !self.range.contains(&next) {
                 break;
             }
             let prediction = match previous {
@@ -476,20 +645,44 @@ impl<'a> Tracker<'a> {
 /// each piece (down to single frames), each piece at the camera interpolated to its centre:
 /// once the motion is known at every few frames, the merge need not blur it.
 pub fn split_for_merge(motion: &mut FrameMotion, max_motion_px: f64) {
+    let blocks = 0..motion.plan.len();
+    split_for_merge_in(motion, blocks, max_motion_px);
+}
+
+/// [`split_for_merge`] of the sub-blocks in the blocks `blocks` only; the others are kept.
+pub fn split_for_merge_in(
+    motion: &mut FrameMotion,
+    blocks: std::ops::Range<usize>,
+    max_motion_px: f64,
+) {
     let half = motion.half_size();
     let travel = |range: &std::ops::Range<usize>| {
         motion
             .camera_at(range.start as f64)
             .distance(&motion.camera_at((range.end - 1) as f64), half)
     };
+    let inside: Vec<bool> = motion.block_of.iter().map(|b| blocks.contains(b)).collect();
     let pieces: Vec<usize> = motion
         .sub_blocks
         .iter()
-        .map(|r| (travel(r) / max_motion_px.max(1e-6)).ceil() as usize)
+        .zip(&inside)
+        .map(|(r, &inside)| {
+            if inside {
+                (travel(r) / max_motion_px.max(1e-6)).ceil() as usize
+            } else {
+                1
+            }
+        })
         .collect();
     motion.split_sub_blocks(
         |k, _| pieces[k],
-        |m, _, r| m.camera_at((r.start + r.end - 1) as f64 / 2.0),
+        |m, k, r| {
+            if inside[k] {
+                m.camera_at((r.start + r.end - 1) as f64 / 2.0)
+            } else {
+                m.camera[k]
+            }
+        },
     );
 }
 
@@ -575,6 +768,34 @@ mod tests {
             };
             assert!(edges.validate().is_ok());
         }
+    }
+
+    /// A jolt between blocks 20 and 21 of 40 is tracked over blocks 19..23 only; spans that
+    /// nearly meet are merged, short slow stretches at the ends absorbed, and a capture that
+    /// moves fast throughout is one span of every block.
+    #[test]
+    fn fast_motion_is_followed_in_spans_around_the_fast_blocks() {
+        let pairs = |fast: &[usize], n: usize| -> Vec<bool> {
+            (0..n - 1).map(|i| fast.contains(&i)).collect()
+        };
+        assert_eq!(spans_of_fast_pairs(&pairs(&[], 40), 40), vec![]);
+        assert_eq!(spans_of_fast_pairs(&pairs(&[20], 40), 40), vec![19..23]);
+        // Two jolts with two slow blocks between their spans: one span.
+        assert_eq!(spans_of_fast_pairs(&pairs(&[10, 16], 40), 40), vec![9..19]);
+        // Three: still one; four: two spans.
+        assert_eq!(spans_of_fast_pairs(&pairs(&[10, 17], 40), 40), vec![9..20]);
+        assert_eq!(
+            spans_of_fast_pairs(&pairs(&[10, 18], 40), 40),
+            vec![9..13, 17..21]
+        );
+        // Near the ends: absorbed.
+        assert_eq!(spans_of_fast_pairs(&pairs(&[3], 40), 40), vec![0..6]);
+        assert_eq!(spans_of_fast_pairs(&pairs(&[35], 40), 40), vec![34..40]);
+        assert_eq!(spans_of_fast_pairs(&pairs(&[4], 40), 40), vec![0..7]);
+        assert_eq!(spans_of_fast_pairs(&pairs(&[5], 40), 40), vec![4..8]);
+        let all: Vec<usize> = (0..39).collect();
+        assert_eq!(spans_of_fast_pairs(&pairs(&all, 40), 40), vec![0..40]);
+        assert_eq!(spans_of_fast_pairs(&pairs(&[2], 6), 6), vec![0..6]);
     }
 
     /// `moves_fast` with the default trigger (6 px) and no steady exemption.

@@ -154,6 +154,14 @@ impl FrameMotion {
         self.has_local = false;
     }
 
+    /// Forgets the local residual of the blocks `blocks`.
+    pub fn drop_local_motion_in(&mut self, blocks: Range<usize>) {
+        for b in blocks {
+            self.local.index_axis_mut(Axis(0), b).fill(0.0);
+        }
+        self.has_local = self.local.iter().any(|&v| v != 0.0);
+    }
+
     pub(in crate::align) fn centre(&self) -> [f64; 2] {
         [
             (self.height as f64 - 1.0) / 2.0,
@@ -183,6 +191,14 @@ impl FrameMotion {
                 *camera = camera.after(&undo);
             }
         }
+    }
+
+    /// How far the camera moves inside sub-block `k` (px at the image corners, first frame to
+    /// last, at [`Self::camera_at`]).
+    pub fn sub_block_travel(&self, k: usize) -> f64 {
+        let r = &self.sub_blocks[k];
+        self.camera_at(r.start as f64)
+            .distance(&self.camera_at((r.end - 1) as f64), self.half_size())
     }
 
     /// Camera motion at (fractional) frame `t`, linear between sub-block centres.

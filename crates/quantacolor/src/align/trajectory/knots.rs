@@ -17,10 +17,17 @@ pub(super) struct Trajectory {
 
 impl Trajectory {
     /// Knots every `knot_frames` frames from frame 0, and one at the last frame, all at zero.
+    #[cfg(test)]
     pub(super) fn new(frames: usize, knot_frames: usize) -> Trajectory {
-        let last = frames.saturating_sub(1);
+        Trajectory::over(0..frames, knot_frames)
+    }
+
+    /// Knots every `knot_frames` frames of `frames` from its first, and one at its last, all at
+    /// zero.
+    pub(super) fn over(frames: std::ops::Range<usize>, knot_frames: usize) -> Trajectory {
+        let last = frames.end.saturating_sub(1).max(frames.start);
         let step = knot_frames.max(1);
-        let mut times: Vec<usize> = (0..=last).step_by(step).collect();
+        let mut times: Vec<usize> = (frames.start..=last).step_by(step).collect();
         if *times.last().expect("at least one knot") != last {
             times.push(last);
         }

@@ -46,7 +46,7 @@ mod x86;
 pub use config::TrajectoryConfig;
 
 use super::grey::GreyMethod;
-use super::refine::{template_level, FrameMotion};
+use super::refine::{template_level, AffineMotion, FrameMotion};
 use crate::capture::Capture;
 use crate::cfa::Channel;
 use crate::cpu::Isa;
@@ -72,15 +72,62 @@ pub fn fit_photon_trajectory(
     max_sub_block_motion_px: f64,
     progress: &dyn Progress,
 ) -> Result<bool> {
+    let span = TrajectorySpan {
+        sub_blocks: 0..motion.sub_blocks.len(),
+        anchor_frame: motion.plan.reference_frame,
+    };
+    fit_photon_trajectory_over(
+        capture,
+        grey_method,
+        motion,
+        &span,
+        config,
+        max_sub_block_motion_px,
+        progress,
+    )
+}
+
+/// The consecutive sub-blocks of a [`FrameMotion`] whose frames a trajectory is fitted to, and
+/// the frame whose camera it keeps: a fit sees only its own frames, so where it is placed as a
+/// whole (its gauge) is fixed from outside. At the reference frame the camera is zero (the
+/// convention of the flows); elsewhere it is the camera `motion` holds there before the fit
+/// (tracked from a slow block next to the span).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrajectorySpan {
+    pub sub_blocks: Range<usize>,
+    pub anchor_frame: usize,
+}
+
+/// [`fit_photon_trajectory`] over the frames of `span`'s sub-blocks only: they are replaced,
+/// the others kept. Time and memory follow the span's frames, not the capture's.
+pub fn fit_photon_trajectory_over(
+    capture: &Capture,
+    grey_method: GreyMethod,
+    motion: &mut FrameMotion,
+    span: &TrajectorySpan,
+    config: &TrajectoryConfig,
+    max_sub_block_motion_px: f64,
+    progress: &dyn Progress,
+) -> Result<bool> {
     let frames = &capture.frames;
     let isa = Isa::current();
     if config.enabled {
         config.validate()?;
     }
+    let sub_blocks = &motion.sub_blocks;
+    if span.sub_blocks.is_empty() || span.sub_blocks.end > sub_blocks.len() {
+        return Err(crate::error::Error::invalid(format!(
+            "photon trajectory: sub-blocks {:?} of {}",
+            span.sub_blocks,
+            sub_blocks.len()
+        )));
+    }
+    let frame_span =
+        sub_blocks[span.sub_blocks.start].start..sub_blocks[span.sub_blocks.end - 1].end;
     if !config.enabled
         || frames.is_multibit()
         || !matches!(grey_method, GreyMethod::InterpolateW)
-        || frames.frame_count() < 2
+        || frame_span.len() < 2
     {
         return Ok(false);
     }
@@ -105,7 +152,10 @@ pub fn fit_photon_trajectory(
     }
     let half = motion.half_size();
     let margin = config.margin_px;
-    let mut trajectory = Trajectory::new(frames.frame_count(), config.knot_frames);
+    // Zero motion at the reference frame, else the camera held at the anchor before the fit.
+    let anchor_camera = (span.anchor_frame != motion.plan.reference_frame)
+        .then(|| motion.camera_at(span.anchor_frame as f64));
+    let mut trajectory = Trajectory::over(frame_span.clone(), config.knot_frames);
     for (k, &t) in trajectory.times.clone().iter().enumerate() {
         if let Some(inverse) = motion.camera_at(t as f64).inverse() {
             trajectory.knots[k] = inverse.params();
@@ -128,10 +178,19 @@ pub fn fit_photon_trajectory(
             Some(early) if iteration + 1 < last_iteration => early,
             _ => &sites,
         };
-        let template = build_template(frames, sites, &trajectory, h, margin, isa);
+        let template = build_template(
+            frames,
+            frame_span.clone(),
+            sites,
+            &trajectory,
+            h,
+            margin,
+            isa,
+        );
         let level = template_level(&template, sigma);
         scoring_step(
             frames,
+            frame_span.clone(),
             sites,
             &mut trajectory,
             &ScoreTemplate::new(&level, isa),
@@ -142,14 +201,36 @@ pub fn fit_photon_trajectory(
         progress.advance(1);
     }
     progress.finish();
-    set_frame_camera(motion, &trajectory, max_sub_block_motion_px);
+    let anchor = Anchor {
+        frame: span.anchor_frame,
+        camera: anchor_camera,
+    };
+    set_frame_camera(
+        motion,
+        span.sub_blocks.clone(),
+        &trajectory,
+        &anchor,
+        max_sub_block_motion_px,
+    );
     Ok(true)
 }
 
-/// Replaces the sub-blocks of `motion` by runs of consecutive frames inside one block over
-/// which `trajectory`'s camera moves at most `max_motion_px` (px at the image corners), each at
-/// the camera of its centre, with zero motion at the reference frame.
-fn set_frame_camera(motion: &mut FrameMotion, trajectory: &Trajectory, max_motion_px: f64) {
+/// The frame whose camera a fitted trajectory is placed by, and that camera (`None`: zero).
+struct Anchor {
+    frame: usize,
+    camera: Option<AffineMotion>,
+}
+
+/// Replaces the sub-blocks `replaced` of `motion` by runs of consecutive frames inside one
+/// block over which `trajectory`'s camera moves at most `max_motion_px` (px at the image
+/// corners), each at the camera of its centre, with the `anchor`'s camera at its frame.
+fn set_frame_camera(
+    motion: &mut FrameMotion,
+    replaced: Range<usize>,
+    trajectory: &Trajectory,
+    anchor: &Anchor,
+    max_motion_px: f64,
+) {
     let half = motion.half_size();
     let forward = |t: f64| {
         trajectory
@@ -157,30 +238,32 @@ fn set_frame_camera(motion: &mut FrameMotion, trajectory: &Trajectory, max_motio
             .inverse()
             .unwrap_or_default()
     };
-    let undo = forward(motion.plan.reference_frame as f64)
-        .inverse()
-        .unwrap_or_default();
-    let camera_at = |t: f64| forward(t).after(&undo);
+    let undo = forward(anchor.frame as f64).inverse().unwrap_or_default();
+    let camera_at = |t: f64| match &anchor.camera {
+        None => forward(t).after(&undo),
+        Some(at_anchor) => forward(t).after(&undo).after(at_anchor),
+    };
+    let frames = motion.sub_blocks[replaced.start].start..motion.sub_blocks[replaced.end - 1].end;
     let mut sub_blocks: Vec<Range<usize>> = Vec::new();
     let mut block_of = Vec::new();
     let mut camera = Vec::new();
     for (b, block) in motion.plan.blocks.iter().enumerate() {
-        let mut start = block.start;
-        while start < block.end {
+        let (mut start, end) = (block.start.max(frames.start), block.end.min(frames.end));
+        while start < end {
             let first = camera_at(start as f64);
-            let mut end = start + 1;
-            while end < block.end && camera_at(end as f64).distance(&first, half) <= max_motion_px {
-                end += 1;
+            let mut stop = start + 1;
+            while stop < end && camera_at(stop as f64).distance(&first, half) <= max_motion_px {
+                stop += 1;
             }
-            camera.push(camera_at((start + end - 1) as f64 / 2.0));
-            sub_blocks.push(start..end);
+            camera.push(camera_at((start + stop - 1) as f64 / 2.0));
+            sub_blocks.push(start..stop);
             block_of.push(b);
-            start = end;
+            start = stop;
         }
     }
-    motion.sub_blocks = sub_blocks;
-    motion.block_of = block_of;
-    motion.camera = camera;
+    motion.sub_blocks.splice(replaced.clone(), sub_blocks);
+    motion.block_of.splice(replaced.clone(), block_of);
+    motion.camera.splice(replaced, camera);
 }
 
 #[cfg(test)]

@@ -85,10 +85,11 @@ impl BandedSpd {
     }
 }
 
-/// One Fisher-scoring step of every knot against `template`; returns the largest knot update
-/// (px at the image corners).
+/// One Fisher-scoring step of every knot against `template`, from the frames `span`; returns
+/// the largest knot update (px at the image corners).
 pub(super) fn scoring_step(
     frames: &BinaryFrames,
+    span: std::ops::Range<usize>,
     sites: &Sites,
     trajectory: &mut Trajectory,
     template: &ScoreTemplate<'_>,
@@ -96,8 +97,8 @@ pub(super) fn scoring_step(
     half: [f64; 2],
     margin: f64,
 ) -> f64 {
-    let n_frames = frames.frame_count();
-    let scores: Vec<([f64; 6], [[f64; 6]; 6])> = (0..n_frames)
+    let first = span.start;
+    let scores: Vec<([f64; 6], [[f64; 6]; 6])> = span
         .into_par_iter()
         .map(|t| {
             let camera = trajectory.inverse_camera_at(t as f64);
@@ -108,8 +109,8 @@ pub(super) fn scoring_step(
     let dim = 6 * n_knots;
     let mut system = BandedSpd::zeros(dim, 6 * 2 + 5);
     let mut rhs = vec![0.0f64; dim];
-    for (t, (g, info)) in scores.iter().enumerate() {
-        let (k, a) = trajectory.locate(t as f64);
+    for (i, (g, info)) in scores.iter().enumerate() {
+        let (k, a) = trajectory.locate((first + i) as f64);
         let weights: [(usize, f64); 2] = [(k, 1.0 - a), (k + 1, a)];
         for &(ki, wi) in &weights {
             if wi == 0.0 || ki >= n_knots {

@@ -14,11 +14,12 @@ use ndarray::Array2;
 use rayon::prelude::*;
 
 /// The mean bit rate per frame at every scene point of the reference frame (with a margin),
-/// from all frames splatted bilinearly to their reference positions along `trajectory`;
+/// from the frames `span` splatted bilinearly to their reference positions along `trajectory`;
 /// normalized convolution at σ 0.7 px, the global mean where nothing landed nearby. `isa`:
 /// the splats' instruction set ([`Splats::add_row`]).
 pub(super) fn build_template(
     frames: &BinaryFrames,
+    span: std::ops::Range<usize>,
     sites: &Sites,
     trajectory: &Trajectory,
     height: usize,
@@ -26,9 +27,12 @@ pub(super) fn build_template(
     isa: Isa,
 ) -> Array2<f32> {
     let (th, tw) = (height + 2 * margin, sites.width + 2 * margin);
-    let n = frames.frame_count();
-    let chunk = n.div_ceil(rayon::current_num_threads().max(1) * 4).max(1);
-    let starts: Vec<usize> = (0..n).step_by(chunk).collect();
+    let n = span.end;
+    let chunk = span
+        .len()
+        .div_ceil(rayon::current_num_threads().max(1) * 4)
+        .max(1);
+    let starts: Vec<usize> = span.step_by(chunk).collect();
     let packed = matches!(frames.layout(), FrameLayout::Packed);
     let (sum, exposure) = starts
         .par_iter()
