@@ -2,8 +2,6 @@
 //! motion.toml, the same array from `reconstruct --dump-stages`, and bad input exiting with
 //! status 2 and leaving nothing behind.
 
-#![forbid(unsafe_code)]
-
 use quantacolor::capture::io::read_npy_3d;
 use quantacolor::simulate::Motion;
 use std::path::Path;
@@ -40,8 +38,17 @@ fn align_writes_the_camera_motion_reconstruct_uses() {
     let tmp = tempfile::tempdir().unwrap();
     let cap = tmp.path().join("cap");
     ok(&[
-        "simulate", "--frames", "512", "--size", "192x128", "--motion", "handheld", "--seed",
-        "3", "--out", s(&cap),
+        "simulate",
+        "--frames",
+        "512",
+        "--size",
+        "192x128",
+        "--motion",
+        "handheld",
+        "--seed",
+        "3",
+        "--out",
+        s(&cap),
     ]);
     let al = tmp.path().join("al");
     ok(&["align", s(&cap), "--out", s(&al)]);
@@ -76,7 +83,14 @@ fn align_writes_the_camera_motion_reconstruct_uses() {
 
     // Bad input: status 2, a clear message, no output folder.
     let bad = tmp.path().join("bad");
-    let out = quantacolor(&["align", s(&cap), "--out", s(&bad), "--reference-frame", "512"]);
+    let out = quantacolor(&[
+        "align",
+        s(&cap),
+        "--out",
+        s(&bad),
+        "--reference-frame",
+        "512",
+    ]);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("reference frame 512"), "{err}");
@@ -87,6 +101,9 @@ fn align_writes_the_camera_motion_reconstruct_uses() {
     let out = quantacolor(&["align", s(&cap), "--out", s(&bad), "--config", s(&config)]);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("bad.toml") && err.contains("no_such_key"), "{err}");
+    assert!(
+        err.contains("bad.toml") && err.contains("no_such_key"),
+        "{err}"
+    );
     assert!(!bad.exists());
 }
