@@ -199,7 +199,7 @@ fn burst_on_pool(
     reconstruction
 }
 
-/// What [`estimate_motion`] found ([`estimate_burst_motion`]).
+/// What the motion estimation found ([`estimate_burst_motion`]).
 pub struct EstimatedMotion {
     pub alignment: Alignment,
     pub motion: FrameMotion,
