@@ -1,12 +1,17 @@
-//! `quantacolor align`: block-level alignment of a capture (paper §4.1) into flow.npy and
-//! flow.toml.
+//! `quantacolor align`: the motion estimation of `quantacolor reconstruct` (paper §4.1 block
+//! alignment, then this project's sub-block refinement, fast-motion tracking and photon
+//! trajectory) on a capture, written as the block flow (flow.npy, flow.toml) and the camera
+//! motion of every frame (camera.npy, docs/motion.md).
 
 #![forbid(unsafe_code)]
 
 use crate::output::StagedDir;
 use anyhow::Result;
 use clap::Args;
-use quantacolor::align::{align, write_alignment, AlignConfig};
+use quantacolor::align::write_alignment;
+use quantacolor::burst::estimate_burst_motion;
+use quantacolor::capture::io;
+use quantacolor::pipeline::ReconstructConfig;
 use quantacolor::progress::Progress;
 use std::path::PathBuf;
 
@@ -14,9 +19,14 @@ use std::path::PathBuf;
 pub struct AlignArgs {
     /// Capture directory.
     pub capture: PathBuf,
-    /// Output directory for flow.npy and flow.toml.
+    /// Output directory for flow.npy, flow.toml and camera.npy.
     #[arg(long)]
     pub out: PathBuf,
+    /// TOML file with a full or partial reconstruction config, as `quantacolor reconstruct
+    /// --config` takes it (its [burst] settings and reference_frame apply); command-line
+    /// options override it.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
     /// Reference frame (default: the capture's, else T/2).
     #[arg(long)]
     pub reference_frame: Option<usize>,
@@ -32,6 +42,13 @@ pub struct AlignArgs {
 }
 
 pub fn run_align(args: &AlignArgs, progress: &dyn Progress) -> Result<()> {
+    let mut config = match &args.config {
+        Some(path) => crate::cmd_reconstruct::read_config(path)?,
+        None => ReconstructConfig::default(),
+    };
+    if args.block_size.is_some() {
+        config.burst.align.blocks.block_size = args.block_size;
+    }
     let capture = crate::cmd_convert::open_capture(
         &args.capture,
         args.frames.as_ref(),
@@ -39,19 +56,15 @@ pub fn run_align(args: &AlignArgs, progress: &dyn Progress) -> Result<()> {
     )?;
     let reference = args
         .reference_frame
+        .or(config.reference_frame)
         .unwrap_or_else(|| capture.reference_frame());
-    let mut config = AlignConfig::default();
-    config.blocks.block_size = args.block_size;
-    let alignment = align(
-        &capture.frames,
-        &capture.cfa,
-        capture.hot_pixels.as_ref(),
-        reference,
-        &config,
-        progress,
-    )?;
+    let estimate = estimate_burst_motion(&capture, reference, &config.burst, progress)?;
+    let camera = estimate
+        .motion
+        .camera_matrices(capture.frames.frame_count());
     let staged = StagedDir::new(&args.out)?;
-    write_alignment(staged.path(""), &alignment)?;
+    write_alignment(staged.path(""), &estimate.alignment)?;
+    io::write_npy(staged.path("camera.npy"), &camera)?;
     staged.commit()?;
     Ok(())
 }

@@ -55,7 +55,8 @@ pub struct ReconstructArgs {
     /// sub-blocks; default 0.35).
     #[arg(long)]
     pub max_sub_block_motion: Option<f64>,
-    /// Write intermediate stages (block grey images, flow, reference, merged planes) as .npy.
+    /// Write intermediate stages (block grey images, flow, camera motion camera.npy as
+    /// `quantacolor align` writes it, reference, merged planes) as .npy.
     #[arg(long)]
     pub dump_stages: Option<PathBuf>,
     /// Reconstruct a video: one image per reference frame, every `--stride` frames (the paper's
@@ -219,6 +220,11 @@ fn dump_stages(dir: &Path, capture: &Capture, rec: &Reconstruction) -> Result<()
         &ndarray::stack(ndarray::Axis(0), &robustness)?,
     )?;
     quantacolor::align::write_alignment(staged.path(""), &burst.alignment)?;
+    // The camera motion of every frame, as `quantacolor align` writes it (docs/motion.md).
+    io::write_npy(
+        staged.path("camera.npy"),
+        &burst.motion.camera_matrices(capture.frames.frame_count()),
+    )?;
     staged.commit()?;
     Ok(())
 }

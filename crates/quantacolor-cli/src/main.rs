@@ -43,7 +43,16 @@ enum Command {
     Reconstruct(cmd_reconstruct::ReconstructArgs),
     /// PSNR, SSIM (scikit-image conventions) and LPIPS of an estimate against ground truth.
     Eval(cmd_eval::EvalArgs),
-    /// Align the binary frames to the reference frame; writes flow.npy and flow.toml.
+    /// Estimate the motion as `reconstruct` does; writes flow.npy, flow.toml and camera.npy.
+    ///
+    /// Runs the motion estimation of `quantacolor reconstruct --method burst` (block alignment,
+    /// sub-block refinement, fast-motion tracking, photon trajectory) with the same settings
+    /// and writes into --out: flow.npy and flow.toml, the block alignment's tile flow (float32
+    /// (n_blocks, tiles_y, tiles_x, 2), (dy, dx) from the reference frame); camera.npy, float64
+    /// (T, 2, 3): for every frame t the affine camera map M_t that takes a reference-frame pixel
+    /// position (y, x, 1) (pixel centres at integers, y down, x right) to the position of the
+    /// same scene point in frame t. camera.npy is the camera (global affine) motion only: moving
+    /// objects' local motion is not in it. See docs/motion.md.
     Align(cmd_align::AlignArgs),
     /// Per-pixel dark count rates and a hot-pixel mask from a dark capture.
     CalibrateDcr(cmd_calibrate_dcr::CalibrateDcrArgs),

@@ -282,51 +282,55 @@ fn reconstruct_capture_dir<'py>(
     Ok(d)
 }
 
-/// Block-level alignment of `capture` (paper §4.1; `quantacolor align`). Returns a dict with
-/// `flow` float32 (n_blocks, tiles_y, tiles_x, 2) as (dy, dx) to the reference frame, and the
-/// keys of `flow.toml`: `block_size`, `block_start_frames`, `block_center_frames`,
-/// `tile_size`, `tile_stride`, `tile_centers_y`, `tile_centers_x`.
+/// The motion estimation of `reconstruct` on `capture` (paper §4.1 block alignment, then this
+/// project's sub-block refinement, fast-motion tracking and photon trajectory; `quantacolor
+/// align`), with the same settings (`config`: a dict of report.toml's [config] keys, whose
+/// `burst` settings and `reference_frame` apply). Returns a dict with `flow` float32
+/// (n_blocks, tiles_y, tiles_x, 2), the block alignment's tile flow as (dy, dx) from the
+/// reference frame, the keys of `flow.toml` (`block_size`, `block_start_frames`,
+/// `block_center_frames`, `tile_size`, `tile_stride`, `tile_centers_y`, `tile_centers_x`), and
+/// `camera` float64 (T, 2, 3) (`camera.npy`): for every frame t the affine map M_t taking a
+/// reference-frame pixel position (y, x, 1) (pixel centres at integers) to the same scene
+/// point's position in frame t; the camera motion only, not moving objects (docs/motion.md).
 #[pyfunction]
-#[pyo3(signature = (capture, reference_frame=None, block_size=None, *, progress=None))]
+#[pyo3(signature = (capture, reference_frame=None, block_size=None, *, config=None, progress=None))]
 pub(crate) fn align<'py>(
     py: Python<'py>,
     capture: &Bound<'py, PyAny>,
     reference_frame: Option<i64>,
     block_size: Option<i64>,
+    config: Option<&Bound<'py, PyAny>>,
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
+    let mut config: ReconstructConfig = config_arg(config)?;
     let (capture, _) = capture_arg("capture", capture)?;
-    let reference =
-        index_arg("reference_frame", reference_frame)?.unwrap_or_else(|| capture.reference_frame());
-    if reference >= capture.frames.frame_count() {
+    let reference = index_arg("reference_frame", reference_frame)?
+        .or(config.reference_frame)
+        .unwrap_or_else(|| capture.reference_frame());
+    let frames = capture.frames.frame_count();
+    if reference >= frames {
         return Err(PyValueError::new_err(format!(
-            "reference_frame {reference} is outside the capture's {} frames",
-            capture.frames.frame_count()
+            "reference_frame {reference} is outside the capture's {frames} frames"
         )));
     }
-    let mut config = quantacolor::align::AlignConfig::default();
-    config.blocks.block_size = match block_size {
+    match block_size {
         Some(b) if b < 1 => {
             return Err(PyValueError::new_err(format!(
                 "block_size must be >= 1, got {b}"
             )))
         }
-        b => index_arg("block_size", b)?,
-    };
+        Some(b) => config.burst.align.blocks.block_size = index_arg("block_size", Some(b))?,
+        None => {}
+    }
     let sink = PyProgress::new(progress)?;
     let result = compute(py, || {
-        quantacolor::align::align(
-            &capture.frames,
-            &capture.cfa,
-            capture.hot_pixels.as_ref(),
-            reference,
-            &config,
-            &sink,
-        )
-        .map_err(|e| lib_err("", e))
+        quantacolor::burst::estimate_burst_motion(&capture, reference, &config.burst, &sink)
+            .map_err(|e| lib_err("", e))
     });
     sink.check(py)?;
-    let alignment = result?;
+    let estimate = result?;
+    let camera = estimate.motion.camera_matrices(frames);
+    let alignment = estimate.alignment;
     let meta = alignment.flow_meta();
     let d = PyDict::new(py);
     d.set_item(
@@ -340,5 +344,6 @@ pub(crate) fn align<'py>(
     d.set_item("tile_stride", meta.tile_stride)?;
     d.set_item("tile_centers_y", meta.tile_centers_y)?;
     d.set_item("tile_centers_x", meta.tile_centers_x)?;
+    d.set_item("camera", camera.into_pyarray(py))?;
     Ok(d)
 }

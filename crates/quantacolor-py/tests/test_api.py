@@ -144,6 +144,37 @@ def test_stages(capture):
     assert scores["psnr_srgb"] == qc.psnr(lin, truth, border=4, space="srgb")
 
 
+def test_align_camera_matches_the_cli_and_the_simulated_motion(cli, tmp_path):
+    """`align()["camera"]` is `quantacolor align`'s camera.npy, and it maps reference-frame
+    positions to where the simulator's motion.toml puts them (docs/motion.md)."""
+    cap = tmp_path / "cap"
+    capture = qc.simulate(frames=256, size=(128, 96), seed=4, motion="handheld", out=cap)
+    al = qc.align(capture)
+    camera = al["camera"]
+    assert camera.dtype == np.float64 and camera.shape == (256, 2, 3)
+    assert "flow" in al and "block_center_frames" in al
+    run_cli(cli, "align", cap, "--out", tmp_path / "al")
+    assert np.array_equal(np.load(tmp_path / "al" / "camera.npy"), camera)
+    # The simulator's rigid map: q = R(θ)·(p − c) + c + (dy, dx).
+    truth = tomllib.loads((cap / "motion.toml").read_text())
+    c = np.array(truth["center"])
+    ys, xs = np.mgrid[16:80:4, 16:112:4]
+    p = np.stack([ys.ravel(), xs.ravel()], axis=1).astype(np.float64)
+    errors = []
+    for t in range(0, 256, 8):
+        th = truth["theta_rad"][t]
+        rot = np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]])
+        want = (p - c) @ rot.T + c + [truth["dy"][t], truth["dx"][t]]
+        got = p @ camera[t, :, :2].T + camera[t, :, 2]
+        errors.append(np.hypot(*(got - want).T))
+    assert np.median(np.concatenate(errors)) < 0.3
+    # At the reference frame the map is the identity.
+    ref = capture.reference_frame
+    assert np.allclose(camera[ref], [[1, 0, 0], [0, 1, 0]], atol=1e-6)
+    with pytest.raises(ValueError, match="reference_frame"):
+        qc.align(capture, reference_frame=256)
+
+
 def test_progress_callback(capture):
     calls = []
     qc.reconstruct(capture, progress=lambda stage, done, total: calls.append((stage, done, total)))

@@ -200,13 +200,47 @@ fn burst_on_pool(
     reconstruction
 }
 
-/// What [`estimate_motion`] found.
-pub(crate) struct EstimatedMotion {
+/// What the motion estimation found ([`estimate_burst_motion`]).
+pub struct EstimatedMotion {
     pub alignment: Alignment,
     pub motion: FrameMotion,
     /// Whether the camera was tracked as fast motion (the block flows' local residual was
     /// then dropped as streak matching, not motion).
     pub tracked: bool,
+}
+
+/// Stages 1–3 of [`reconstruct_burst`] alone, for `quantacolor align` and the Python `align`:
+/// the same motion estimation (block alignment, camera and local motion, sub-block refinement
+/// or fast-motion tracking and the photon trajectory) with the same configuration
+/// ([`config_for_capture`] applied), so `motion` is the motion [`reconstruct_burst`] would
+/// merge at; the merge does not run. Its camera part per frame is
+/// [`FrameMotion::camera_matrices`] (`camera.npy`, docs/motion.md).
+pub fn estimate_burst_motion(
+    capture: &Capture,
+    reference_frame: usize,
+    config: &BurstConfig,
+    progress: &dyn Progress,
+) -> Result<EstimatedMotion> {
+    let frames = capture.frames.frame_count();
+    if reference_frame >= frames {
+        return Err(Error::invalid(format!(
+            "reference frame {reference_frame} is outside the capture's {frames} frames"
+        )));
+    }
+    crate::cpu::on_pool(|| {
+        let config = &config_for_capture(capture, config);
+        capture.frames.forget_shared_sums();
+        let estimate = estimate_motion(
+            capture,
+            reference_frame,
+            config,
+            None,
+            &mut Laps::new(),
+            progress,
+        );
+        capture.frames.forget_shared_sums();
+        estimate
+    })
 }
 
 /// Stages 1–3: alignment to `reference_frame` and the motion of every sub-block (block motion,

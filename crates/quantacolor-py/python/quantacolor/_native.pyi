@@ -104,10 +104,13 @@ def align(
     reference_frame: Optional[int] = None,
     block_size: Optional[int] = None,
     *,
+    config: Optional[dict[str, Any]] = None,
     progress: _Progress = None,
 ) -> dict[str, Any]:
-    """``flow`` float32 (n_blocks, tiles_y, tiles_x, 2) (dy, dx) plus the keys of flow.toml
-    (block_center_frames, block_start_frames, tile_centers_y, ...)."""
+    """The motion estimation of ``reconstruct``: ``flow`` float32 (n_blocks, tiles_y,
+    tiles_x, 2) (dy, dx) plus the keys of flow.toml (block_center_frames, block_start_frames,
+    tile_centers_y, ...), and ``camera`` float64 (T, 2, 3): per frame the affine camera map
+    taking a reference-frame position (y, x, 1) to frame t (docs/motion.md)."""
 
 def denoise(
     linear: npt.NDArray[np.floating[Any]],

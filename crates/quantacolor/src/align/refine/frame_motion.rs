@@ -386,6 +386,45 @@ impl FrameMotion {
         Some((matrix, offset))
     }
 
+    /// The camera motion at (fractional) frame `t` ([`Self::camera_at`]) as a 2×3 matrix
+    /// `M` in pixel coordinates, (y, x) order: the scene point at reference-frame position
+    /// `(y, x)` (pixel centres at integers) is at `M·(y, x, 1)` in frame `t`. The camera alone:
+    /// [`Self::flow_at_frame`] without a local residual is `M·(y, x, 1) − (y, x)`. The
+    /// displacement `b + m·(p − c)` about the image centre `c` of [`AffineMotion`] is rewritten
+    /// about the origin: `M = [I + m | b − m·c]` (this project's own export, `camera.npy`, see
+    /// docs/motion.md).
+    pub fn camera_matrix(&self, t: f64) -> [[f64; 3]; 2] {
+        let AffineMotion { b, m } = self.camera_at(t);
+        let c = self.centre();
+        [
+            [
+                1.0 + m[0][0],
+                m[0][1],
+                b[0] - m[0][0] * c[0] - m[0][1] * c[1],
+            ],
+            [
+                m[1][0],
+                1.0 + m[1][1],
+                b[1] - m[1][0] * c[0] - m[1][1] * c[1],
+            ],
+        ]
+    }
+
+    /// [`Self::camera_matrix`] of every frame `0..frames`: float64 (frames, 2, 3), the array
+    /// of `camera.npy`.
+    pub fn camera_matrices(&self, frames: usize) -> Array3<f64> {
+        let mut out = Array3::<f64>::zeros((frames, 2, 3));
+        for (t, mut matrix) in out.outer_iter_mut().enumerate() {
+            let m = self.camera_matrix(t as f64);
+            for (r, row) in m.iter().enumerate() {
+                for (c, &v) in row.iter().enumerate() {
+                    matrix[[r, c]] = v;
+                }
+            }
+        }
+        out
+    }
+
     /// Dense (H, W, 2) flow at (fractional) frame `t`.
     pub fn flow_at_frame(&self, t: f64) -> Array3<f32> {
         self.dense(&self.camera_at(t), t)
