@@ -328,8 +328,11 @@ fn align_blocks_replanned(
     let (mut alignment, mut motion) =
         align_blocks(capture, reference_frame, &config.align, config, progress)?;
     let steady_smear = steady_block_smear(&motion, config.track.steady_px);
-    if let Some(block_size) =
-        shorter_block_size(steady_smear, motion.plan.block_size, &config.align.blocks)
+    let blocks = &config.align.blocks;
+    let shortest = blocks.shortest_for(capture.frames.frame_count());
+    if let Some(block_size) = shorter_block_size(steady_smear, motion.plan.block_size, blocks)
+        .map(|b| b.max(shortest))
+        .filter(|&b| b < motion.plan.block_size)
     {
         let mut align_config = config.align.clone();
         align_config.blocks.block_size = Some(block_size);

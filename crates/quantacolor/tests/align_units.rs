@@ -240,6 +240,21 @@ fn automatic_block_size_follows_the_light_level() {
         BlockPlan::choose(&frames, 1500, &fixed).unwrap().block_size,
         123
     );
+    // Long recordings: at most `max_blocks` blocks (one grey image each is kept), even past
+    // `max_block_size`; a bright 250,000-frame recording would otherwise have 2,500 blocks of
+    // 100 frames.
+    let bright = Array3::from_elem((250_000, 1, 8), 1u8);
+    let frames = frames_from(&bright);
+    let plan = BlockPlan::choose(&frames, 125_000, &BlockConfig::default()).unwrap();
+    assert_eq!(plan.block_size, 251);
+    assert!(plan.len() <= 1000, "{} blocks", plan.len());
+    let few = BlockConfig {
+        max_blocks: 100,
+        ..Default::default()
+    };
+    let plan = BlockPlan::choose(&frames, 125_000, &few).unwrap();
+    assert_eq!(plan.block_size, 2526, "past max_block_size");
+    assert!(plan.len() <= 100, "{} blocks", plan.len());
 }
 
 #[test]

@@ -28,6 +28,10 @@ pub struct BlockConfig {
     pub min_blocks: usize,
     /// Floor of the automatic block size when `min_blocks` shortens it, frames.
     pub min_short_block_size: usize,
+    /// Most blocks an automatic plan may have: a longer recording gets longer blocks (past
+    /// `max_block_size` if need be), as one grey image per block is kept for the whole
+    /// reconstruction (0.5 MB at 496x254: 1,000 blocks hold 500 MB). This project's bound.
+    pub max_blocks: usize, // 1000
     /// Most steady-pan motion (px at the image corners) one automatic block may collect; a
     /// longer block is re-planned shorter after a first alignment (`burst::estimate_motion`),
     /// as block images smear along a pan. 0 = never. This project's heuristic.
@@ -43,8 +47,20 @@ impl Default for BlockConfig {
             target_counts: 30.0,
             min_blocks: 8,
             min_short_block_size: 32,
+            max_blocks: 1000,
             max_steady_smear_px: 4.0,
         }
+    }
+}
+
+impl BlockConfig {
+    /// The shortest automatic block of a recording of `frames` frames: no more than
+    /// [`Self::max_blocks`] blocks (a plan centred on its reference frame may cut one block
+    /// more than T / B), and at least one frame.
+    pub fn shortest_for(&self, frames: usize) -> usize {
+        frames
+            .div_ceil(self.max_blocks.saturating_sub(1).max(1))
+            .max(1)
     }
 }
 
@@ -161,7 +177,7 @@ impl BlockPlan {
                     .clamp(config.min_block_size as f64, config.max_block_size as f64)
                     as usize;
                 let by_count = (t / config.min_blocks.max(1)).max(config.min_short_block_size);
-                by_light.min(by_count).max(1)
+                by_light.min(by_count).max(config.shortest_for(t))
             }
         };
         BlockPlan::new(t, b, reference_frame)
