@@ -1,5 +1,6 @@
 //! `quantacolor simulate`: renders a simulated capture (scene, motion, sensor of paper Table 1)
-//! and writes it as a capture directory with ground truth, hot-pixel mask and `motion.toml`.
+//! and writes it as a capture directory with ground truth, hot-pixel mask and `motion.toml`,
+//! streaming the frames to disk (memory independent of the number of frames).
 
 #![forbid(unsafe_code)]
 
@@ -66,7 +67,8 @@ pub struct SimulateArgs {
     pub out: PathBuf,
 }
 
-fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
+/// Parses `--size WIDTHxHEIGHT`.
+pub(crate) fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
     let (w, h) = s
         .split_once(['x', 'X'])
         .with_context(|| format!("--size '{s}' is not WIDTHxHEIGHT"))?;
@@ -151,12 +153,7 @@ pub fn config_from_args(args: &SimulateArgs) -> anyhow::Result<SimulationConfig>
 pub fn run(args: &SimulateArgs, progress: &dyn Progress) -> anyhow::Result<()> {
     let config = config_from_args(args)?;
     let scene = Scene::from_spec(&args.scene)?;
-    if config.sensor == SensorKind::Cmos {
-        let sim = simulate::simulate_cmos(&config, &scene, progress)?;
-        sim.write(&args.out)?;
-    } else {
-        let sim = simulate::simulate(&config, &scene, progress)?;
-        sim.write(&args.out)?;
-    }
+    // Streams the frames to disk a chunk at a time: memory does not grow with --frames.
+    simulate::simulate_to_dir(&config, &scene, &args.out, progress)?;
     Ok(())
 }

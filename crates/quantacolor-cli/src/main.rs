@@ -17,6 +17,7 @@ mod cmd_reconstruct;
 mod cmd_report;
 mod cmd_simulate;
 mod config_file;
+mod os_usage;
 mod output;
 mod progress;
 

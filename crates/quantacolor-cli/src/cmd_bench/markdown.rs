@@ -345,7 +345,7 @@ fn write_denoise_summary(md: &mut String, rows: &[&Row], means: &[(f64, f64, f64
 /// The commit of the working tree the report is generated in, for its header: `commit
 /// <short hash>`, with `-dirty` when tracked files differ from it, or `unknown commit` when git
 /// or a repository is unavailable.
-fn source_commit() -> String {
+pub(super) fn source_commit() -> String {
     let git = |args: &[&str]| -> Option<String> {
         let out = std::process::Command::new("git").args(args).output().ok()?;
         out.status

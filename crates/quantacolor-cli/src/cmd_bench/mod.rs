@@ -2,11 +2,13 @@
 //! baseline measured in the same run; nothing here is asserted by the test suite.
 //!
 //! One file per subcommand: [`quality`] (with its captures in [`suite`] and its report in
-//! [`markdown`]), [`speed`], [`video`] and [`denoise`].
+//! [`markdown`]), [`speed`], [`video`], [`denoise`] and [`long`] (its child-process and disk
+//! queries are in `crate::os_usage`, outside this module's `forbid(unsafe_code)`).
 
 #![forbid(unsafe_code)]
 
 mod denoise;
+mod long;
 mod markdown;
 mod quality;
 mod speed;
@@ -139,6 +141,11 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// Long recordings: `quantacolor reconstruct` (default settings, a child process per run)
+    /// on 10,000 and 100,000 frames of hand shake, 100,000 frames with ten camera jumps and
+    /// 1,000,000 frames: seconds, µs per frame, peak RSS, ratio to the 10,000-frame time and
+    /// sRGB PSNR. Captures are simulated once into --work and reused.
+    Long(long::LongArgs),
 }
 
 pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
@@ -174,6 +181,7 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             denoise,
             seed,
         } => video::video(*frames, *stride, motion, *denoise, *seed, progress),
+        BenchCommand::Long(args) => long::long(args, progress),
         BenchCommand::Denoise {
             scenes,
             set,

@@ -151,16 +151,23 @@ fn check_parts(parts: &CaptureParts<'_>) -> Result<()> {
     }
     let mut names = std::collections::HashSet::new();
     for (name, _) in &parts.extra_files {
-        let plain = !name.is_empty()
-            && name != "."
-            && name != ".."
-            && !name.contains(['/', '\\'])
-            && !RESERVED.contains(&name.as_str());
-        if !plain || !names.insert(name.as_str()) {
-            return Err(Error::invalid(format!(
-                "extra capture file name {name:?} must be a plain, unique, non-standard file name"
-            )));
-        }
+        check_extra_name(name, !names.insert(name.as_str()))?;
+    }
+    Ok(())
+}
+
+/// Checks the name of a further file of a capture: plain, not one of the standard names, and
+/// not `duplicate` (already given).
+pub(super) fn check_extra_name(name: &str, duplicate: bool) -> Result<()> {
+    let plain = !name.is_empty()
+        && name != "."
+        && name != ".."
+        && !name.contains(['/', '\\'])
+        && !RESERVED.contains(&name);
+    if !plain || duplicate {
+        return Err(Error::invalid(format!(
+            "extra capture file name {name:?} must be a plain, unique, non-standard file name"
+        )));
     }
     Ok(())
 }

@@ -24,6 +24,10 @@
 //!
 //! Everything is seeded: the same configuration, scene and seed give identical bytes, whatever
 //! the number of threads (each frame has its own random stream).
+//!
+//! [`simulate`] and [`simulate_cmos`] return the capture in memory (tests, Python, the
+//! benchmarks); [`simulate_to_dir`] writes the same files as their `write` while holding only a
+//! chunk of frames in memory (`quantacolor simulate`, 10^5–10^6-frame captures).
 #![deny(unsafe_code)]
 
 pub mod chart;
@@ -31,10 +35,12 @@ pub mod motion;
 pub mod render;
 pub mod scene;
 pub mod sensor;
+mod stream;
 
 pub use motion::{Motion, MotionConfig, ObjectTrack};
 pub use scene::{Scene, SceneRaster};
 pub use sensor::{DarkCountMap, FluxSpec, JotReadout, SensorKind, SensorModel};
+pub use stream::simulate_to_dir;
 
 use crate::capture::{CaptureMeta, CaptureParts, FrameData, MultiBitReadout};
 use crate::cfa::{self, Cfa, Pattern};
@@ -73,6 +79,9 @@ pub struct SimulationConfig {
     pub dark_variation: f64,
     /// Seed of the motion, dark counts and frames.
     pub seed: u64,
+    /// Seed of the dark counts and hot pixels alone (default `seed`): captures of one sensor
+    /// under different motion and photon noise share it.
+    pub dark_seed: Option<u64>,
     /// Sub-pixel samples per axis s (1 = none): each pixel integrates the scene over s x s
     /// sample points, the scene keeps detail down to 1/s pixel, and the capture carries a
     /// ground truth at s times the resolution (see the module documentation).
@@ -95,6 +104,7 @@ impl Default for SimulationConfig {
             hot_rate_hz: [200.0, 2000.0],
             dark_variation: 0.3,
             seed: 1,
+            dark_seed: None,
             pixel_supersampling: 1,
         }
     }
@@ -313,7 +323,7 @@ fn prepare(config: &SimulationConfig, scene: &Scene, cfa: &Cfa) -> Result<Prepar
         config.dark_variation,
         config.hot_fraction,
         config.hot_rate_hz,
-        mix(config.seed ^ DARK_STREAM),
+        mix(config.dark_seed.unwrap_or(config.seed) ^ DARK_STREAM),
     )?;
     let exposure_s = sensor.exposure_s();
     let dark_per_frame = dark.rates_hz.mapv(|r| (r * exposure_s) as f32);
@@ -404,6 +414,21 @@ pub fn config_cfa(config: &SimulationConfig) -> Result<Cfa> {
     cfa::generate(&pattern, config.height, config.width, config.cfa_seed)
 }
 
+/// Labels of the progress of frame rendering.
+const PROGRESS_BINARY: &str = "simulating binary frames";
+const PROGRESS_CMOS: &str = "simulating CMOS frames";
+
+/// How `sensor` reads a frame out: a binary readout, or `None` for the multi-bit CMOS sensor.
+fn binary_readout(sensor: SensorKind) -> Option<BinaryReadout> {
+    match sensor {
+        SensorKind::Spad => Some(BinaryReadout::Spad),
+        SensorKind::Jot => Some(BinaryReadout::Jot(JotReadout::new(
+            SensorModel::table1(SensorKind::Jot).read_noise_e,
+        ))),
+        SensorKind::Cmos => None,
+    }
+}
+
 /// Simulates a binary capture (SPAD or jot sensor) of `scene` with the CFA named in `config`.
 pub fn simulate(
     config: &SimulationConfig,
@@ -421,17 +446,8 @@ pub fn simulate_with_cfa(
     cfa: &Cfa,
     progress: &dyn Progress,
 ) -> Result<SimulatedCapture> {
-    let readout = match config.sensor {
-        SensorKind::Spad => BinaryReadout::Spad,
-        SensorKind::Jot => BinaryReadout::Jot(JotReadout::new(
-            SensorModel::table1(SensorKind::Jot).read_noise_e,
-        )),
-        SensorKind::Cmos => {
-            return Err(Error::invalid(
-                "the CMOS sensor has multi-bit frames; use simulate_cmos",
-            ))
-        }
-    };
+    let readout = binary_readout(config.sensor)
+        .ok_or_else(|| Error::invalid("the CMOS sensor has multi-bit frames; use simulate_cmos"))?;
     let prep = prepare(config, scene, cfa)?;
     let job = render::FrameJob {
         field: &prep.field(),

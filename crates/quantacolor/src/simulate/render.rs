@@ -9,7 +9,7 @@ use super::scene::SceneRaster;
 use super::sensor::JotReadout;
 use crate::cfa::Cfa;
 use crate::progress::Progress;
-use ndarray::{Array2, Array3, ArrayViewMut2, Axis};
+use ndarray::{Array2, Array3, ArrayViewMut2, ArrayViewMut3, Axis};
 use rand::{RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Poisson, StandardNormal};
@@ -174,21 +174,36 @@ pub(crate) fn render_binary(
     readout: BinaryReadout,
     progress: &dyn Progress,
 ) -> Array3<u8> {
+    let (h, w) = (job.cfa.height(), job.cfa.width());
+    let mut packed = Array3::<u8>::zeros((job.frames, h, w.div_ceil(8)));
+    progress.start(super::PROGRESS_BINARY, job.frames as u64);
+    render_binary_into(job, readout, 0, packed.view_mut(), progress);
+    progress.finish();
+    packed
+}
+
+/// Renders frames `first..first + n` of the job into `out`, zeroed bit-packed
+/// (n, H, ceil(W/8)), in parallel (one frame per task), advancing `progress` by one per frame.
+pub(crate) fn render_binary_into(
+    job: &FrameJob<'_>,
+    readout: BinaryReadout,
+    first: usize,
+    mut out: ArrayViewMut3<'_, u8>,
+    progress: &dyn Progress,
+) {
     let FrameJob {
         field,
         cfa,
         dark_per_frame,
-        frames,
         seed,
+        ..
     } = *job;
     let (h, w) = (cfa.height(), cfa.width());
-    let mut packed = Array3::<u8>::zeros((frames, h, w.div_ceil(8)));
-    progress.start("simulating binary frames", frames as u64);
-    packed
-        .axis_iter_mut(Axis(0))
+    out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
-        .for_each(|(t, mut frame): (usize, ArrayViewMut2<u8>)| {
+        .for_each(|(i, mut frame): (usize, ArrayViewMut2<u8>)| {
+            let t = first + i;
             let mut rng = frame_rng(seed, t);
             let mut lambda = vec![0.0f32; w];
             for y in 0..h {
@@ -210,8 +225,6 @@ pub(crate) fn render_binary(
             }
             progress.advance(1);
         });
-    progress.finish();
-    packed
 }
 
 /// Renders the job's frames as CMOS frames: Poisson photoelectrons plus Gaussian read noise,
@@ -223,12 +236,29 @@ pub(crate) fn render_cmos(
     sensor: &super::SensorModel,
     progress: &dyn Progress,
 ) -> Array3<u16> {
+    let (h, w) = (job.cfa.height(), job.cfa.width());
+    let mut out = Array3::<u16>::zeros((job.frames, h, w));
+    progress.start(super::PROGRESS_CMOS, job.frames as u64);
+    render_cmos_into(job, sensor, 0, out.view_mut(), progress);
+    progress.finish();
+    out
+}
+
+/// Renders frames `first..first + n` of the job as CMOS frames (see [`render_cmos`]) into
+/// `out`, (n, H, W), in parallel (one frame per task), advancing `progress` by one per frame.
+pub(crate) fn render_cmos_into(
+    job: &FrameJob<'_>,
+    sensor: &super::SensorModel,
+    first: usize,
+    mut out: ArrayViewMut3<'_, u16>,
+    progress: &dyn Progress,
+) {
     let FrameJob {
         field,
         cfa,
         dark_per_frame,
-        frames,
         seed,
+        ..
     } = *job;
     let (h, w) = (cfa.height(), cfa.width());
     let max = ((1u32 << sensor.bit_depth.min(16)) - 1) as f64;
@@ -237,12 +267,11 @@ pub(crate) fn render_cmos(
         sensor.gain_e_per_dn,
         sensor.black_level_dn,
     );
-    let mut out = Array3::<u16>::zeros((frames, h, w));
-    progress.start("simulating CMOS frames", frames as u64);
     out.axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
-        .for_each(|(t, mut frame): (usize, ArrayViewMut2<u16>)| {
+        .for_each(|(i, mut frame): (usize, ArrayViewMut2<u16>)| {
+            let t = first + i;
             let mut rng = frame_rng(seed, t);
             let mut lambda = vec![0.0f32; w];
             for y in 0..h {
@@ -265,6 +294,4 @@ pub(crate) fn render_cmos(
             }
             progress.advance(1);
         });
-    progress.finish();
-    out
 }
