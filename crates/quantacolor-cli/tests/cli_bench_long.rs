@@ -57,7 +57,7 @@ fn bench_long_reports_every_case_and_reuses_its_captures() {
             "100 frames, natural",
             "1,000 frames, natural",
             "1,000 frames, 10 parts (9 jumps)",
-            "10,000 frames, natural"
+            "10,000 frames, the 1,000 repeated 10 times"
         ],
         "{stdout}"
     );
