@@ -134,8 +134,16 @@ pub(super) fn long(args: &LongArgs, progress: &dyn Progress) -> Result<()> {
         .with_context(|| format!("cannot create --work {}", work.display()))?;
     let cases = plan(args, width, height, &work, &scene_id)?;
     check_disk(&cases, &work, &scene_id)?;
+    // Captures of one simulation each, which a concatenated case may use as its parts.
+    let singles: Vec<(&SimulationConfig, &Path)> = cases
+        .iter()
+        .filter_map(|c| match c.parts.as_slice() {
+            [config] => Some((config, c.capture.as_path())),
+            _ => None,
+        })
+        .collect();
     for case in &cases {
-        make_capture(case, &scene, &scene_id, &work, progress).with_context(|| {
+        make_capture(case, &singles, &scene, &scene_id, &work, progress).with_context(|| {
             format!(
                 "making the {} capture {}",
                 case.label,
@@ -358,9 +366,11 @@ fn check_disk(cases: &[Case], work: &Path, scene_id: &str) -> Result<()> {
     Ok(())
 }
 
-/// Simulates (or finds in the cache) the capture of `case`.
+/// Simulates (or finds in the cache) the capture of `case`; a part described as one of
+/// `singles` (the captures of single-simulation cases) is that capture.
 fn make_capture(
     case: &Case,
+    singles: &[(&SimulationConfig, &Path)],
     scene: &Scene,
     scene_id: &str,
     work: &Path,
@@ -382,9 +392,14 @@ fn make_capture(
                 .to_string();
             let mut dirs: Vec<PathBuf> = Vec::with_capacity(parts.len());
             for (k, config) in parts.iter().enumerate() {
-                // A part made before from the same description is used again.
+                // A part made before from the same description is used again: an earlier
+                // part, or the capture of a case of its own (made before, cases run in order).
                 if let Some(same) = parts[..k].iter().position(|p| p == config) {
                     dirs.push(dirs[same].clone());
+                    continue;
+                }
+                if let Some((_, dir)) = singles.iter().find(|(single, _)| *single == config) {
+                    dirs.push(dir.to_path_buf());
                     continue;
                 }
                 let dir = work.join("parts").join(format!("{name}-part{k}"));
