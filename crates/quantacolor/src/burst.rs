@@ -736,6 +736,12 @@ fn merge_sub_blocks(
             })
             .collect();
         accumulator.add(&sub_blocks, &maps)?;
+        // The pages the kernel mapped around the sums (fault-around) are handed back too.
+        if let (Some(&first), Some(&last)) = (chunk.first(), chunk.last()) {
+            capture
+                .frames
+                .release(motion.sub_blocks[first].start..motion.sub_blocks[last].end);
+        }
         progress.advance(chunk.len() as u64);
     }
     progress.finish();

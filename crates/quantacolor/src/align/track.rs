@@ -381,16 +381,8 @@ pub fn track_fast_camera_motion(
         .position(|r| r.contains(&motion.plan.reference_frame))
         .unwrap_or(0);
     let camera = vec![AffineMotion::default(); n];
-    let Some(camera) = track_from(
-        capture,
-        grey_method,
-        motion,
-        config,
-        0..n,
-        first,
-        camera,
-        progress,
-    ) else {
+    let tracker = Tracker::new(capture, grey_method, motion, config, 0..n);
+    let Some(camera) = tracker.track_from(first, camera, progress) else {
         return Ok(false);
     };
     motion.camera = camera;
@@ -446,16 +438,8 @@ pub fn track_span(
         let r = &motion.sub_blocks[seed];
         (r.start + r.end - 1) / 2
     };
-    let Some(camera) = track_from(
-        capture,
-        grey_method,
-        motion,
-        config,
-        first..last,
-        seed,
-        camera,
-        progress,
-    ) else {
+    let tracker = Tracker::new(capture, grey_method, motion, config, first..last);
+    let Some(camera) = tracker.track_from(seed, camera, progress) else {
         return Ok(None);
     };
     motion.camera[first..last].copy_from_slice(&camera[first..last]);
@@ -472,36 +456,6 @@ pub fn track_span(
         Some(_) => reference,
         None => seed_frame,
     }))
-}
-
-/// The cameras of the sub-blocks `range` tracked outward from sub-block `seed` (forward in
-/// time, then backward, each direction fitted to the mosaic of every sub-block tracked before
-/// it), starting from `camera` (of every sub-block; `camera[seed]` is kept); `None` when the
-/// tracked cameras' median linear part exceeds [`TrackConfig::max_linear`].
-#[allow(clippy::too_many_arguments)]
-fn track_from(
-    capture: &Capture,
-    grey_method: GreyMethod,
-    motion: &FrameMotion,
-    config: &TrackConfig,
-    range: std::ops::Range<usize>,
-    seed: usize,
-    mut camera: Vec<AffineMotion>,
-    progress: &dyn Progress,
-) -> Option<Vec<AffineMotion>> {
-    let tracker = Tracker::new(capture, grey_method, motion, config, range.clone());
-    let mut mosaic = Mosaic::of_w_sites(capture, (motion.height, motion.width));
-    progress.start("fast motion tracking", range.len() as u64);
-    tracker.add_sub_block(&mut mosaic, seed, &tracker.counts(seed), &camera[seed]);
-    progress.advance(1);
-    for forward in [true, false] {
-        tracker.track_outward(seed, forward, &mut camera, &mut mosaic, progress);
-    }
-    progress.finish();
-    if median_linear_part(&camera[range]).is_some_and(|v| v > config.max_linear) {
-        return None;
-    }
-    Some(camera)
 }
 
 /// What [`track_fast_camera_motion`] fits each sub-block with.
@@ -539,6 +493,33 @@ impl<'a> Tracker<'a> {
             centre: motion.centre(),
             range,
         }
+    }
+
+    /// The cameras of the tracker's sub-blocks tracked outward from sub-block `seed` (forward
+    /// in time, then backward, each direction fitted to the mosaic of every sub-block tracked
+    /// before it), starting from `camera` (of every sub-block; `camera[seed]` is kept); `None`
+    /// when the tracked cameras' median linear part exceeds [`TrackConfig::max_linear`].
+    fn track_from(
+        &self,
+        seed: usize,
+        mut camera: Vec<AffineMotion>,
+        progress: &dyn Progress,
+    ) -> Option<Vec<AffineMotion>> {
+        let motion = self.motion;
+        let mut mosaic = Mosaic::of_w_sites(self.capture, (motion.height, motion.width));
+        progress.start("fast motion tracking", self.range.len() as u64);
+        self.add_sub_block(&mut mosaic, seed, &self.counts(seed), &camera[seed]);
+        progress.advance(1);
+        for forward in [true, false] {
+            self.track_outward(seed, forward, &mut camera, &mut mosaic, progress);
+        }
+        progress.finish();
+        if median_linear_part(&camera[self.range.clone()])
+            .is_some_and(|v| v > self.config.max_linear)
+        {
+            return None;
+        }
+        Some(camera)
     }
 
     fn counts(&self, k: usize) -> Array2<u32> {

@@ -159,6 +159,13 @@ fn refine_pass(inputs: &PassInputs, motion: &mut FrameMotion) -> Result<Vec<Opti
         for (k, result) in fit_group_sub_blocks(inputs, motion, group, &templates) {
             fitted[k] = result;
         }
+        // The sums hand back the pages they read, but not those the kernel mapped around them
+        // (fault-around): the group's frames are handed back whole, or a long recording's
+        // resident memory grows with its sub-blocks.
+        if let (Some(&first), Some(&last)) = (group.first(), group.last()) {
+            let blocks = &motion.plan.blocks;
+            inputs.frames.release(blocks[first].start..blocks[last].end);
+        }
     }
     progress.finish();
     motion.camera = refined_camera(&fitted, motion, config);

@@ -47,7 +47,7 @@ pub use config::TrajectoryConfig;
 
 use super::grey::GreyMethod;
 use super::refine::{template_level, AffineMotion, FrameMotion};
-use crate::capture::Capture;
+use crate::capture::{BinaryFrames, Capture};
 use crate::cfa::Channel;
 use crate::cpu::Isa;
 use crate::error::Result;
@@ -178,19 +178,14 @@ pub fn fit_photon_trajectory_over(
             Some(early) if iteration + 1 < last_iteration => early,
             _ => &sites,
         };
-        let template = build_template(
+        let span_frames = SpanFrames {
             frames,
-            frame_span.clone(),
-            sites,
-            &trajectory,
-            h,
-            margin,
-            isa,
-        );
+            span: frame_span.clone(),
+        };
+        let template = build_template(&span_frames, sites, &trajectory, h, margin, isa);
         let level = template_level(&template, sigma);
         scoring_step(
-            frames,
-            frame_span.clone(),
+            &span_frames,
             sites,
             &mut trajectory,
             &ScoreTemplate::new(&level, isa),
@@ -213,6 +208,12 @@ pub fn fit_photon_trajectory_over(
         max_sub_block_motion_px,
     );
     Ok(true)
+}
+
+/// The frames a trajectory is fitted to: `span` of `frames`.
+struct SpanFrames<'a> {
+    frames: &'a BinaryFrames,
+    span: Range<usize>,
 }
 
 /// The frame whose camera a fitted trajectory is placed by, and that camera (`None`: zero).

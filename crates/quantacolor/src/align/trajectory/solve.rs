@@ -8,8 +8,8 @@ use super::config::TrajectoryConfig;
 use super::knots::Trajectory;
 use super::likelihood::{frame_score, ScoreTemplate};
 use super::sites::Sites;
+use super::SpanFrames;
 use crate::align::refine::AffineMotion;
-use crate::capture::BinaryFrames;
 use rayon::prelude::*;
 
 /// A symmetric positive-definite banded matrix, upper band stored row by row:
@@ -85,11 +85,10 @@ impl BandedSpd {
     }
 }
 
-/// One Fisher-scoring step of every knot against `template`, from the frames `span`; returns
-/// the largest knot update (px at the image corners).
+/// One Fisher-scoring step of every knot against `template`, from the frames of `frames`;
+/// returns the largest knot update (px at the image corners).
 pub(super) fn scoring_step(
-    frames: &BinaryFrames,
-    span: std::ops::Range<usize>,
+    frames: &SpanFrames<'_>,
     sites: &Sites,
     trajectory: &mut Trajectory,
     template: &ScoreTemplate<'_>,
@@ -97,12 +96,14 @@ pub(super) fn scoring_step(
     half: [f64; 2],
     margin: f64,
 ) -> f64 {
-    let first = span.start;
-    let scores: Vec<([f64; 6], [[f64; 6]; 6])> = span
+    let first = frames.span.start;
+    let scores: Vec<([f64; 6], [[f64; 6]; 6])> = frames
+        .span
+        .clone()
         .into_par_iter()
         .map(|t| {
             let camera = trajectory.inverse_camera_at(t as f64);
-            frame_score(frames, sites, t, &camera, template, margin)
+            frame_score(frames.frames, sites, t, &camera, template, margin)
         })
         .collect();
     let n_knots = trajectory.knots.len();

@@ -6,20 +6,19 @@
 
 use super::knots::Trajectory;
 use super::sites::{site_bit, RowMap, Sites};
+use super::SpanFrames;
 use crate::capture::frames::FrameLayout;
-use crate::capture::BinaryFrames;
 use crate::cpu::Isa;
 use crate::filters::gaussian_blur;
 use ndarray::Array2;
 use rayon::prelude::*;
 
 /// The mean bit rate per frame at every scene point of the reference frame (with a margin),
-/// from the frames `span` splatted bilinearly to their reference positions along `trajectory`;
+/// from the frames of `frames` splatted bilinearly to their reference positions along `trajectory`;
 /// normalized convolution at σ 0.7 px, the global mean where nothing landed nearby. `isa`:
 /// the splats' instruction set ([`Splats::add_row`]).
 pub(super) fn build_template(
-    frames: &BinaryFrames,
-    span: std::ops::Range<usize>,
+    frames: &SpanFrames<'_>,
     sites: &Sites,
     trajectory: &Trajectory,
     height: usize,
@@ -27,6 +26,8 @@ pub(super) fn build_template(
     isa: Isa,
 ) -> Array2<f32> {
     let (th, tw) = (height + 2 * margin, sites.width + 2 * margin);
+    let span = frames.span.clone();
+    let frames = frames.frames;
     let n = span.end;
     let chunk = span
         .len()
