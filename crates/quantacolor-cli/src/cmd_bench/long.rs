@@ -1,7 +1,8 @@
 //! `bench long`: `quantacolor reconstruct` (default settings, this very binary, one child
 //! process per run so that each run's peak memory is its own) on long recordings: 10,000 and
 //! 100,000 frames of hand shake, 100,000 frames in which the camera jumps nine times, and
-//! 1,000,000 frames. For each: seconds, microseconds per frame, peak resident set, the ratio to
+//! 1,000,000 frames (and the jumps capture's first part alone, the base its jumps are measured
+//! against). For each: seconds, microseconds per frame, peak resident set, the ratio to
 //! the 10,000-frame time of the same run, and sRGB PSNR against the ground truth.
 //!
 //! The captures are simulated once, streamed to disk ([`simulate_to_dir`]), into a cache
@@ -65,6 +66,9 @@ pub enum LongCase {
     /// 10,000 frames (--frames-base) of hand shake.
     #[value(name = "10k")]
     Base,
+    /// The first 10,000-frame part of the jumps capture on its own: the base of its ratio.
+    #[value(name = "10k-jumps-first")]
+    JumpsFirst,
     /// 100,000 frames of hand shake.
     #[value(name = "100k")]
     Natural,
@@ -238,20 +242,21 @@ fn plan(
     };
     let tag = format!("{}-{width}x{height}-s{}", scene_tag(scene_id), args.seed);
     let natural = |frames: usize| shake_config(width, height, frames, 4.0, args.seed);
+    // Part k of the jumps capture: another hand and other photons, the same sensor (hot
+    // pixels).
+    let jump_part = |k: u64| SimulationConfig {
+        dark_seed: Some(args.seed),
+        ..shake_config(width, height, base, JUMP_AMPLITUDE_PX, args.seed + k)
+    };
     wanted
         .into_iter()
         .map(|case| {
             let (label, frames, parts) = match case {
                 LongCase::Base => ("natural".to_string(), base, vec![natural(base)]),
                 LongCase::Natural => ("natural".into(), scale(10)?, vec![natural(scale(10)?)]),
+                LongCase::JumpsFirst => ("the jumps' first part".into(), base, vec![jump_part(0)]),
                 LongCase::Jumps => {
-                    let parts = (0..JUMP_PARTS as u64)
-                        .map(|k| SimulationConfig {
-                            // Another hand and other photons, the same sensor (hot pixels).
-                            dark_seed: Some(args.seed),
-                            ..shake_config(width, height, base, JUMP_AMPLITUDE_PX, args.seed + k)
-                        })
-                        .collect();
+                    let parts = (0..JUMP_PARTS as u64).map(jump_part).collect();
                     (
                         format!("{JUMP_PARTS} parts ({} jumps)", JUMP_PARTS - 1),
                         scale(JUMP_PARTS)?,
@@ -269,6 +274,7 @@ fn plan(
             };
             let kind = match case {
                 LongCase::Jumps => "jumps",
+                LongCase::JumpsFirst => "jumps-first",
                 LongCase::Million => "repeated",
                 LongCase::Base | LongCase::Natural => "natural",
             };
