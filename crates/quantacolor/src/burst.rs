@@ -204,8 +204,8 @@ fn burst_on_pool(
 pub struct EstimatedMotion {
     pub alignment: Alignment,
     pub motion: FrameMotion,
-    /// Whether the camera was tracked as fast motion (the block flows' local residual was
-    /// then dropped as streak matching, not motion).
+    /// Whether the camera was tracked as fast motion, throughout or in spans (the block
+    /// flows' local residual was then dropped as streak matching, not motion, where tracked).
     pub tracked: bool,
 }
 
@@ -244,8 +244,9 @@ pub fn estimate_burst_motion(
 }
 
 /// Stages 1–3: alignment to `reference_frame` and the motion of every sub-block (block motion,
-/// sub-block plan, then refinement, or fast-motion tracking and the photon trajectory; with an
-/// `oracle`, only the plan). `config` is taken as it is (see [`config_for_capture`]); each
+/// sub-block plan, then refinement, or fast-motion tracking and the photon trajectory: of the
+/// whole capture when it moves fast throughout, else of the spans of blocks that move fast
+/// after the refinement of all, [`MotionSpans`]; with an `oracle`, only the plan). `config` is taken as it is (see [`config_for_capture`]); each
 /// stage's time is recorded in `laps`.
 pub(crate) fn estimate_motion(
     capture: &Capture,
