@@ -461,7 +461,7 @@ impl MotionSpans<'_> {
 }
 
 /// Frames a photon trajectory is fitted to at least: its template is made of its own frames.
-const MIN_TRAJECTORY_FRAMES: usize = 512;
+const MIN_TRAJECTORY_FRAMES: usize = 256;
 
 /// The sub-blocks of the blocks `blocks` of a tracked `motion` that the photon trajectory is
 /// fitted to: from the first to the last whose tracked camera moves faster than
