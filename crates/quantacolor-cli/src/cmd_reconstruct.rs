@@ -5,19 +5,18 @@
 
 use crate::cmd_display::ToneMapArg;
 use crate::output::StagedDir;
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::Args;
 use quantacolor::capture::{io, Capture};
 use quantacolor::denoise::chroma::DenoiseMethod;
-use quantacolor::display::{
-    auto_exposure_scale, encode_srgb8, ColorMatrix, MesopicConfig, MesopicOffset, RenderOptions,
-};
+use quantacolor::display::{ColorMatrix, MesopicConfig, MesopicOffset, RenderOptions};
 use quantacolor::pipeline::{
     reconstruct, Method, ReconstructConfig, ReconstructOverrides, Reconstruction,
 };
 use quantacolor::progress::Progress;
-use quantacolor::video::{video_reference_frames, VideoReconstructor};
-use serde::Serialize;
+use quantacolor::video::{
+    reconstruct_frame, VideoPlan, VideoReconstructor, VideoReport, VideoWriter,
+};
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
@@ -60,7 +59,8 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub dump_stages: Option<PathBuf>,
     /// Reconstruct a video: one image per reference frame, every `--stride` frames (the paper's
-    /// supplementary videos). Writes frame_NNNNN.png, linear.npy (N, H, W, 3) and video.toml.
+    /// supplementary videos), each from the --window frames around it. Writes frame_NNNNN.png,
+    /// linear.npy (N, H, W, 3) and video.toml as the frames are made (memory of one frame).
     #[arg(long)]
     pub video: bool,
     /// Video: `per-frame` estimates the motion again for every reference frame (a full
@@ -76,7 +76,9 @@ pub struct ReconstructArgs {
     /// Reference frame (default: the capture's, else T/2).
     #[arg(long)]
     pub reference_frame: Option<usize>,
-    /// Naive method: number of frames centred on the reference frame (default: all).
+    /// Number of frames centred on the reference frame: the frames the naive method sums, and
+    /// with --video the frames each video frame is reconstructed from, whatever the method
+    /// (time linear in the recording's length; default: all frames).
     #[arg(long)]
     pub window: Option<usize>,
     /// Tone mapping of preview.png (re-render later with `quantacolor display`).
@@ -259,22 +261,6 @@ pub enum VideoMotion {
     Shared,
 }
 
-#[derive(Serialize)]
-struct VideoReport<'a> {
-    capture: String,
-    method: String,
-    reference_frames: Vec<usize>,
-    /// The frame whose motion every frame reuses, composed to its own reference frame.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    motion_anchor_frame: Option<usize>,
-    /// Why every frame was reconstructed on its own instead.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    per_frame_reason: Option<String>,
-    preview_exposure_scale: f32,
-    units: &'static str,
-    config: &'a ReconstructConfig,
-}
-
 /// Reconstructions with a sliding reference frame, written as numbered PNGs with one shared
 /// exposure plus the linear stack; with `--video-motion shared` the motion is estimated once
 /// for all of them ([`VideoReconstructor`]).
@@ -284,67 +270,35 @@ fn write_video(
     config: &ReconstructConfig,
     progress: &dyn Progress,
 ) -> Result<()> {
-    if args.stride == 0 {
-        anyhow::bail!("--stride must be at least 1");
-    }
-    let t = capture.frames.frame_count();
-    let references = video_reference_frames(t, args.stride)?;
-    if references.is_empty() {
-        anyhow::bail!(
-            "--stride {} leaves no reference frame in the capture's {t} frames",
-            args.stride
-        );
-    }
-    let staged = StagedDir::new(&args.out)?;
+    let plan = VideoPlan::new(capture.frames.frame_count(), args.stride, args.window)?;
     let video = match args.video_motion {
+        VideoMotion::Shared if !plan.whole_capture() => anyhow::bail!(
+            "--video-motion shared estimates one motion over the whole capture; with --window \
+             use --video-motion per-frame (each frame reconstructed from its own window)"
+        ),
         VideoMotion::Shared => Some(VideoReconstructor::for_frames(
             capture,
             config,
-            &references,
+            &plan.reference_frames(),
             progress,
         )?),
         VideoMotion::PerFrame => None,
     };
-    let mut frames = Vec::with_capacity(references.len());
-    let mut scale = None;
-    for (i, &reference) in references.iter().enumerate() {
+    let mut writer = VideoWriter::create(&args.out, plan.frames.len())?;
+    for frame in &plan.frames {
         let rec = match &video {
-            Some(video) => video.frame(reference, progress)?,
-            None => {
-                let mut cfg = config.clone();
-                cfg.reference_frame = Some(reference);
-                reconstruct(capture, &cfg, progress)?
-            }
+            Some(video) => video.frame(frame.reference_frame, progress)?,
+            None => reconstruct_frame(capture, config, frame, progress)?,
         };
-        let s = *scale.get_or_insert_with(|| auto_exposure_scale(rec.linear.view()));
-        io::write_png_rgb8(
-            staged.path(&format!("frame_{i:05}.png")),
-            &encode_srgb8(rec.linear.view(), s),
-        )?;
-        frames.push(rec.linear);
+        writer.push(rec.linear.view())?;
     }
-    let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
-    io::write_npy(
-        staged.path("linear.npy"),
-        &ndarray::stack(ndarray::Axis(0), &views)?,
-    )?;
-    let report = VideoReport {
-        capture: args.capture.display().to_string(),
-        method: config.method.to_string(),
-        reference_frames: references,
-        motion_anchor_frame: video
-            .as_ref()
-            .filter(|v| v.fallback_reason().is_none())
-            .map(|v| v.anchor_frame()),
-        per_frame_reason: video
-            .as_ref()
-            .and_then(|v| v.fallback_reason().map(str::to_string)),
-        preview_exposure_scale: scale.unwrap_or(1.0),
-        units: quantacolor::output::LINEAR_UNITS,
-        config,
-    };
-    std::fs::write(staged.path("video.toml"), toml::to_string_pretty(&report)?)
-        .with_context(|| format!("{}: cannot write", staged.path("video.toml").display()))?;
-    staged.commit()?;
+    let mut report = VideoReport::new(args.capture.display().to_string(), config, &plan);
+    if let Some(video) = &video {
+        match video.fallback_reason() {
+            None => report.motion_anchor_frame = Some(video.anchor_frame()),
+            Some(reason) => report.per_frame_reason = Some(reason.to_string()),
+        }
+    }
+    writer.finish(report)?;
     Ok(())
 }

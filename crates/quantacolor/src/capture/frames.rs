@@ -15,7 +15,7 @@ use std::collections::HashMap;
 use std::fs::File;
 use std::ops::Range;
 use std::path::Path;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 /// How the bits of one frame row are stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -31,7 +31,11 @@ pub enum FrameLayout {
 #[derive(Debug)]
 enum Storage {
     Owned(Vec<u8>),
-    Mapped { map: Mmap, offset: usize },
+    /// Shared, so that a view of some frames ([`BinaryFrames::view`]) maps nothing again.
+    Mapped {
+        map: Arc<Mmap>,
+        offset: usize,
+    },
 }
 
 /// A stack of T frames of H x W pixels: binary (the paper's SPAD and jot frames) or multi-bit
@@ -174,7 +178,7 @@ impl BinaryFrames {
         };
         Ok(BinaryFrames {
             storage: Storage::Mapped {
-                map,
+                map: Arc::new(map),
                 offset: header.data_offset,
             },
             layout,
@@ -536,24 +540,16 @@ impl BinaryFrames {
     /// Keeps only the frames in `window` (indices into this stack), which become frames
     /// `0..window.len()`; no data is copied (a memory map stays a memory map).
     pub fn window(self, window: Range<usize>) -> Result<BinaryFrames> {
-        if window.start >= window.end || window.end > self.frame_count {
-            return Err(Error::invalid(format!(
-                "frame window {}:{} is empty or outside the capture's {} frames",
-                window.start, window.end, self.frame_count
-            )));
-        }
-        let frame_bytes = self.height * self.row_bytes();
-        let skip = window.start * frame_bytes;
-        let keep = window.len() * frame_bytes;
+        let bytes = self.window_bytes(&window)?;
         let storage = match self.storage {
             Storage::Owned(mut v) => {
-                v.truncate(skip + keep);
-                v.drain(..skip);
+                v.truncate(bytes.end);
+                v.drain(..bytes.start);
                 Storage::Owned(v)
             }
             Storage::Mapped { map, offset } => Storage::Mapped {
                 map,
-                offset: offset + skip,
+                offset: offset + bytes.start,
             },
         };
         Ok(BinaryFrames {
@@ -562,6 +558,42 @@ impl BinaryFrames {
             shared: Mutex::default(),
             ..self
         })
+    }
+
+    /// The frames in `window` (indices into this stack) as a stack of their own, frames
+    /// `0..window.len()`, leaving `self` as it is: a memory map is shared (nothing is read),
+    /// frames held in memory are copied. For reconstructions of parts of one capture (the
+    /// windows of a video).
+    pub fn view(&self, window: Range<usize>) -> Result<BinaryFrames> {
+        let bytes = self.window_bytes(&window)?;
+        let storage = match &self.storage {
+            Storage::Owned(v) => Storage::Owned(v[bytes].to_vec()),
+            Storage::Mapped { map, offset } => Storage::Mapped {
+                map: Arc::clone(map),
+                offset: offset + bytes.start,
+            },
+        };
+        Ok(BinaryFrames {
+            storage,
+            layout: self.layout,
+            frame_count: window.len(),
+            height: self.height,
+            width: self.width,
+            shared: Mutex::default(),
+        })
+    }
+
+    /// The byte range (from the first frame) of the frames in `window`; errors when it is
+    /// empty or outside the stack.
+    fn window_bytes(&self, window: &Range<usize>) -> Result<Range<usize>> {
+        if window.start >= window.end || window.end > self.frame_count {
+            return Err(Error::invalid(format!(
+                "frame window {}:{} is empty or outside the capture's {} frames",
+                window.start, window.end, self.frame_count
+            )));
+        }
+        let frame_bytes = self.height * self.row_bytes();
+        Ok(window.start * frame_bytes..window.end * frame_bytes)
     }
 
     /// Row `y` of frame `t` packed MSB first (`ceil(W/8)` bytes) into `out`, whatever the

@@ -27,6 +27,7 @@ use crate::error::{Error, Result};
 use ndarray::{Array2, Array3};
 use serde::{Deserialize, Serialize};
 use std::fs;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 /// The bit-packed binary frames.
@@ -643,6 +644,25 @@ impl Capture {
             .map(|r| r - range.start);
         self.frames = self.frames.window(range)?;
         Ok(self)
+    }
+
+    /// The frames in `range` as a capture of their own (frames `0..range.len()`), leaving
+    /// `self` as it is; the CFA, hot-pixel mask and metadata are shared, the reference frame
+    /// shifted with the frames as [`Self::window`] does. A memory map is not read again
+    /// ([`BinaryFrames::view`]).
+    pub fn view(&self, range: Range<usize>) -> Result<Capture> {
+        let mut meta = self.meta.clone();
+        meta.reference_frame = meta
+            .reference_frame
+            .filter(|r| range.contains(r))
+            .map(|r| r - range.start);
+        Ok(Capture {
+            dir: self.dir.clone(),
+            frames: self.frames.view(range)?,
+            cfa: self.cfa.clone(),
+            meta,
+            hot_pixels: self.hot_pixels.clone(),
+        })
     }
 
     /// A capture held in memory (the Python package's `Capture.from_arrays`): checks what

@@ -33,6 +33,13 @@
 //! ([`VideoReconstructor::fallback_reason`]).
 #![forbid(unsafe_code)]
 
+mod output;
+
+pub use output::{
+    assemble_parts, frame_file_name, part_path, reconstruct_frame, write_part, VideoFrame,
+    VideoPlan, VideoReport, VideoWriter,
+};
+
 use crate::align::{align_grey_blocks, AffineMotion, Alignment, BlockPlan, FrameMotion};
 use crate::burst::{
     config_for_capture, estimate_motion, merge_at_motion, BurstConfig, EstimatedMotion,
