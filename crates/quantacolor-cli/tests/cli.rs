@@ -324,6 +324,62 @@ fn video_mode_writes_one_frame_per_reference() {
     assert!(!none.exists(), "partial output left behind");
 }
 
+/// `--video --window N`: each frame is the reconstruction of the N frames centred on its
+/// reference frame, byte for byte (checked against `--frames`), and shared motion, estimated
+/// over the whole capture, is refused with a window.
+#[test]
+fn video_windows_are_reconstructions_of_their_own_frames() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "5");
+    let out = tmp.path().join("video");
+    let c = cap.to_str().unwrap();
+    let video = ["reconstruct", c, "--out", out.to_str().unwrap(), "--video"];
+    ok(&[&video[..], &["--stride", "32", "--window", "48"]].concat());
+    // 96 frames: reference frames 16, 48, 80 with windows 0..48, 24..72, 48..96.
+    let toml = std::fs::read_to_string(out.join("video.toml")).unwrap();
+    assert!(toml.contains("window = 48"), "{toml}");
+    let stack = read(&out.join("linear.npy"));
+    for (i, frames, reference) in [(0, "0:48", "16"), (1, "24:72", "24"), (2, "48:96", "32")] {
+        let single = tmp.path().join(format!("single{i}"));
+        ok(&[
+            "reconstruct",
+            c,
+            "--out",
+            single.to_str().unwrap(),
+            "--frames",
+            frames,
+            "--reference-frame",
+            reference,
+        ]);
+        let one = read(&single.join("linear.npy"));
+        let (header, frame_bytes) = (stack.len() - 3 * (one.len() - 128), one.len() - 128);
+        assert_eq!(
+            &stack[header + i * frame_bytes..header + (i + 1) * frame_bytes],
+            &one[128..],
+            "video frame {i} is not the reconstruction of frames {frames}"
+        );
+    }
+    let shared = tmp.path().join("shared");
+    expect_failure(
+        &[
+            "reconstruct",
+            c,
+            "--out",
+            shared.to_str().unwrap(),
+            "--video",
+            "--video-motion",
+            "shared",
+            "--stride",
+            "32",
+            "--window",
+            "48",
+        ],
+        "--window",
+    );
+    assert!(!shared.exists(), "partial output left behind");
+}
+
 #[test]
 fn dump_stages_writes_every_intermediate() {
     let tmp = tempfile::tempdir().unwrap();

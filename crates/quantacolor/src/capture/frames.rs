@@ -845,6 +845,35 @@ mod tests {
     }
 
     #[test]
+    fn views_hold_their_frames_and_leave_the_stack_whole() {
+        let (t, h, w) = (40, 3, 13);
+        let bits = random_bits(t, h, w, 5);
+        let packed = pack_bits(&bits);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frames.npy");
+        ndarray_npy::write_npy(&path, &packed).unwrap();
+        let mapped = BinaryFrames::open(&path, w).unwrap();
+        let owned = BinaryFrames::from_packed(packed, w).unwrap();
+        for stack in [&mapped, &owned] {
+            let view = stack.view(10..25).unwrap();
+            assert_eq!(view.frame_count(), 15);
+            for f in 0..15 {
+                for y in 0..h {
+                    for x in 0..w {
+                        assert_eq!(view.sample(f, y, x), bits[[10 + f, y, x]] as u32);
+                    }
+                }
+            }
+            // A view of a view counts from the view's first frame; the stack is unchanged.
+            let inner = view.view(5..6).unwrap();
+            assert_eq!(inner.sum_range(0..1), stack.sum_range(15..16));
+            assert_eq!(stack.frame_count(), t);
+            assert!(stack.view(30..41).is_err());
+            assert!(stack.view(5..5).is_err());
+        }
+    }
+
+    #[test]
     fn msb_first_bit_order() {
         let mut bits = Array3::<u8>::zeros((1, 1, 10));
         bits[[0, 0, 0]] = 1;
