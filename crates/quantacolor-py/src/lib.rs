@@ -14,7 +14,7 @@
 //! One file per topic: [`args`] (argument conversion), [`errors`], [`progress`], [`capture`]
 //! (the `Capture` class), and one per function family: [`reconstruct`] (`reconstruct`,
 //! `reconstruct_dir`, `align`), [`denoise`], [`display`], [`evaluate`] (`evaluate_images`),
-//! [`simulate`].
+//! [`simulate`], [`video`] (the steps of `batch.reconstruct_video`).
 
 #![forbid(unsafe_code)]
 
@@ -27,6 +27,7 @@ mod evaluate;
 mod progress;
 mod reconstruct;
 mod simulate;
+mod video;
 
 use pyo3::prelude::*;
 
@@ -41,6 +42,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(display::display, m)?)?;
     m.add_function(wrap_pyfunction!(evaluate::evaluate_images, m)?)?;
     m.add_function(wrap_pyfunction!(simulate::simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(video::video_prepare, m)?)?;
+    m.add_function(wrap_pyfunction!(video::video_parts, m)?)?;
+    m.add_function(wrap_pyfunction!(video::video_assemble, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add(
         "RECONSTRUCTION_FILES",

@@ -115,21 +115,21 @@ pub(crate) fn reconstruct_dir<'py>(
 
 /// The reconstruction options of `reconstruct` and `reconstruct_dir` (Python spellings in
 /// errors), as Python passed them.
-struct OverrideArgs<'a> {
-    method: Option<&'a str>,
-    denoise: Option<&'a str>,
-    scale: Option<i64>,
-    reference_frame: Option<i64>,
-    sigma_y: Option<f32>,
-    sigma_c: Option<f32>,
-    block_size: Option<i64>,
-    max_sub_block_motion: Option<f64>,
-    window: Option<i64>,
+pub(crate) struct OverrideArgs<'a> {
+    pub(crate) method: Option<&'a str>,
+    pub(crate) denoise: Option<&'a str>,
+    pub(crate) scale: Option<i64>,
+    pub(crate) reference_frame: Option<i64>,
+    pub(crate) sigma_y: Option<f32>,
+    pub(crate) sigma_c: Option<f32>,
+    pub(crate) block_size: Option<i64>,
+    pub(crate) max_sub_block_motion: Option<f64>,
+    pub(crate) window: Option<i64>,
 }
 
 impl OverrideArgs<'_> {
     /// The options as the library's overrides, checked in parameter order.
-    fn overrides(&self) -> PyResult<ReconstructOverrides> {
+    pub(crate) fn overrides(&self) -> PyResult<ReconstructOverrides> {
         Ok(ReconstructOverrides {
             method: self
                 .method
@@ -172,7 +172,7 @@ impl OverrideArgs<'_> {
 }
 
 /// The reconstruction config: the `config=` dict (or the defaults) with the overrides applied.
-fn reconstruct_config(
+pub(crate) fn reconstruct_config(
     config: Option<&Bound<'_, PyAny>>,
     overrides: &ReconstructOverrides,
 ) -> PyResult<ReconstructConfig> {

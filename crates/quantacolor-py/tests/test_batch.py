@@ -69,3 +69,48 @@ def test_default_local_cluster(capture_dirs, tmp_path):
 
     rows = reconstruct_many(capture_dirs[:1], tmp_path / "o", n_workers=1, method="naive")
     assert rows[0]["status"] == "done"
+
+
+def test_reconstruct_video(client, cli, tmp_path):
+    """The Dask video is the CLI's `--video --window` output byte for byte, restartable."""
+    from quantacolor.batch import reconstruct_video
+
+    cap = tmp_path / "long"
+    qc.simulate(frames=192, size=(64, 64), seed=4, motion="handheld", out=cap)
+    ref = tmp_path / "cli-video"
+    args = ["--video", "--stride", "32", "--window", "64", "--denoise", "none"]
+    r = subprocess.run(
+        [str(cli), "reconstruct", str(cap), "--out", str(ref), *args],
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "video"
+    row = reconstruct_video(cap, out, stride=32, window=64, client=client,
+                            frames_per_task=2, denoise="none")
+    assert row["status"] == "done" and row["frames"] == 6 and row["made"] == 6, row
+    names = sorted(p.name for p in ref.iterdir())
+    assert names == sorted(p.name for p in out.iterdir())
+    assert names[:6] == [f"frame_{i:05d}.png" for i in range(6)]
+    for name in names:
+        assert (ref / name).read_bytes() == (out / name).read_bytes(), name
+    assert not any(p.name.endswith("video-parts") for p in tmp_path.iterdir())
+
+    # A finished video is skipped; an interrupted one resumes from its finished frames.
+    assert reconstruct_video(cap, out, stride=32, window=64, client=client)["status"] == "skipped"
+    from quantacolor import _native
+
+    again = tmp_path / "again"
+    parts = tmp_path / ".again.video-parts"
+    _native.video_prepare(str(cap), str(parts), 32, 64)
+    _native.video_parts(str(cap), str(parts), [0, 3], 32, 64, {"denoise": "none"})
+    row = reconstruct_video(cap, again, stride=32, window=64, client=client, denoise="none")
+    assert row["made"] == 4, row
+    for name in names:
+        assert (ref / name).read_bytes() == (again / name).read_bytes(), name
+
+    with pytest.raises(ValueError, match="stride"):
+        reconstruct_video(cap, tmp_path / "none", stride=1000, client=client)
+    with pytest.raises(TypeError, match="unknown option"):
+        reconstruct_video(cap, tmp_path / "bad", stride=32, window=64, client=client, tonemap="x")
+    assert not (tmp_path / "none").exists() and not (tmp_path / "bad").exists()

@@ -163,3 +163,30 @@ def simulate(
 ) -> Capture:
     """``quantacolor simulate`` (same defaults; ``size`` is (width, height)); a Capture with
     ground truth, also written to ``out`` when given."""
+
+# The steps of quantacolor.batch.reconstruct_video (a video made in pieces).
+def video_prepare(
+    capture_dir: _Path, parts_dir: _Path, stride: int, window: Optional[int] = None
+) -> list[tuple[int, int, int, int, bool]]:
+    """The video's frames (index, reference_frame, first_frame, end_frame, done); saves the
+    capture's hot-pixel mask into ``parts_dir``."""
+
+def video_parts(
+    capture_dir: _Path,
+    parts_dir: _Path,
+    indices: Sequence[int],
+    stride: int,
+    window: Optional[int] = None,
+    options: Optional[dict[str, Any]] = None,
+) -> list[float]:
+    """Reconstructs video frames ``indices`` into parts; the seconds each took."""
+
+def video_assemble(
+    capture_dir: _Path,
+    parts_dir: _Path,
+    out_dir: _Path,
+    stride: int,
+    window: Optional[int] = None,
+    options: Optional[dict[str, Any]] = None,
+) -> Any:
+    """Streams every part into the video directory ``out_dir``; returns its path."""
