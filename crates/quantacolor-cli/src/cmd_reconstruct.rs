@@ -15,7 +15,7 @@ use quantacolor::pipeline::{
 };
 use quantacolor::progress::Progress;
 use quantacolor::video::{
-    reconstruct_frame, VideoPlan, VideoReconstructor, VideoReport, VideoWriter,
+    reconstruct_frame, FrameProgress, VideoPlan, VideoReconstructor, VideoReport, VideoWriter,
 };
 use std::path::{Path, PathBuf};
 
@@ -286,9 +286,10 @@ fn write_video(
     };
     let mut writer = VideoWriter::create(&args.out, plan.frames.len())?;
     for frame in &plan.frames {
+        let progress = FrameProgress::new(progress, frame, &plan);
         let rec = match &video {
-            Some(video) => video.frame(frame.reference_frame, progress)?,
-            None => reconstruct_frame(capture, config, frame, progress)?,
+            Some(video) => video.frame(frame.reference_frame, &progress)?,
+            None => reconstruct_frame(capture, config, frame, &progress)?,
         };
         writer.push(rec.linear.view())?;
     }

@@ -36,8 +36,8 @@
 mod output;
 
 pub use output::{
-    assemble_parts, frame_file_name, part_path, reconstruct_frame, write_part, VideoFrame,
-    VideoPlan, VideoReport, VideoWriter,
+    assemble_parts, frame_file_name, part_path, reconstruct_frame, write_part, FrameProgress,
+    VideoFrame, VideoPlan, VideoReport, VideoWriter,
 };
 
 use crate::align::{align_grey_blocks, AffineMotion, Alignment, BlockPlan, FrameMotion};

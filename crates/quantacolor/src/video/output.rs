@@ -122,6 +122,36 @@ pub fn reconstruct_frame(
     reconstruct(capture, &config, progress)
 }
 
+/// A video frame's stage progress, each stage labelled with the frame (`frame 3/40: merge`),
+/// so that a long video shows how far it is.
+pub struct FrameProgress<'a> {
+    inner: &'a dyn Progress,
+    prefix: String,
+}
+
+impl<'a> FrameProgress<'a> {
+    /// Progress of video frame `frame` of `plan`, reported to `inner`.
+    pub fn new(inner: &'a dyn Progress, frame: &VideoFrame, plan: &VideoPlan) -> Self {
+        FrameProgress {
+            inner,
+            prefix: format!("frame {}/{}", frame.index + 1, plan.frames.len()),
+        }
+    }
+}
+
+impl Progress for FrameProgress<'_> {
+    fn start(&self, label: &str, total: u64) {
+        self.inner
+            .start(&format!("{}: {label}", self.prefix), total);
+    }
+    fn advance(&self, n: u64) {
+        self.inner.advance(n);
+    }
+    fn finish(&self) {
+        self.inner.finish();
+    }
+}
+
 /// What `video.toml` records.
 #[derive(Debug, Serialize)]
 pub struct VideoReport<'a> {
