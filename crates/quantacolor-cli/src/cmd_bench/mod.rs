@@ -12,6 +12,7 @@ mod long;
 mod markdown;
 mod quality;
 mod speed;
+mod splat;
 mod suite;
 mod video;
 

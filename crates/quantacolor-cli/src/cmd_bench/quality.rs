@@ -5,6 +5,7 @@
 #![forbid(unsafe_code)]
 
 use super::markdown::report;
+use super::splat::{blur_sigma, true_motion_splat};
 use super::suite::{simulate_case, suite, Case};
 use super::SuiteSet;
 use anyhow::{bail, Context, Result};
@@ -25,9 +26,10 @@ use quantacolor::stats::median_f64;
 use std::path::Path;
 use std::time::Instant;
 
-pub(super) const METHODS: [&str; 7] = [
+pub(super) const METHODS: [&str; 8] = [
     "burst",
     "burst (true motion)",
+    "true-motion splat",
     "naive long",
     "naive short",
     "burst, denoiser's merge, no denoising",
@@ -36,11 +38,12 @@ pub(super) const METHODS: [&str; 7] = [
 ];
 pub(super) const BURST: usize = 0;
 pub(super) const TRUE_MOTION: usize = 1;
-pub(super) const LONG: usize = 2;
-pub(super) const SHORT: usize = 3;
-pub(super) const DENOISER_MERGE: usize = 4;
-pub(super) const BM3D: usize = 5;
-pub(super) const CHROMA: usize = 6;
+pub(super) const SPLAT: usize = 2;
+pub(super) const LONG: usize = 3;
+pub(super) const SHORT: usize = 4;
+pub(super) const DENOISER_MERGE: usize = 5;
+pub(super) const BM3D: usize = 6;
+pub(super) const CHROMA: usize = 7;
 
 /// Scores of the 2x-detail captures against the 2x ground truth.
 pub(super) struct SuperResolution {
@@ -58,9 +61,12 @@ pub(super) struct SuperResolution {
 /// One row of the report.
 pub(super) struct Row {
     pub(super) case: usize,
-    pub(super) scores: [Scores; 7],
+    pub(super) scores: [Scores; 8],
     /// LPIPS (AlexNet v0.1) of each column, on the same sRGB images as `scores`.
-    pub(super) lpips: [f64; 7],
+    pub(super) lpips: [f64; 8],
+    /// Sharpness: the σ (px) of the Gaussian blur of the ground truth that the burst (without
+    /// denoising) and the true-motion splat match best ([`blur_sigma`]).
+    pub(super) blur_sigma: [f64; 2],
     /// Median alignment end-point error, px.
     pub(super) epe: f64,
     /// Median true motion, px (at the same pixels and frames).
@@ -114,7 +120,8 @@ fn run_case(
     let capture = sim.to_capture()?;
     let (h, w) = (capture.cfa.height(), capture.cfa.width());
     let oracle = |t: f64| sim.motion.dense_flow(t, h, w);
-    let (burst, scored) = score_methods(&capture, &sim, case, opts, burst_config, &oracle)?;
+    let (burst, scored, blur_sigma) =
+        score_methods(&capture, &sim, case, opts, burst_config, &oracle)?;
     let scores = scored.map(|(s, _)| s);
     let lpips = scored.map(|(_, l)| l);
     let (epe, motion_px) = median_epe(&burst, &sim.motion, case.frames, opts.border);
@@ -123,6 +130,7 @@ fn run_case(
         case: index,
         scores,
         lpips,
+        blur_sigma,
         epe,
         motion_px,
         sr,
@@ -133,9 +141,10 @@ fn run_case(
 }
 
 /// Reconstructs `capture` by every method of [`METHODS`] (burst, burst at the true motion
-/// `oracle`, naive long and short, the denoiser's merge alone and with both denoisers) and
+/// `oracle`, the independent true-motion splat, naive long and short, the denoiser's merge alone and with both denoisers) and
 /// scores each against the ground truth (PSNR / SSIM and LPIPS, one protocol); returns the
-/// burst reconstruction with the scores, in [`METHODS`] order.
+/// burst reconstruction with the scores, in [`METHODS`] order, and the blur σ of the burst and
+/// of the splat.
 fn score_methods(
     capture: &Capture,
     sim: &SimulatedCapture,
@@ -143,11 +152,12 @@ fn score_methods(
     opts: &EvalOptions,
     burst_config: &BurstConfig,
     oracle: MotionOracle<'_>,
-) -> Result<(BurstReconstruction, [(Scores, f64); 7])> {
+) -> Result<(BurstReconstruction, [(Scores, f64); 8], [f64; 2])> {
     let reference = capture.reference_frame();
     let config = burst_config.clone();
     let burst = reconstruct_burst(capture, reference, &config, &Silent)?;
     let truth = reconstruct_burst_with_motion(capture, reference, &config, Some(oracle), &Silent)?;
+    let splat = true_motion_splat(capture, &sim.motion)?;
     let long = reconstruct_naive(capture, reference, &NaiveConfig::default())?;
     let short = reconstruct_naive(
         capture,
@@ -184,13 +194,18 @@ fn score_methods(
     let scored = [
         score(burst.merged.linear.view())?,
         score(truth.merged.linear.view())?,
+        score(splat.view())?,
         score(long.linear.view())?,
         score(short.linear.view())?,
         score(for_denoising.merged.linear.view())?,
         denoised(DenoiseMethod::Bm3d)?,
         denoised(DenoiseMethod::ChromaBm3d)?,
     ];
-    Ok((burst, scored))
+    let blur = [
+        blur_sigma(burst.merged.linear.view(), gt, opts)?,
+        blur_sigma(splat.view(), gt, opts)?,
+    ];
+    Ok((burst, scored, blur))
 }
 
 /// Super-resolution scores of a 2x-detail capture (`None` for the others): the burst merged at
@@ -232,13 +247,17 @@ fn super_resolution(
 /// One line on stderr per capture: time, burst and true-motion scores, EPE, and scale 2.
 fn log_case(case: &Case, row: &Row, simulated_s: f64) {
     eprintln!(
-        "{}: {:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB (LPIPS {:.3}), true \
-         motion {:.2} dB, EPE {:.3} px (motion {:.2} px){}",
+        "{}: {:.1} s (simulation {simulated_s:.1} s); burst {:.2} dB (LPIPS {:.3}, blur σ {:.2} \
+         px), true motion {:.2} dB, splat {:.2} dB (blur σ {:.2} px), EPE {:.3} px (motion \
+         {:.2} px){}",
         case.id(),
         row.seconds,
         row.scores[BURST].psnr_srgb,
         row.lpips[BURST],
+        row.blur_sigma[0],
         row.scores[TRUE_MOTION].psnr_srgb,
+        row.scores[SPLAT].psnr_srgb,
+        row.blur_sigma[1],
         row.epe,
         row.motion_px,
         row.sr
