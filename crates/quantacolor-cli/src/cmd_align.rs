@@ -22,6 +22,9 @@ pub struct AlignArgs {
     /// Output directory for flow.npy, flow.toml and camera.npy.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
     /// TOML file with a full or partial reconstruction config, as `quantacolor reconstruct
     /// --config` takes it (its [burst] settings and reference_frame apply); command-line
     /// options override it.
@@ -42,6 +45,7 @@ pub struct AlignArgs {
 }
 
 pub fn run_align(args: &AlignArgs, progress: &dyn Progress) -> Result<()> {
+    crate::output::check_out_dir(&args.out, "--out", args.overwrite)?;
     let mut config = match &args.config {
         Some(path) => crate::cmd_reconstruct::read_config(path)?,
         None => ReconstructConfig::default(),

@@ -45,6 +45,9 @@ pub struct ConvertArgs {
     /// Output capture directory.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Colour SwissSPAD2 (the paper's prototype): keep rows 2..256 and columns 0..496, swap
     /// column blocks 252..256 and 260..264, and use the sensor's shipped CFA and hot-pixel mask.
     #[arg(long)]
@@ -75,6 +78,7 @@ pub struct ConvertArgs {
 }
 
 pub fn run_convert(args: &ConvertArgs, progress: &dyn Progress) -> Result<()> {
+    crate::output::check_out_dir(&args.out, "--out", args.overwrite)?;
     let format = match args.from {
         FromArg::Swissspad2 => RawFormat::SwissSpad2,
         FromArg::Swissspad2Full => RawFormat::SwissSpad2Full,

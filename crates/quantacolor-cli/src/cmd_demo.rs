@@ -25,6 +25,9 @@ pub struct DemoArgs {
     /// Output directory.
     #[arg(long, default_value = "demo")]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Seed of the simulation.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -53,6 +56,12 @@ fn demo_methods(frames: usize) -> [(&'static str, Method, Option<usize>); 3] {
 }
 
 pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
+    // The demo replaces its own earlier output (rerunning the README's first command); any
+    // other directory is kept unless --overwrite.
+    let earlier_demo = ["metrics.toml", "comparison.png"]
+        .iter()
+        .all(|f| args.out.join(f).is_file());
+    crate::output::check_out_dir(&args.out, "--out", args.overwrite || earlier_demo)?;
     let (capture_dir, frames, truth) = simulate_chart(args, progress)?;
     let capture = Capture::open(&capture_dir)?;
     let methods = demo_methods(frames);

@@ -19,6 +19,9 @@ pub struct ExperimentArgs {
     /// Output directory (CSV, PNG plots, summary.md).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Small sizes and few settings: seconds instead of minutes.
     #[arg(long)]
     pub quick: bool,
@@ -32,6 +35,7 @@ pub struct ExperimentArgs {
 }
 
 pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<()> {
+    crate::output::check_out_dir(&args.out, "--out", args.overwrite)?;
     let experiment: Experiment = args.name.parse()?;
     let options = ExperimentOptions {
         quick: args.quick,

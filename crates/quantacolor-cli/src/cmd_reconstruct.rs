@@ -26,6 +26,9 @@ pub struct ReconstructArgs {
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Reconstruction method: burst (align + joint demosaic-merge) or naive (plain sum).
     #[arg(long)]
     pub method: Option<Method>,
@@ -100,6 +103,10 @@ pub struct ReconstructArgs {
 }
 
 pub fn run(args: &ReconstructArgs, progress: &dyn Progress) -> Result<()> {
+    crate::output::check_out_dir(&args.out, "--out", args.overwrite)?;
+    if let Some(dir) = &args.dump_stages {
+        crate::output::check_out_dir(dir, "--dump-stages", args.overwrite)?;
+    }
     let config = config_from_args(args)?;
     let capture = crate::cmd_convert::open_capture(
         &args.capture,

@@ -65,6 +65,9 @@ pub struct SimulateArgs {
     /// Output capture directory.
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 /// Parses `--size WIDTHxHEIGHT`.
@@ -151,6 +154,7 @@ pub fn config_from_args(args: &SimulateArgs) -> anyhow::Result<SimulationConfig>
 
 /// Runs `quantacolor simulate`.
 pub fn run(args: &SimulateArgs, progress: &dyn Progress) -> anyhow::Result<()> {
+    crate::output::check_out_dir(&args.out, "--out", args.overwrite)?;
     let config = config_from_args(args)?;
     let scene = Scene::from_spec(&args.scene)?;
     // Streams the frames to disk a chunk at a time: memory does not grow with --frames.

@@ -723,3 +723,54 @@ fn a_closed_stdout_pipe_ends_the_program_without_a_panic() {
         out.status
     );
 }
+
+/// An existing, non-empty output directory is refused before any work unless --overwrite, and
+/// the earlier result is left as it was; the demo replaces only its own earlier output.
+#[test]
+fn existing_outputs_are_kept_unless_overwrite() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "7");
+    let c = cap.to_str().unwrap();
+    let out = tmp.path().join("rec");
+    let o = out.to_str().unwrap();
+    ok(&["reconstruct", c, "--out", o]);
+    let burst = read(&out.join("linear.npy"));
+    let err = expect_failure(
+        &["reconstruct", c, "--out", o, "--method", "naive"],
+        "--overwrite",
+    );
+    assert!(err.contains(o), "{err}");
+    assert_eq!(
+        read(&out.join("linear.npy")),
+        burst,
+        "the earlier result changed"
+    );
+    ok(&[
+        "reconstruct",
+        c,
+        "--out",
+        o,
+        "--method",
+        "naive",
+        "--overwrite",
+    ]);
+    assert_ne!(read(&out.join("linear.npy")), burst);
+    // The same rule for a capture, a motion estimate and a file where a directory belongs.
+    expect_failure(
+        &["simulate", "--frames", "32", "--size", "32x32", "--out", c],
+        "--overwrite",
+    );
+    let flow = tmp.path().join("flow");
+    ok(&["align", c, "--out", flow.to_str().unwrap()]);
+    expect_failure(
+        &["align", c, "--out", flow.to_str().unwrap()],
+        "--overwrite",
+    );
+    let file = tmp.path().join("file");
+    std::fs::write(&file, b"x").unwrap();
+    expect_failure(
+        &["reconstruct", c, "--out", file.to_str().unwrap()],
+        "not a directory",
+    );
+}

@@ -540,6 +540,7 @@ fn measure(exe: &Path, case: &Case, work: &Path) -> Result<Measured> {
         .arg(&case.capture)
         .arg("--out")
         .arg(&out)
+        .arg("--overwrite") // the benchmark's own reconstruction of the case, run again
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(log)

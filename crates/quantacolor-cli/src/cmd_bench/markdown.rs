@@ -67,7 +67,13 @@ pub(super) fn report(
          chroma-BM3D, both with σ from the merge's noise model, on the merge the denoiser runs \
          on (colour kernels with spacing exponent 0.5 instead of 1, the column before them). \
          `reconstruct` runs burst + chroma-BM3D by default; `--denoise none` gives the first \
-         column. EPE: median alignment end-point error |merge flow − true flow| (px) over the \
+         column. True-motion splat: an upper bound independent of the merge (no code of it): \
+         every sample splatted bilinearly to its true reference position, Gaussian-smoothed \
+         (σ 1 px for R, G, B, 0.5 px for W), per-pixel MLE (Eq. 6) and Eq. 8; its fixed \
+         kernels are noisy at low light and sharp at high light, so the burst should come \
+         close to it where photons are plenty. Blur σ: the σ of the Gaussian blur of the \
+         ground truth that the image matches best (sRGB PSNR; 0 = as sharp as the truth). \
+         EPE: median alignment end-point error |merge flow − true flow| (px) over the \
          pixels (16-pixel border excluded) at 16 evenly spaced frames; for moving objects over \
          all pixels (camera and object). Motion: the median true displacement from the \
          reference frame over the same pixels and frames (the EPE of assuming no motion). Time: \
