@@ -42,6 +42,6 @@ pub fn run(args: &CalibrateColorArgs) -> Result<()> {
         "RMS linear error: {:.5} before, {:.5} after",
         r.rms_before, r.rms_after
     );
-    println!("wrote {}", args.out.display());
+    crate::output::say(&format!("wrote {}", args.out.display()));
     Ok(())
 }

@@ -126,7 +126,7 @@ pub fn run(args: &CfaArgs) -> Result<()> {
                     e.name, s.baseband_fraction, s.peak_fraction, s.peak_to_mean, s.chroma_power
                 );
             }
-            println!("wrote {}", c.out.join("compare.png").display());
+            crate::output::say(&format!("wrote {}", c.out.join("compare.png").display()));
         }
     }
     Ok(())

@@ -80,8 +80,11 @@ pub fn run(args: &DemoArgs, progress: &dyn Progress) -> Result<()> {
     }
     write_comparison(args, &methods, &panels, &truth, &rows, progress)?;
     print_table(&rows);
-    println!("wrote {}", args.out.join("comparison.png").display());
-    println!("wrote {}", args.out.join("index.html").display());
+    crate::output::say(&format!(
+        "wrote {} and {}",
+        args.out.join("comparison.png").display(),
+        args.out.join("index.html").display()
+    ));
     Ok(())
 }
 

@@ -161,7 +161,7 @@ pub fn run(args: &DisplayArgs) -> Result<()> {
     let display = render_stack(stack.view(), &options).with_context(context)?;
     if !is_video {
         write_display(&args.out, display.index_axis(Axis(0), 0), bits)?;
-        println!("wrote {}", args.out.display());
+        crate::output::say(&format!("wrote {}", args.out.display()));
         return Ok(());
     }
     // All frames are staged, then moved into place together: an error leaves none of them.

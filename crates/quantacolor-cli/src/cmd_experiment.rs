@@ -61,6 +61,6 @@ pub fn run(args: &ExperimentArgs, progress: &dyn Progress) -> Result<()> {
         };
         println!("{verdict}: {}\n    {}", c.statement, c.evidence);
     }
-    println!("wrote {}", args.out.display());
+    crate::output::say(&format!("wrote {}", args.out.display()));
     Ok(())
 }

@@ -130,6 +130,6 @@ pub fn run(args: &ReportArgs, progress: &dyn Progress) -> Result<()> {
             );
         }
     }
-    println!("wrote {}", out.join("index.html").display());
+    crate::output::say(&format!("wrote {}", out.join("index.html").display()));
     Ok(())
 }

@@ -31,6 +31,34 @@ use std::process::ExitCode;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// No line on success (what was written, where, how long); errors are still reported.
+    #[arg(long, global = true)]
+    quiet: bool,
+}
+
+/// The success line of the commands that write results and say nothing else: what was
+/// written, where, and how long it took.
+fn success_line(command: &Command, seconds: f64) -> Option<String> {
+    let (what, out, files) = match command {
+        Command::Reconstruct(a) if a.video => (
+            "reconstruct",
+            &a.out,
+            "frame_NNNNN.png, linear.npy, video.toml",
+        ),
+        Command::Reconstruct(a) => (
+            "reconstruct",
+            &a.out,
+            "linear.npy, linear.exr, preview.png, report.toml",
+        ),
+        Command::Simulate(a) => ("simulate", &a.out, "a capture"),
+        Command::Align(a) => ("align", &a.out, "flow.npy, flow.toml, camera.npy"),
+        Command::Inspect(a) => ("inspect", a.preview.as_ref()?, "a preview"),
+        _ => return None,
+    };
+    Some(format!(
+        "{what}: wrote {} ({files}) in {seconds:.1} s",
+        out.display()
+    ))
 }
 
 #[derive(Debug, Subcommand)]
@@ -112,6 +140,8 @@ fn main() -> ExitCode {
         return ExitCode::from(2);
     }
     let cli = Cli::from_arg_matches(&command().get_matches()).unwrap_or_else(|e| e.exit());
+    output::set_quiet(cli.quiet);
+    let started = std::time::Instant::now();
     let progress = progress::TerminalProgress::new();
     let result = match &cli.command {
         Command::Demo(args) => cmd_demo::run(args, &progress),
@@ -130,7 +160,12 @@ fn main() -> ExitCode {
         Command::Report(args) => cmd_report::run(args, &progress),
     };
     match result {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(()) => {
+            if let Some(line) = success_line(&cli.command, started.elapsed().as_secs_f64()) {
+                output::say(&line);
+            }
+            ExitCode::SUCCESS
+        }
         Err(e) => {
             eprintln!("error: {e:#}");
             ExitCode::from(2)

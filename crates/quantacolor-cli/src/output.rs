@@ -29,3 +29,19 @@ pub fn check_out_dir(out: &Path, flag: &str, overwrite: bool) -> Result<()> {
     }
     Ok(())
 }
+
+/// Set by `--quiet`: no success line.
+static QUIET: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Silences [`say`] (`--quiet`).
+pub fn set_quiet(quiet: bool) {
+    QUIET.store(quiet, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// A command's one line on success (what was written, where, how long), on stderr so that
+/// stdout stays data; nothing with `--quiet`.
+pub fn say(line: &str) {
+    if !QUIET.load(std::sync::atomic::Ordering::Relaxed) {
+        eprintln!("{line}");
+    }
+}

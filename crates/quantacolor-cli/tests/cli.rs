@@ -774,3 +774,38 @@ fn existing_outputs_are_kept_unless_overwrite() {
         "not a directory",
     );
 }
+
+/// A command that writes results says so in one line on stderr (what, where, how long), stdout
+/// stays empty, and --quiet silences it.
+#[test]
+fn success_is_one_line_on_stderr_unless_quiet() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "8");
+    let out = tmp.path().join("rec");
+    let run = quantacolor(&[
+        "reconstruct",
+        cap.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(run.status.success());
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(
+        stderr.starts_with("reconstruct: wrote ")
+            && stderr.contains(out.to_str().unwrap())
+            && stderr.trim_end().ends_with(" s"),
+        "{stderr}"
+    );
+    assert!(run.stdout.is_empty());
+    let quiet = tmp.path().join("quiet");
+    let run = quantacolor(&[
+        "reconstruct",
+        cap.to_str().unwrap(),
+        "--out",
+        quiet.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(run.status.success() && run.stderr.is_empty() && run.stdout.is_empty());
+}

@@ -47,8 +47,8 @@ fn report_writes_a_deterministic_self_contained_page() {
         ])
     };
     let o = run(&out);
-    let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(stdout.contains("wrote"), "{stdout}");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(stderr.contains("wrote"), "{stderr}");
     assert_eq!(
         files(&out),
         [
