@@ -76,7 +76,7 @@ impl Default for ReconstructConfig {
 #[derive(Debug, Clone)]
 pub struct Reconstruction {
     /// Linear RGB (H, W, 3) in detections per frame of an R, G or B pixel, dark counts removed,
-    /// registered to the scene at the reference frame.
+    /// registered to the scene at the reference frame; never negative.
     pub linear: Array3<f32>,
     /// The merged image before denoising (`None` when denoising is off).
     pub merged_linear: Option<Array3<f32>>,
@@ -190,7 +190,10 @@ pub(crate) fn denoise_and_finish(
 ) -> Result<Reconstruction> {
     let start = Instant::now();
     let input = denoise_input(capture, burst.as_ref(), frames_used);
-    let (denoised, denoise) = denoise_linear(linear.view(), &input, &config.denoise)?;
+    let (mut denoised, denoise) = denoise_linear(linear.view(), &input, &config.denoise)?;
+    // A flux is never negative. Inside the merge a channel that saw nothing keeps its unbiased
+    // MLE −d (paper Eq. 6, unclamped, so that averages stay unbiased); the output does not.
+    denoised.mapv_inplace(|v| v.max(0.0));
     let merged_linear = denoise.as_ref().map(|_| linear);
     if denoise.is_some() {
         timings.push(StageTiming::since("denoise", start));

@@ -13,6 +13,12 @@ use rayon::prelude::*;
 /// W (whose SNR is far higher on RGBW sensors). Input (4, H, W) planes in code order; output
 /// (H, W, 3). Where W is missing (no W sites) RGB are returned unchanged; where the RGB
 /// luminance is not positive, W is spread as neutral grey.
+///
+/// Negative fluxes (the unclamped MLE of a channel with no detection, −d) enter the ratios as
+/// zero, and so does a negative W: a ratio of noisy near-zero values of both signs would
+/// otherwise scale one channel far below zero and the others far above W (measured on a
+/// 256-frame HDR chart: values down to −0.064 where the truth is 0.0004). This project's own
+/// guard; it changes nothing where the fluxes are positive.
 pub fn combine_rgbw(planes: &Array3<f32>, w_weights: [f64; 3]) -> Array3<f32> {
     let (_, h, w) = planes.dim();
     let wsum: f64 = w_weights.iter().sum();
@@ -24,18 +30,21 @@ pub fn combine_rgbw(planes: &Array3<f32>, w_weights: [f64; 3]) -> Array3<f32> {
             for x in 0..w {
                 let rgb = [planes[[0, y, x]], planes[[1, y, x]], planes[[2, y, x]]];
                 let white = planes[[3, y, x]];
-                let lum: f64 = rgb
-                    .iter()
-                    .zip(w_weights)
-                    .map(|(&v, wt)| v as f64 * wt)
-                    .sum();
+                if white.is_nan() {
+                    for c in 0..3 {
+                        row[[x, c]] = rgb[c];
+                    }
+                    continue;
+                }
+                let white = white.max(0.0) as f64;
+                let finite = rgb.iter().all(|v| v.is_finite());
+                let chroma = rgb.map(|v| v.max(0.0) as f64);
+                let lum: f64 = chroma.iter().zip(w_weights).map(|(&v, wt)| v * wt).sum();
                 for c in 0..3 {
-                    row[[x, c]] = if white.is_nan() {
-                        rgb[c]
-                    } else if lum > 1e-9 && rgb.iter().all(|v| v.is_finite()) {
-                        (rgb[c] as f64 * white as f64 / lum) as f32
+                    row[[x, c]] = if finite && lum > 1e-9 {
+                        (chroma[c] * white / lum) as f32
                     } else {
-                        (white as f64 / wsum) as f32
+                        (white / wsum) as f32
                     };
                 }
             }
@@ -93,6 +102,35 @@ mod tests {
         for (c, v) in [0.2f32, 0.5, 0.1].iter().enumerate() {
             assert!((out[[0, 0, c]] - v * s as f32).abs() < 1e-6);
             assert_eq!(out[[0, 1, c]], *v);
+        }
+    }
+
+    /// Noisy near-zero fluxes of both signs give colours between zero and W, not ratios that
+    /// run off far below zero and above W.
+    #[test]
+    fn negative_fluxes_never_make_negative_or_amplified_colours() {
+        let weights = [1.0, 1.0, 1.0];
+        for (r, g, b, white) in [
+            (-0.0001f32, 0.0002, 0.0, 0.01),
+            (-0.001, -0.002, 0.0005, 0.004),
+            (-0.001, -0.002, -0.0005, 0.004),
+            (0.001, 0.002, 0.0005, -0.0001),
+        ] {
+            let planes = Array3::from_shape_vec((4, 1, 1), vec![r, g, b, white]).unwrap();
+            let out = combine_rgbw(&planes, weights);
+            let sum: f32 = (0..3).map(|c| out[[0, 0, c]]).sum();
+            for c in 0..3 {
+                let v = out[[0, 0, c]];
+                assert!(
+                    v >= 0.0 && v <= white.max(0.0) + 1e-9,
+                    "{:?}: {v}",
+                    (r, g, b, white)
+                );
+            }
+            assert!(
+                (sum - white.max(0.0)).abs() < 1e-6,
+                "luminance kept: {sum} vs {white}"
+            );
         }
     }
 
