@@ -45,7 +45,7 @@ pub struct DisplayArgs {
     /// stack (N, H, W, 3) (from `reconstruct --video`).
     pub linear: PathBuf,
     /// Output image: .png (8 or 16 bit) or .tif/.tiff (16 bit); written atomically. A video
-    /// stack is written as numbered frames beside it: OUT_0000.png, OUT_0001.png, ...
+    /// stack is written as numbered frames beside it: OUT_00000.png, OUT_00001.png, ...
     #[arg(long)]
     pub out: PathBuf,
     /// Tone-mapping operator.

@@ -29,7 +29,8 @@ pub struct ReconstructArgs {
     /// Replace the files of an existing, non-empty output directory (refused otherwise).
     #[arg(long)]
     pub overwrite: bool,
-    /// Reconstruction method: burst (align + joint demosaic-merge) or naive (plain sum).
+    /// Reconstruction method: burst (align + joint demosaic-merge) or naive (plain sum of the
+    /// frames, not denoised unless --denoise is given).
     #[arg(long)]
     pub method: Option<Method>,
     /// TOML file with a full or partial reconstruction config (see report.toml for the keys);
@@ -37,7 +38,8 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Denoising (paper §4.3): chroma-bm3d (BM3D in the W-weighted YCbCr, chroma filtered
-    /// harder), bm3d (plain colour BM3D, one σ) or none [default: chroma-bm3d].
+    /// harder), bm3d (plain colour BM3D, one σ) or none [default: chroma-bm3d; none with --method
+    /// naive].
     #[arg(long)]
     pub denoise: Option<DenoiseMethod>,
     /// σ of Y (of all channels for bm3d) in the variance-stabilised domain, where one merged

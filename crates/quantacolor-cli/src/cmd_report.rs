@@ -93,13 +93,14 @@ pub fn run(args: &ReportArgs, progress: &dyn Progress) -> Result<()> {
             color_matrix,
         };
         let scenes = write_study(out, &results, &config, progress)?;
-        println!(
-            "wrote {} ({} scenes, {} renderings, seed {})",
+        let count = |n: usize, one: &str| format!("{n} {one}{}", if n == 1 { "" } else { "s" });
+        crate::output::say(&format!(
+            "wrote {} ({}, {}, seed {})",
             out.join("index.html").display(),
-            scenes.len(),
-            results.len(),
+            count(scenes.len(), "scene"),
+            count(results.len(), "rendering"),
             args.seed
-        );
+        ));
         return Ok(());
     }
     let truth = match &args.ground_truth {

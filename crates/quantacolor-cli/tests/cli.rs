@@ -809,3 +809,41 @@ fn success_is_one_line_on_stderr_unless_quiet() {
     ]);
     assert!(run.status.success() && run.stderr.is_empty() && run.stdout.is_empty());
 }
+
+/// `--method naive` is the plain sum the README calls it: not denoised unless --denoise says so.
+#[test]
+fn the_naive_method_is_not_denoised_unless_asked() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cap = tmp.path().join("cap");
+    simulate(&cap, "9");
+    let c = cap.to_str().unwrap();
+    let run = |name: &str, extra: &[&str]| {
+        let out = tmp.path().join(name);
+        ok(&[
+            &[
+                "reconstruct",
+                c,
+                "--out",
+                out.to_str().unwrap(),
+                "--method",
+                "naive",
+            ],
+            extra,
+        ]
+        .concat());
+        (
+            read(&out.join("linear.npy")),
+            std::fs::read_to_string(out.join("report.toml")).unwrap(),
+        )
+    };
+    let (plain, report) = run("plain", &[]);
+    let (none, _) = run("none", &["--denoise", "none"]);
+    let (denoised, denoised_report) = run("denoised", &["--denoise", "chroma-bm3d"]);
+    assert_eq!(plain, none);
+    assert_ne!(plain, denoised);
+    assert!(
+        !report.contains("[denoise]\nmethod = \"chroma-bm3d\""),
+        "{report}"
+    );
+    assert!(denoised_report.contains("chroma-bm3d"), "{denoised_report}");
+}

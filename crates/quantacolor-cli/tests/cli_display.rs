@@ -121,16 +121,16 @@ fn display_writes_a_video_stack_as_numbered_frames() {
     ]);
     assert_eq!(
         files_in(&out_dir),
-        ["clip_0000.png", "clip_0001.png", "clip_0002.png"]
+        ["clip_00000.png", "clip_00001.png", "clip_00002.png"]
     );
     // One exposure for the whole clip: later frames (more light) are brighter.
     let mean = |i: usize| {
-        let (img, _) = read_rgb_image(out_dir.join(format!("clip_{i:04}.png"))).unwrap();
+        let (img, _) = read_rgb_image(out_dir.join(format!("clip_{i:05}.png"))).unwrap();
         img.mean().unwrap()
     };
     assert!(mean(2) > mean(1) && mean(1) > mean(0));
     // Same bytes again (deterministic), 16-bit TIFF frames too.
-    let first = std::fs::read(out_dir.join("clip_0001.png")).unwrap();
+    let first = std::fs::read(out_dir.join("clip_00001.png")).unwrap();
     ok(&[
         "display",
         s(&lin),
@@ -141,13 +141,16 @@ fn display_writes_a_video_stack_as_numbered_frames() {
         "--frames",
         "1000",
     ]);
-    assert_eq!(std::fs::read(out_dir.join("clip_0001.png")).unwrap(), first);
+    assert_eq!(
+        std::fs::read(out_dir.join("clip_00001.png")).unwrap(),
+        first
+    );
     let tif_dir = tmp.path().join("tif");
     std::fs::create_dir(&tif_dir).unwrap();
     ok(&["display", s(&lin), "--out", s(&tif_dir.join("v.tif"))]);
     assert_eq!(
         files_in(&tif_dir),
-        ["v_0000.tif", "v_0001.tif", "v_0002.tif"]
+        ["v_00000.tif", "v_00001.tif", "v_00002.tif"]
     );
     // Bad shapes: one error naming the file and the shape, exit 2, nothing written.
     let bad_dir = tmp.path().join("bad");

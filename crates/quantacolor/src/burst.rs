@@ -579,7 +579,7 @@ pub(crate) fn merge_at_motion(
         grey_noise,
         &config.merge,
     )?;
-    laps.lap("reference, kernels, robustness");
+    laps.lap("merge guide (reference, kernels, robustness)");
 
     let robustness = BlockRobustness {
         grey_blocks,

@@ -239,6 +239,10 @@ impl ReconstructOverrides {
     ) -> Result<()> {
         if let Some(m) = self.method {
             config.method = m;
+            // The naive baseline is the plain sum (paper Table 2), not denoised unless asked.
+            if m == Method::Naive && self.denoise.is_none() {
+                config.denoise.method = DenoiseMethod::None;
+            }
         }
         if self.reference_frame.is_some() {
             config.reference_frame = self.reference_frame;

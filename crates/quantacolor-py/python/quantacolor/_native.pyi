@@ -74,8 +74,8 @@ def reconstruct(
 ) -> npt.NDArray[np.float32]:
     """Linear RGB float32 (H·scale, W·scale, 3), identical to the CLI's linear.npy.
 
-    ``method``: "burst" (default) or "naive"; ``denoise``: "chroma-bm3d" (default), "bm3d" or
-    "none"; ``scale``: 1 (default) to 4; ``config``: the keys of report.toml's ``[config]``.
+    ``method``: "burst" (default) or "naive" (the plain sum); ``denoise``: "chroma-bm3d"
+    (default; "none" when ``method="naive"`` is given without ``denoise``), "bm3d" or "none"; ``scale``: 1 (default) to 4; ``config``: the keys of report.toml's ``[config]``.
     ``None`` keeps the value of ``config`` (whose defaults are the CLI's)."""
 
 def reconstruct_dir(

@@ -199,8 +199,8 @@ pub fn frame_path(path: &Path, index: usize) -> std::path::PathBuf {
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
     let name = match path.extension() {
-        Some(ext) => format!("{stem}_{index:04}.{}", ext.to_string_lossy()),
-        None => format!("{stem}_{index:04}"),
+        Some(ext) => format!("{stem}_{index:05}.{}", ext.to_string_lossy()),
+        None => format!("{stem}_{index:05}"),
     };
     path.with_file_name(name)
 }
