@@ -305,3 +305,17 @@ def test_open_bad_capture_names_file(tmp_path, capture_dirs):
     (d / "capture.toml").write_text("exposure_s = -1\n")
     with pytest.raises(ValueError, match="capture.toml"):
         qc.Capture.open(d)
+
+
+def test_readme_python_snippet_runs():
+    """The README's Python example, run as written (the docs cannot drift from the package)."""
+    from conftest import REPO
+
+    readme = (REPO / "README.md").read_text()
+    section = readme[readme.index("## Python"):]
+    start = section.index("```python\n") + len("```python\n")
+    code = section[start : section.index("```", start)]
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    assert namespace["linear"].shape == (254, 496, 3)
+    assert namespace["rgb8"].dtype.name == "uint8"
