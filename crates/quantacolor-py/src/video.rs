@@ -107,6 +107,9 @@ fn open_with_parts_mask(capture_dir: &Path, parts_dir: &Path) -> quantacolor::Re
     Ok(capture)
 }
 
+/// One video frame as Python sees it: (index, reference_frame, first_frame, end_frame, done).
+type PlannedFrame = (usize, usize, usize, usize, bool);
+
 /// Opens `capture_dir` as `reconstruct` does (hot pixels detected when it names no mask),
 /// saves its mask into `parts_dir` (created) and returns the video's frames as
 /// `(index, reference_frame, first_frame, end_frame, done)` tuples, `done` when the frame's
@@ -119,7 +122,7 @@ pub(crate) fn video_prepare(
     parts_dir: PathBuf,
     stride: i64,
     window: Option<i64>,
-) -> PyResult<Vec<(usize, usize, usize, usize, bool)>> {
+) -> PyResult<Vec<PlannedFrame>> {
     compute(py, || {
         let capture = quantacolor::convert::open_capture(&capture_dir, None, true)
             .map_err(|e| lib_err("", e))?;

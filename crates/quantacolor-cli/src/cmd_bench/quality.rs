@@ -58,6 +58,9 @@ pub(super) struct SuperResolution {
     pub(super) bicubic_truth: Scores,
 }
 
+/// PSNR / SSIM and LPIPS of every method of [`METHODS`], in order.
+type MethodScores = [(Scores, f64); 8];
+
 /// One row of the report.
 pub(super) struct Row {
     pub(super) case: usize,
@@ -152,7 +155,7 @@ fn score_methods(
     opts: &EvalOptions,
     burst_config: &BurstConfig,
     oracle: MotionOracle<'_>,
-) -> Result<(BurstReconstruction, [(Scores, f64); 8], [f64; 2])> {
+) -> Result<(BurstReconstruction, MethodScores, [f64; 2])> {
     let reference = capture.reference_frame();
     let config = burst_config.clone();
     let burst = reconstruct_burst(capture, reference, &config, &Silent)?;
