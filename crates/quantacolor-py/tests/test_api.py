@@ -319,3 +319,23 @@ def test_readme_python_snippet_runs():
     exec(compile(code, "README.md", "exec"), namespace)
     assert namespace["linear"].shape == (254, 496, 3)
     assert namespace["rgb8"].dtype.name == "uint8"
+
+
+def test_show_renders_a_png_for_jupyter(capture):
+    import zlib
+
+    linear = qc.reconstruct(capture, method="naive")
+    image = qc.show(linear, tonemap="global")
+    png = image._repr_png_()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    h, w, _ = linear.shape
+    assert int.from_bytes(png[16:20], "big") == w and int.from_bytes(png[20:24], "big") == h
+    # The pixels are display()'s: undo the filter-0 rows of the IDAT chunk.
+    start = png.index(b"IDAT") + 4
+    length = int.from_bytes(png[start - 8 : start - 4], "big")
+    raw = np.frombuffer(zlib.decompress(png[start : start + length]), np.uint8)
+    pixels = raw.reshape(h, 1 + w * 3)[:, 1:].reshape(h, w, 3)
+    np.testing.assert_array_equal(pixels, qc.display(linear, tonemap="global"))
+    assert repr(image) == f"quantacolor.Image({w}x{h} sRGB)"
+    with pytest.raises(ValueError, match="H, W, 3"):
+        qc.Image(np.zeros((4, 4), np.uint8))

@@ -9,6 +9,7 @@ the Rust core with the GIL released; ``progress=`` takes a callable ``(stage, do
 >>> linear = qc.reconstruct(cap)                 # float32 (H, W, 3), like the CLI's linear.npy
 >>> qc.psnr(linear, cap.ground_truth)
 >>> rgb8 = qc.display(linear, tonemap="global")  # uint8 (H, W, 3)
+>>> qc.show(linear)                              # inline in Jupyter
 
 Batch processing over a Dask cluster: :func:`quantacolor.batch.reconstruct_many`.
 """
@@ -34,6 +35,7 @@ from ._native import (
 
 __all__ = [
     "Capture",
+    "Image",
     "align",
     "denoise",
     "display",
@@ -41,6 +43,7 @@ __all__ = [
     "psnr",
     "reconstruct",
     "reconstruct_dir",
+    "show",
     "simulate",
     "ssim",
     "RECONSTRUCTION_FILES",
@@ -95,6 +98,53 @@ def ssim(
     :func:`evaluate`); ``space`` is ``"linear"`` or ``"srgb"``."""
     key = _pick(space, "ssim")
     return evaluate(estimate, truth, border, normalize_percentile)[key]
+
+
+class Image:
+    """An 8-bit sRGB image (H, W, 3) that Jupyter shows inline (``_repr_png_``); ``rgb8``
+    holds the array. Made by :func:`show`."""
+
+    def __init__(self, rgb8: np.ndarray):
+        rgb8 = np.ascontiguousarray(rgb8, dtype=np.uint8)
+        if rgb8.ndim != 3 or rgb8.shape[2] != 3:
+            raise ValueError(f"rgb8 must be (H, W, 3), got shape {rgb8.shape}")
+        self.rgb8 = rgb8
+
+    def _repr_png_(self) -> bytes:
+        return _encode_png(self.rgb8)
+
+    def __repr__(self) -> str:
+        h, w, _ = self.rgb8.shape
+        return f"quantacolor.Image({w}x{h} sRGB)"
+
+
+def show(linear: np.ndarray, **options: Any) -> Image:
+    """A reconstruction (linear RGB (H, W, 3), e.g. from :func:`reconstruct`) rendered for
+    display (``options`` are those of :func:`display`: ``tonemap``, ``mesopic``,
+    ``exposure``, ...) as an :class:`Image`, which a Jupyter cell shows inline."""
+    return Image(display(linear, **options))
+
+
+def _encode_png(rgb8: np.ndarray) -> bytes:
+    """PNG bytes of an (H, W, 3) uint8 image (8-bit RGB, no interlace, filter 0 per row)."""
+    import struct
+    import zlib
+
+    h, w, _ = rgb8.shape
+    rows = np.concatenate([np.zeros((h, 1), np.uint8), rgb8.reshape(h, w * 3)], axis=1)
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(
+            ">I", zlib.crc32(kind + data) & 0xFFFFFFFF
+        )
+
+    header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6))
+        + chunk(b"IEND", b"")
+    )
 
 
 def __getattr__(name: str) -> Any:
