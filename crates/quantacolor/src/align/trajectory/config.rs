@@ -28,10 +28,12 @@ pub struct TrajectoryConfig {
     /// last uses all). 1 uses every row throughout; 2 is a speed setting (0.68 of the stage's
     /// time, within ±0.16 dB, but lost up to 0.15 dB on sheared HDR captures; docs/tuning.md).
     pub early_row_step: usize, // 1
-    /// The scoring reads only the sites that land in the template's most informative 8 × 8
-    /// px blocks, those holding this fraction of its Fisher information about position
-    /// (flat regions add almost nothing); 1 reads every site.
-    pub informative_fraction: f64, // 0.9
+    /// The score reads only the sites that land in the template's most informative 8 × 8 px
+    /// blocks, those holding this share of its Fisher information about position (flat
+    /// regions add little); 1 reads every site. Below 1 it is a speed setting: 0.9 takes about
+    /// half the stage's time but lost 0.11 dB (0.20 dB after chroma-BM3D) on `bench
+    /// quality`'s kodim15 fast capture, so it is not the default (docs/tuning.md).
+    pub informative_fraction: f64, // 1
 }
 
 impl Default for TrajectoryConfig {
@@ -44,7 +46,7 @@ impl Default for TrajectoryConfig {
             acceleration_px: 0.05,
             margin_px: 48,
             early_row_step: 1,
-            informative_fraction: 0.9,
+            informative_fraction: 1.0,
         }
     }
 }

@@ -340,7 +340,7 @@ fn splats_agree_between_the_vector_and_scalar_paths() {
 fn validate_names_each_out_of_range_setting() {
     assert!(TrajectoryConfig::default().validate().is_ok());
     type Edit = fn(&mut TrajectoryConfig);
-    let cases: [(&str, Edit); 7] = [
+    let cases: [(&str, Edit); 10] = [
         ("knot_frames", |c| c.knot_frames = 0),
         ("iterations", |c| c.iterations = 0),
         ("early_row_step", |c| c.early_row_step = 0),
@@ -348,6 +348,11 @@ fn validate_names_each_out_of_range_setting() {
         ("sigmas_px", |c| c.sigmas_px[1] = f32::NAN),
         ("acceleration_px", |c| c.acceleration_px = 0.0),
         ("acceleration_px", |c| c.acceleration_px = f64::INFINITY),
+        ("informative_fraction", |c| c.informative_fraction = 0.0),
+        ("informative_fraction", |c| c.informative_fraction = 1.5),
+        ("informative_fraction", |c| {
+            c.informative_fraction = f64::NAN
+        }),
     ];
     for (key, edit) in cases {
         let mut config = TrajectoryConfig::default();
