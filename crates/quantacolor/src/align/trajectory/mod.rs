@@ -168,27 +168,31 @@ pub fn fit_photon_trajectory_over(
     let early_sites =
         (config.early_row_step > 1).then(|| sites.every_nth_row(config.early_row_step));
     let last_iteration = config.sigmas_px.len() * config.iterations;
+    let sites_of = |iteration: usize| match &early_sites {
+        Some(early) if iteration + 1 < last_iteration => early,
+        _ => &sites,
+    };
+    let span_frames = SpanFrames {
+        frames,
+        span: frame_span.clone(),
+    };
     let iterations = config
         .sigmas_px
         .iter()
         .flat_map(|&sigma| std::iter::repeat_n(sigma, config.iterations))
         .enumerate();
     for (iteration, sigma) in iterations {
-        let sites = match &early_sites {
-            Some(early) if iteration + 1 < last_iteration => early,
-            _ => &sites,
-        };
-        let span_frames = SpanFrames {
-            frames,
-            span: frame_span.clone(),
-        };
+        let sites = sites_of(iteration);
+        // The template is rebuilt every iteration: one template per level (rebuilt only when
+        // the level starts) lost 0.40 dB on `bench quality`'s kodim22 fast capture
+        // (docs/tuning.md).
         let template = build_template(&span_frames, sites, &trajectory, h, margin, isa);
         let level = template_level(&template, sigma);
         scoring_step(
             &span_frames,
             sites,
             &mut trajectory,
-            &ScoreTemplate::new(&level, isa),
+            &ScoreTemplate::informative(&level, isa, config.informative_fraction),
             config,
             half,
             margin as f64,

@@ -4,8 +4,8 @@
 use super::config::TrajectoryConfig;
 use super::knots::Trajectory;
 use super::likelihood::{
-    frame_score, frame_score_by_rows, row_sums_scalar, RowSums, ScoreTemplate, TemplatePlanes,
-    P_MIN,
+    frame_score, frame_score_by_rows, group_end_positions, row_sums_scalar, InformativeBlocks,
+    RowSampling, RowSums, ScoreTemplate, TemplatePlanes, P_MIN,
 };
 use super::sites::{chunk_bits, site_bit, RowMap, Sites};
 use super::solve::BandedSpd;
@@ -167,7 +167,7 @@ fn frame_score_equals_the_site_by_site_sums() {
                 t,
                 &camera,
                 margin as f64,
-                |row, y, columns, d| row_sums_scalar(&level, row, y, columns, d),
+                |row, y, columns, d| row_sums_scalar(&level, None, row, y, columns, d),
             );
             let score_on = |isa: Isa| {
                 let template = ScoreTemplate::new(&level, isa);
@@ -229,8 +229,19 @@ fn row_runs_sum_the_same_bits_as_the_transposed_loads() {
             let row = frames.raw_row(0, y);
             let masks = &sites.masks[y];
             let (runs, transposed) = (
-                row_sums(isa, &level, Some(&planes), row, y, masks, &map),
-                row_sums(isa, &level, None, row, y, masks, &map),
+                row_sums(
+                    isa,
+                    &level,
+                    &RowSampling {
+                        planes: Some(&planes),
+                        blocks: None,
+                    },
+                    row,
+                    y,
+                    masks,
+                    &map,
+                ),
+                row_sums(isa, &level, &RowSampling::default(), row, y, masks, &map),
             );
             let bits = |r: &RowSums| {
                 let mut v: Vec<u64> = r.score.iter().flatten().map(|x| x.to_bits()).collect();
@@ -329,7 +340,7 @@ fn splats_agree_between_the_vector_and_scalar_paths() {
 fn validate_names_each_out_of_range_setting() {
     assert!(TrajectoryConfig::default().validate().is_ok());
     type Edit = fn(&mut TrajectoryConfig);
-    let cases: [(&str, Edit); 7] = [
+    let cases: [(&str, Edit); 10] = [
         ("knot_frames", |c| c.knot_frames = 0),
         ("iterations", |c| c.iterations = 0),
         ("early_row_step", |c| c.early_row_step = 0),
@@ -337,6 +348,11 @@ fn validate_names_each_out_of_range_setting() {
         ("sigmas_px", |c| c.sigmas_px[1] = f32::NAN),
         ("acceleration_px", |c| c.acceleration_px = 0.0),
         ("acceleration_px", |c| c.acceleration_px = f64::INFINITY),
+        ("informative_fraction", |c| c.informative_fraction = 0.0),
+        ("informative_fraction", |c| c.informative_fraction = 1.5),
+        ("informative_fraction", |c| {
+            c.informative_fraction = f64::NAN
+        }),
     ];
     for (key, edit) in cases {
         let mut config = TrajectoryConfig::default();
@@ -406,4 +422,128 @@ fn knots_interpolate_linearly_and_end_at_the_last_frame() {
         assert!((tr.params_at(t as f64)[0] - 2.0 * t as f64).abs() < 1e-12);
     }
     assert!((tr.params_at(5.5)[0] - 11.0).abs() < 1e-12);
+}
+
+/// A template textured in its left half only: the informative blocks lie there, hold the
+/// asked fraction of the information, and a fraction of 1 keeps every site.
+#[test]
+fn informative_blocks_hold_the_asked_fraction_where_the_texture_is() {
+    let (h, w) = (48, 64);
+    let template = Array2::from_shape_fn((h, w), |(y, x)| {
+        let texture = if x < w / 2 {
+            0.2 * ((y as f32 / 2.0).sin() * (x as f32 / 3.0).cos())
+        } else {
+            0.0
+        };
+        0.3 + texture
+    });
+    let level = template_level(&template, 0.8);
+    assert!(InformativeBlocks::new(&level, 1.0).is_none());
+    let blocks = InformativeBlocks::new(&level, 0.9).expect("a fraction below 1");
+    let kept = blocks.kept_fraction();
+    assert!(kept > 0.1 && kept <= 0.5 + 1e-9, "kept {kept}");
+    // Blocks right of the texture (beyond the blur's reach) are dropped.
+    for by in 0..blocks.height {
+        for bx in (w / 2 + 8) / 8..blocks.width {
+            assert_eq!(blocks.kept[by * blocks.width + bx], 0, "block ({by}, {bx})");
+        }
+    }
+}
+
+/// With informative blocks, the generic and AVX2 scores both equal the site-by-site sums
+/// over the groups that `keeps_group` keeps (from the f32 positions of their end columns),
+/// under still, turned and far-moved cameras; and the AVX2 kernel's eight-group decisions are
+/// `keeps_group`'s, bit for bit.
+#[test]
+fn informative_blocks_select_the_same_groups_on_every_path() {
+    let (h, w, margin) = (40, 72, 6usize);
+    let (_, frames, sites) = random_capture([2, h, w], 0.3, 9, |y, x| (x + 2 * y) % 3 != 0);
+    let template = Array2::from_shape_fn((h + 2 * margin, w + 2 * margin), |(y, x)| {
+        let bump = (-(((y as f32 - 20.0).powi(2) + (x as f32 - 30.0).powi(2)) / 60.0)).exp();
+        0.3 + 0.25 * bump * (x as f32 / 2.0).sin()
+    });
+    let level = template_level(&template, 0.8);
+    let packed = matches!(frames.layout(), FrameLayout::Packed);
+    let blocks = InformativeBlocks::new(&level, 0.8).expect("a fraction below 1");
+    for camera in [
+        AffineMotion::default(),
+        AffineMotion {
+            b: [1.3, -2.1],
+            m: [[0.01, -0.02], [0.015, -0.005]],
+        },
+        AffineMotion {
+            b: [9.0, 4.5],
+            m: [[0.0, 0.03], [-0.03, 0.0]],
+        },
+    ] {
+        let (mut kept_groups, mut dropped_groups) = (0, 0);
+        for y in 0..h {
+            let map = RowMap::new(&sites, &camera, y, packed, margin as f64);
+            let groups = w.div_ceil(8);
+            let keeps: Vec<bool> = (0..groups)
+                .map(|k| blocks.keeps_group(group_end_positions(&map, y, k)))
+                .collect();
+            kept_groups += keeps.iter().filter(|&&k| k).count();
+            dropped_groups += keeps.iter().filter(|&&k| !k).count();
+            #[cfg(target_arch = "x86_64")]
+            if Isa::current().avx2_fma() {
+                for k in (0..groups).step_by(8) {
+                    // SAFETY: the CPU has AVX2 and FMA (checked above).
+                    let bits = unsafe { super::x86::kept_groups8(&blocks, y, k, &map) };
+                    for l in 0..8.min(groups - k) {
+                        assert_eq!(bits >> l & 1 == 1, keeps[k + l], "row {y} group {}", k + l);
+                    }
+                }
+            }
+        }
+        assert!(
+            kept_groups > 0 && dropped_groups > 0,
+            "{kept_groups} {dropped_groups}"
+        );
+        for t in 0..2 {
+            // The reference: site by site over the kept groups only.
+            let kept_sites = Sites::new(
+                w,
+                (0..h)
+                    .map(|y| {
+                        let map = RowMap::new(&sites, &camera, y, packed, margin as f64);
+                        sites.columns[y]
+                            .iter()
+                            .copied()
+                            .filter(|&x| {
+                                let k = x as usize / 8;
+                                blocks.keeps_group(group_end_positions(&map, y, k))
+                            })
+                            .collect()
+                    })
+                    .collect(),
+                sites.centre,
+            );
+            let (g_ref, info_ref) =
+                frame_score_reference(&frames, &kept_sites, t, &camera, &level, margin as f64);
+            let scale = info_ref
+                .iter()
+                .flatten()
+                .fold(0.0f64, |m, v| m.max(v.abs()));
+            let g_scale = g_ref.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            for (isa, tolerance) in [(Isa::generic(), 1e-10), (Isa::current(), 1e-5)] {
+                let template = ScoreTemplate::informative(&level, isa, 0.8);
+                let (g, info) = frame_score(&frames, &sites, t, &camera, &template, margin as f64);
+                for a in 0..6 {
+                    assert!(
+                        (g[a] - g_ref[a]).abs() <= tolerance * g_scale,
+                        "{g:?} vs {g_ref:?}"
+                    );
+                    for b in 0..6 {
+                        assert!(
+                            (info[a][b] - info_ref[a][b]).abs() <= tolerance * scale,
+                            "{a} {b}: {} vs {}",
+                            info[a][b],
+                            info_ref[a][b]
+                        );
+                    }
+                }
+            }
+        }
+    }
 }

@@ -2,7 +2,9 @@
 //! portable reference is [`Splats::add_row`]) and the score's row sums (reference
 //! [`super::likelihood::row_sums_scalar`]). Their safe entry points take an [`Isa`].
 
-use super::likelihood::{row_sums_avx2_fits, RowSums, TemplatePlanes, P_MIN};
+use super::likelihood::{
+    row_sums_avx2_fits, InformativeBlocks, RowSampling, RowSums, TemplatePlanes, BLOCK, P_MIN,
+};
 use super::sites::{chunk_bits, RowMap};
 use super::template::{splat_at, Splats};
 use crate::align::refine::{inside_avx2, TemplateLevel};
@@ -34,8 +36,9 @@ pub(super) fn splat_row(
     unsafe { splat_row_avx2(exposure, sum, (h, w), row, y, masks, map) };
 }
 
-/// One row's [`RowSums`] eight columns at a time ([`row_sums_avx2`]); `planes`, when given,
-/// must be `level`'s ([`TemplatePlanes::new`]).
+/// One row's [`RowSums`] eight columns at a time ([`row_sums_avx2`]); `sampling.planes`, when
+/// given, must be `level`'s ([`TemplatePlanes::new`]); with `sampling.blocks`, only the groups
+/// they keep are summed.
 ///
 /// # Panics
 /// If `isa` lacks AVX2 or FMA, the template's float indices do not fit an i32, or `planes`
@@ -43,13 +46,14 @@ pub(super) fn splat_row(
 pub(super) fn row_sums(
     isa: Isa,
     level: &TemplateLevel,
-    planes: Option<&TemplatePlanes>,
+    sampling: &RowSampling<'_>,
     row: &[u8],
     y: usize,
     masks: &[u8],
     map: &RowMap,
 ) -> RowSums {
     let (h, w) = level.dims();
+    let planes = sampling.planes;
     let planes_fit =
         planes.is_none_or(|p| p.width == w && p.planes.iter().all(|q| q.len() == h * w));
     assert!(
@@ -58,7 +62,7 @@ pub(super) fn row_sums(
     );
     // SAFETY: an `Isa` never holds a feature the CPU lacks, so the CPU has AVX2 and FMA; the
     // float indices fit an i32 and the planes are the level's size (asserted above).
-    unsafe { row_sums_avx2(level, planes, row, y, masks, map) }
+    unsafe { row_sums_avx2(level, sampling, row, y, masks, map) }
 }
 
 /// The pending ninth pixels of [`splat_row_avx2`]'s last row run: (index of the top one,
@@ -336,18 +340,27 @@ unsafe fn positions_avx2(y: usize, x: __m256, map: &RowMap) -> (__m256, __m256, 
 #[target_feature(enable = "avx2,fma")]
 unsafe fn row_sums_avx2(
     level: &TemplateLevel,
-    planes: Option<&TemplatePlanes>,
+    sampling: &RowSampling<'_>,
     row: &[u8],
     y: usize,
     masks: &[u8],
     map: &RowMap,
 ) -> RowSums {
+    let (planes, blocks) = (sampling.planes, sampling.blocks);
+    // Bit l: whether group 8·⌊k/8⌋ + l is scored (all without blocks).
+    let mut kept = 0xFFu32;
+    let mut summed = false;
     let w = level.dims().1;
     let one = _mm256_set1_ps(1.0);
     // Accumulators: score (y, 1), (y, r_x), (x, 1), (x, r_x); weight (yy, yx, xx) × (1, r_x, r_x²).
     let mut acc = [_mm256_setzero_ps(); 13];
     for (k, &mask) in masks.iter().enumerate() {
-        if mask == 0 {
+        if let Some(blocks) = blocks {
+            if k % 8 == 0 {
+                kept = kept_groups8(blocks, y, k, map);
+            }
+        }
+        if mask == 0 || kept >> (k % 8) & 1 == 0 {
             continue;
         }
         let bit = _mm256_and_ps(lane_mask_avx2(chunk_bits(row, k, map.packed)), one);
@@ -363,8 +376,70 @@ unsafe fn row_sums_avx2(
             sample_transposed(level, &points)
         };
         accumulate(&mut acc, samples, bit, &points);
+        summed = true;
     }
-    row_sums_of(&acc)
+    // A row whose groups were all skipped sums to zero, as `row_sums_of` would make it.
+    if summed {
+        row_sums_of(&acc)
+    } else {
+        RowSums::default()
+    }
+}
+
+/// Which of the groups k..k + 8 of row `y` [`InformativeBlocks::keeps_group`] keeps, bit l
+/// for group k + l, eight groups at a time: the positions of each group's columns 8(k + l) and
+/// 8(k + l) + 7 are [`positions_avx2`]'s lanes, the same bits as
+/// [`super::likelihood::group_end_positions`].
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+pub(super) unsafe fn kept_groups8(
+    blocks: &InformativeBlocks,
+    y: usize,
+    k: usize,
+    map: &RowMap,
+) -> u32 {
+    let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let groups = _mm256_add_epi32(_mm256_set1_epi32(k as i32), lane);
+    let first = _mm256_cvtepi32_ps(_mm256_slli_epi32::<3>(groups));
+    let last = _mm256_add_ps(first, _mm256_set1_ps(7.0));
+    let (_, py0, px0) = positions_avx2(y, first, map);
+    let (_, py7, px7) = positions_avx2(y, last, map);
+    kept_lanes(blocks, py0, px0) | kept_lanes(blocks, py7, px7)
+}
+
+/// Bit l set where template position (`py`, `px`) lane l lies in a kept block of `blocks`.
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn kept_lanes(blocks: &InformativeBlocks, py: __m256, px: __m256) -> u32 {
+    let (height, width) = blocks.limits();
+    let zero = _mm256_setzero_ps();
+    let inside = _mm256_and_ps(
+        _mm256_and_ps(
+            _mm256_cmp_ps::<_CMP_GE_OQ>(py, zero),
+            _mm256_cmp_ps::<_CMP_GE_OQ>(px, zero),
+        ),
+        _mm256_and_ps(
+            _mm256_cmp_ps::<_CMP_LT_OQ>(py, _mm256_set1_ps(height)),
+            _mm256_cmp_ps::<_CMP_LT_OQ>(px, _mm256_set1_ps(width)),
+        ),
+    );
+    // Lanes outside read block 0; truncation is the floor inside (non-negative positions).
+    let (py, px) = (_mm256_and_ps(py, inside), _mm256_and_ps(px, inside));
+    let shift = BLOCK.trailing_zeros() as i32;
+    let by = _mm256_srl_epi32(_mm256_cvttps_epi32(py), _mm_cvtsi32_si128(shift));
+    let bx = _mm256_srl_epi32(_mm256_cvttps_epi32(px), _mm_cvtsi32_si128(shift));
+    let index = _mm256_add_epi32(
+        _mm256_mullo_epi32(by, _mm256_set1_epi32(blocks.width as i32)),
+        bx,
+    );
+    let kept = _mm256_i32gather_epi32::<4>(blocks.kept.as_ptr(), index);
+    _mm256_movemask_ps(_mm256_and_ps(_mm256_castsi256_ps(kept), inside)) as u32
 }
 
 /// Where the eight sites of one group of [`row_sums_avx2`] sample the template.
