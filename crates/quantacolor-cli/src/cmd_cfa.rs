@@ -23,7 +23,12 @@ pub enum CfaCommand {
     Generate(GenerateArgs),
     /// Luminance/chrominance spectra and aliasing scores of one CFA (Fig. 9).
     Analyze(AnalyzeArgs),
-    /// Side-by-side sheet of every pattern with its spectrum and scores (Fig. 8/9).
+    /// Side-by-side sheet of every pattern with its spectrum and scores (Fig. 8/9). The
+    /// scores, all of the chrominance spectrum: baseband = share of chroma
+    /// energy below 1/8 cycle/pixel (overlaps the image's luminance); peak = share in the top
+    /// 0.1 % of frequency bins (1 for periodic patterns: moiré); max/mean = largest bin over
+    /// the mean bin; chroma = mean chrominance power per pixel (how much colour is sampled).
+    /// Lower baseband, peak and max/mean alias less; higher chroma samples more colour.
     Compare(CompareArgs),
 }
 
@@ -126,6 +131,12 @@ pub fn run(args: &CfaArgs) -> Result<()> {
                     e.name, s.baseband_fraction, s.peak_fraction, s.peak_to_mean, s.chroma_power
                 );
             }
+            crate::output::say(
+                "columns (chrominance spectrum): baseband = energy share below 1/8 cycle/pixel, \
+                 peak = share in the top 0.1 % of bins (1 = periodic, moiré), max/mean = largest \
+                 bin over the mean, chroma = mean chrominance power per pixel; see `cfa compare \
+                 --help`",
+            );
             crate::output::say(&format!("wrote {}", c.out.join("compare.png").display()));
         }
     }
