@@ -17,9 +17,51 @@ use quantacolor::display::{MesopicConfig, RenderOptions, ToneMap};
 use quantacolor::pipeline::{Method, ReconstructConfig, ReconstructOverrides};
 use std::path::PathBuf;
 
-/// Reconstructs `capture` into linear RGB, float32 (H·scale, W·scale, 3), in mean detections
-/// per binary frame of an R, G or B pixel with dark counts removed. Same result as the CLI's
-/// `linear.npy` for the same inputs and options.
+/// Reconstructs a capture into one linear RGB image (Ma et al. 2023, §4).
+///
+/// The same result as the CLI's ``quantacolor reconstruct`` ``linear.npy`` for the same inputs
+/// and options.
+///
+/// Parameters
+/// ----------
+/// capture : Capture
+///     From ``Capture.open``, ``Capture.from_arrays`` or ``simulate``.
+/// method : {"burst", "naive"}, optional
+///     "burst" (default): align, jointly demosaic and merge. "naive": the plain sum of the
+///     frames (the paper's Table 2 baseline), not denoised unless ``denoise`` is given.
+/// denoise : {"chroma-bm3d", "bm3d", "none"}, optional
+///     Default "chroma-bm3d" (BM3D in the W-weighted YCbCr, chroma filtered harder, §4.3).
+/// scale : int, optional
+///     Output grid scale, 1 (default) to 4 (2 = super-resolution); burst only.
+/// reference_frame : int, optional
+///     Frame the image is registered to (default: the capture's, else T // 2).
+/// config : dict, optional
+///     Any keys of ``report.toml``'s ``[config]`` (every stage's settings); the keyword
+///     options override it.
+/// sigma_y, sigma_c : float, optional
+///     Denoising σ of luma and chroma in the variance-stabilised domain (default: from the
+///     merge's noise model).
+/// block_size : int, optional
+///     Frames per temporal block for alignment (default: from T and the light level).
+/// max_sub_block_motion : float, optional
+///     Largest camera motion inside one sub-block, px (default 0.35).
+/// window : int, optional
+///     Naive method: frames centred on the reference frame (default: all).
+/// progress : callable, optional
+///     Called as ``progress(stage, done, total)`` while stages run.
+///
+/// Returns
+/// -------
+/// numpy.ndarray
+///     float32 (H·scale, W·scale, 3): mean photon detections per binary frame of an R, G or B
+///     pixel, dark counts removed; never negative.
+///
+/// Raises
+/// ------
+/// TypeError
+///     An argument of the wrong type.
+/// ValueError
+///     An option out of range or unknown (the message names it).
 #[pyfunction]
 #[pyo3(signature = (capture, method=None, denoise=None, scale=None, reference_frame=None,
                     config=None, *, sigma_y=None, sigma_c=None, block_size=None,

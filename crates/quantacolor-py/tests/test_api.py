@@ -339,3 +339,11 @@ def test_show_renders_a_png_for_jupyter(capture):
     assert repr(image) == f"quantacolor.Image({w}x{h} sRGB)"
     with pytest.raises(ValueError, match="H, W, 3"):
         qc.Image(np.zeros((4, 4), np.uint8))
+
+
+def test_reconstruct_explains_itself():
+    """help(quantacolor.reconstruct) lists the options, their allowed values and what comes back."""
+    doc = qc.reconstruct.__doc__
+    for text in ["Parameters", "Returns", "Raises", '"burst"', '"naive"', '"chroma-bm3d"',
+                 "float32", "progress"]:
+        assert text in doc, text
