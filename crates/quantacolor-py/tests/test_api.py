@@ -180,6 +180,9 @@ def test_progress_callback(capture):
     qc.reconstruct(capture, progress=lambda stage, done, total: calls.append((stage, done, total)))
     assert calls, "no progress reported"
     assert all(isinstance(s, str) and 0 <= d <= t for s, d, t in calls)
+    # Through the last stage: the denoiser reports too, up to its total.
+    denoise = [(d, t) for s, d, t in calls if s == "denoise"]
+    assert denoise and denoise[-1][0] == denoise[-1][1], calls[-5:]
 
     def boom(stage, done, total):
         raise KeyError("stop")

@@ -5,7 +5,8 @@
 use crate::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use crate::capture::Capture;
 use crate::denoise::chroma::{
-    denoise_linear, DenoiseConfig, DenoiseInput, DenoiseMethod, DenoiseReport, MergeNoise,
+    denoise_linear_with_progress, DenoiseConfig, DenoiseInput, DenoiseMethod, DenoiseReport,
+    MergeNoise,
 };
 use crate::error::{Error, Result};
 use crate::naive::{reconstruct_naive, NaiveConfig};
@@ -165,15 +166,22 @@ fn reconstruct_on_pool(
         }
     };
 
-    denoise_and_finish(
-        capture,
-        config,
-        reference_frame,
+    let merged = Merged {
         linear,
         frames_used,
         burst,
         timings,
-    )
+    };
+    denoise_and_finish(capture, config, reference_frame, merged, progress)
+}
+
+/// A merged image before denoising: the merge's `linear` RGB from `frames_used` frames, the
+/// burst reconstruction it came from (burst method) and the stage timings so far.
+pub(crate) struct Merged {
+    pub(crate) linear: Array3<f32>,
+    pub(crate) frames_used: usize,
+    pub(crate) burst: Option<BurstReconstruction>,
+    pub(crate) timings: Vec<StageTiming>,
 }
 
 /// The last stage of a reconstruction, chrominance-focused denoising (paper §4.3), of the
@@ -183,14 +191,19 @@ pub(crate) fn denoise_and_finish(
     capture: &Capture,
     config: &ReconstructConfig,
     reference_frame: usize,
-    linear: Array3<f32>,
-    frames_used: usize,
-    burst: Option<BurstReconstruction>,
-    mut timings: Vec<StageTiming>,
+    merged: Merged,
+    progress: &dyn Progress,
 ) -> Result<Reconstruction> {
+    let Merged {
+        linear,
+        frames_used,
+        burst,
+        mut timings,
+    } = merged;
     let start = Instant::now();
     let input = denoise_input(capture, burst.as_ref(), frames_used);
-    let (mut denoised, denoise) = denoise_linear(linear.view(), &input, &config.denoise)?;
+    let (mut denoised, denoise) =
+        denoise_linear_with_progress(linear.view(), &input, &config.denoise, progress)?;
     // A flux is never negative. Inside the merge a channel that saw nothing keeps its unbiased
     // MLE −d (paper Eq. 6, unclamped, so that averages stay unbiased); the output does not.
     denoised.mapv_inplace(|v| v.max(0.0));

@@ -22,6 +22,7 @@ use crate::cpu::Isa;
 use crate::error::{Error, Result};
 use crate::filters::{bilinear, box_downsample};
 use crate::model::PixelModel;
+use crate::progress::{Progress, Silent};
 use crate::rgbw::combine_rgbw_jacobian;
 use ndarray::{Array2, Array3, ArrayView3, Axis, Zip};
 use rayon::prelude::*;
@@ -304,8 +305,19 @@ pub fn denoise_linear(
     input: &DenoiseInput,
     config: &DenoiseConfig,
 ) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
+    denoise_linear_with_progress(linear, input, config, &Silent)
+}
+
+/// [`denoise_linear`], reporting to `progress` as the stage "denoise" in pixels of BM3D work
+/// (each scale's planes, finest first).
+pub fn denoise_linear_with_progress(
+    linear: ArrayView3<f32>,
+    input: &DenoiseInput,
+    config: &DenoiseConfig,
+    progress: &dyn Progress,
+) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
     let isa = Isa::current();
-    crate::cpu::on_pool(|| denoise_on_pool(linear, input, config, isa))
+    crate::cpu::on_pool(|| denoise_on_pool(linear, input, config, isa, progress))
 }
 
 fn denoise_on_pool(
@@ -313,6 +325,7 @@ fn denoise_on_pool(
     input: &DenoiseInput,
     config: &DenoiseConfig,
     isa: Isa,
+    progress: &dyn Progress,
 ) -> Result<(Array3<f32>, Option<DenoiseReport>)> {
     let (h, w, c) = linear.dim();
     if c != 3 {
@@ -344,6 +357,10 @@ fn denoise_on_pool(
         _ => 0,
     };
     let bm3d = config.bm3d_config();
+    progress.start(
+        "denoise",
+        scale_pixels(h, w, chroma_scales, 4 * bm3d.block_size),
+    );
     let mut denoised = multiscale(
         Scale {
             planes: planes.view(),
@@ -356,9 +373,11 @@ fn denoise_on_pool(
             coarse_sigma_factor: config.coarse_sigma_factor,
             config: &bm3d,
             isa,
+            progress,
         },
         &mut Bm3dBuffers::default(),
     )?;
+    progress.finish();
     denoised.par_mapv_inplace(|v| v / scale);
     Ok((
         unstabilise(denoised.view(), &transform, &stabiliser, (h, w)),
@@ -444,6 +463,7 @@ pub fn bm3d_multiscale(
             coarse_sigma_factor,
             config,
             isa: Isa::current(),
+            progress: &Silent,
         },
         &mut Bm3dBuffers::default(),
     )
@@ -465,6 +485,22 @@ struct Multiscale<'a> {
     config: &'a Bm3dConfig,
     /// The instruction set, taken once at the entry.
     isa: Isa,
+    /// Advanced by each scale's pixels when its BM3D is done.
+    progress: &'a dyn Progress,
+}
+
+/// Pixels of every scale [`multiscale`] denoises: the full `h` x `w`, then its 2x2 means while
+/// `scales` remain and both sides stay at least `min_side` (the units of its progress).
+fn scale_pixels(h: usize, w: usize, scales: usize, min_side: usize) -> u64 {
+    let (mut h, mut w, mut total) = (h, w, (h * w) as u64);
+    for _ in 0..scales {
+        if h / 2 < min_side || w / 2 < min_side {
+            break;
+        }
+        (h, w) = (h / 2, w / 2);
+        total += (h * w) as u64;
+    }
+    total
 }
 
 /// [`bm3d_multiscale`]; the coarse scales use only their chroma, so their Y is only the
@@ -482,6 +518,7 @@ fn multiscale(scale: Scale, shared: &Multiscale, buffers: &mut Bm3dBuffers) -> R
         coarse_sigma_factor,
         config,
         isa,
+        progress,
     } = *shared;
     let mut fine = bm3d_planes(
         planes,
@@ -493,6 +530,7 @@ fn multiscale(scale: Scale, shared: &Multiscale, buffers: &mut Bm3dBuffers) -> R
         isa,
     )?;
     let (_, h, w) = planes.dim();
+    progress.advance((h * w) as u64);
     let min_side = 4 * config.block_size;
     if scales == 0 || h / 2 < min_side || w / 2 < min_side {
         return Ok(fine);

@@ -47,7 +47,8 @@ use crate::burst::{
 use crate::capture::Capture;
 use crate::error::{Error, Result};
 use crate::pipeline::{
-    burst_config_for, denoise_and_finish, reconstruct, Method, ReconstructConfig, Reconstruction,
+    burst_config_for, denoise_and_finish, reconstruct, Merged, Method, ReconstructConfig,
+    Reconstruction,
 };
 use crate::progress::Progress;
 use crate::timing::{Laps, StageTiming};
@@ -338,15 +339,18 @@ impl<'a> VideoReconstructor<'a> {
             &mut laps,
             progress,
         )?;
-        let timings = burst.timings.clone();
+        let merged = Merged {
+            linear: burst.merged.linear.clone(),
+            frames_used: t,
+            timings: burst.timings.clone(),
+            burst: Some(burst),
+        };
         denoise_and_finish(
             self.capture,
             &self.config,
             reference_frame,
-            burst.merged.linear.clone(),
-            t,
-            Some(burst),
-            timings,
+            merged,
+            progress,
         )
     }
 }

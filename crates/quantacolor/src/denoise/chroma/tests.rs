@@ -150,3 +150,45 @@ fn none_is_the_identity_and_bad_input_is_an_error() {
     let two = Array3::<f32>::zeros((16, 16, 2));
     assert!(denoise_linear(two.view(), &input, &DenoiseConfig::default()).is_err());
 }
+
+/// The denoiser reports one stage, "denoise", whose advances add up to its total (each scale's
+/// pixels), and the result is the silent run's.
+#[test]
+fn progress_reaches_the_total_of_every_scale() {
+    use std::sync::Mutex;
+    #[derive(Default)]
+    struct Record(Mutex<(Vec<(String, u64)>, u64, usize)>);
+    impl Progress for Record {
+        fn start(&self, label: &str, total: u64) {
+            self.0.lock().unwrap().0.push((label.to_string(), total));
+        }
+        fn advance(&self, n: u64) {
+            self.0.lock().unwrap().1 += n;
+        }
+        fn finish(&self) {
+            self.0.lock().unwrap().2 += 1;
+        }
+    }
+    let img = Array3::<f32>::from_shape_fn((96, 128, 3), |(y, x, c)| {
+        0.05 + 0.01 * ((y * 7 + x * 3 + c * 11) % 13) as f32
+    });
+    let input = DenoiseInput {
+        noise: None,
+        frames: 200.0,
+        model: PixelModel::binary(0.0),
+        w_weights: [1.0; 3],
+    };
+    let config = DenoiseConfig::default();
+    let record = Record::default();
+    let (out, _) = denoise_linear_with_progress(img.view(), &input, &config, &record).unwrap();
+    let (starts, done, finished) = record.0.into_inner().unwrap();
+    assert_eq!(starts.len(), 1, "{starts:?}");
+    assert_eq!(starts[0].0, "denoise");
+    assert_eq!(done, starts[0].1);
+    // 96x128 with 8x8 blocks: the full scale and one 48x64 scale (24x32 is under 4 blocks).
+    assert!(config.chroma_scales >= 1);
+    assert_eq!(done, (96 * 128 + 48 * 64) as u64);
+    assert_eq!(finished, 1);
+    let (silent, _) = denoise_linear(img.view(), &input, &config).unwrap();
+    assert_eq!(out, silent);
+}
