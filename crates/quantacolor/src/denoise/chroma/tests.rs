@@ -156,17 +156,28 @@ fn none_is_the_identity_and_bad_input_is_an_error() {
 #[test]
 fn progress_reaches_the_total_of_every_scale() {
     use std::sync::Mutex;
+    /// Stages started (label, total), units advanced, finishes.
     #[derive(Default)]
-    struct Record(Mutex<(Vec<(String, u64)>, u64, usize)>);
+    struct Calls {
+        starts: Vec<(String, u64)>,
+        done: u64,
+        finished: usize,
+    }
+    #[derive(Default)]
+    struct Record(Mutex<Calls>);
     impl Progress for Record {
         fn start(&self, label: &str, total: u64) {
-            self.0.lock().unwrap().0.push((label.to_string(), total));
+            self.0
+                .lock()
+                .unwrap()
+                .starts
+                .push((label.to_string(), total));
         }
         fn advance(&self, n: u64) {
-            self.0.lock().unwrap().1 += n;
+            self.0.lock().unwrap().done += n;
         }
         fn finish(&self) {
-            self.0.lock().unwrap().2 += 1;
+            self.0.lock().unwrap().finished += 1;
         }
     }
     let img = Array3::<f32>::from_shape_fn((96, 128, 3), |(y, x, c)| {
@@ -181,7 +192,11 @@ fn progress_reaches_the_total_of_every_scale() {
     let config = DenoiseConfig::default();
     let record = Record::default();
     let (out, _) = denoise_linear_with_progress(img.view(), &input, &config, &record).unwrap();
-    let (starts, done, finished) = record.0.into_inner().unwrap();
+    let Calls {
+        starts,
+        done,
+        finished,
+    } = record.0.into_inner().unwrap();
     assert_eq!(starts.len(), 1, "{starts:?}");
     assert_eq!(starts[0].0, "denoise");
     assert_eq!(done, starts[0].1);
