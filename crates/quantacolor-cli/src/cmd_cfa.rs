@@ -66,6 +66,9 @@ pub struct AnalyzeArgs {
     /// Output directory (spectra PNGs, analysis.toml, radial.csv).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 #[derive(Debug, Args)]
@@ -73,6 +76,9 @@ pub struct CompareArgs {
     /// Output directory (compare.png, compare.csv).
     #[arg(long)]
     pub out: PathBuf,
+    /// Replace the files of an existing, non-empty output directory (refused otherwise).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Analysis size of the generated patterns, WIDTHxHEIGHT.
     #[arg(long, default_value = "256x256")]
     pub size: String,
@@ -100,6 +106,7 @@ pub fn run(args: &CfaArgs) -> Result<()> {
             );
         }
         CfaCommand::Analyze(a) => {
+            crate::output::check_out_dir(&a.out, "--out", a.overwrite)?;
             let (label, cfa) = build(&a.pattern)?;
             let analysis = write_analysis(&a.out, &label, &cfa, &AnalysisConfig::default())?;
             let s = analysis.scores;
@@ -113,6 +120,7 @@ pub fn run(args: &CfaArgs) -> Result<()> {
             );
         }
         CfaCommand::Compare(c) => {
+            crate::output::check_out_dir(&c.out, "--out", c.overwrite)?;
             let (width, height) = parse_size(&c.size)?;
             let config = SheetConfig {
                 size: (height, width),

@@ -767,6 +767,10 @@ fn existing_outputs_are_kept_unless_overwrite() {
         &["align", c, "--out", flow.to_str().unwrap()],
         "--overwrite",
     );
+    expect_failure(
+        &["cfa", "compare", "--out", flow.to_str().unwrap()],
+        "--overwrite",
+    );
     let file = tmp.path().join("file");
     std::fs::write(&file, b"x").unwrap();
     expect_failure(
