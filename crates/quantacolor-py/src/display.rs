@@ -14,10 +14,37 @@ use quantacolor::display::{
 };
 use std::path::PathBuf;
 
-/// Renders a linear image to 8-bit sRGB, uint8 (H, W, 3) (paper §7; `quantacolor display`):
-/// colour matrix -> noise-aware low-light view (`mesopic` = L0 or "auto", supplement Eq. 9–10;
-/// a fixed L0 needs `frames`, the number of frames merged) -> exposure (`None` = automatic) ->
-/// tone map (`global`, `mantiuk06` or `none`) -> sRGB.
+/// Renders a linear image for display (paper §7; ``quantacolor display``).
+///
+/// Colour matrix, then the noise-aware low-light view, exposure, tone map and sRGB encoding.
+///
+/// Parameters
+/// ----------
+/// linear : numpy.ndarray
+///     Linear RGB (H, W, 3), e.g. from ``reconstruct``.
+/// tonemap : {"global", "mantiuk06", "none"}
+///     Tone map (default "global").
+/// mesopic : float or "auto", optional
+///     Noise-aware low-light view (supplement Eq. 9–10): the offset L0 in decades of
+///     detections, or "auto"; a number needs ``frames``. Default: off.
+/// exposure : float, optional
+///     Exposure scale (default: automatic).
+/// w_weights : (float, float, float), optional
+///     W = wR·R + wG·G + wB·B of the capture (default (1, 1, 1)).
+/// ccm : path or array, optional
+///     Colour matrix: a ``calibrate-color`` TOML file or a (3, 3) / (3, 4) matrix.
+/// frames : float, optional
+///     Frames merged into ``linear`` (for ``mesopic``).
+///
+/// Returns
+/// -------
+/// numpy.ndarray
+///     uint8 (H, W, 3) sRGB; ``quantacolor.show`` wraps it for Jupyter.
+///
+/// Raises
+/// ------
+/// TypeError, ValueError
+///     A bad argument (the message names it).
 #[pyfunction]
 #[pyo3(signature = (linear, tonemap="global", mesopic=None, exposure=None, *, w_weights=None,
                     ccm=None, frames=None))]

@@ -13,9 +13,50 @@ use quantacolor::simulate::{FluxSpec, MotionConfig, Scene, SensorKind, Simulatio
 use std::path::PathBuf;
 use std::sync::Arc;
 
-/// Simulates a capture (`quantacolor simulate`, same names and defaults): `size` is
-/// (width, height). Writes the capture directory to `out` when given. Returns a Capture with
-/// ground truth.
+/// Simulates a colour single-photon capture (paper Table 1; ``quantacolor simulate``, same
+/// names and defaults).
+///
+/// Parameters
+/// ----------
+/// scene : str
+///     An image file (PNG/JPEG sRGB, EXR linear) or "builtin:chart" (default),
+///     "builtin:chart-hdr" or "builtin:flat".
+/// motion : {"handheld", "static", "pan", "fast-handheld", "circular", "object"}
+///     Camera (or object) motion; default "handheld".
+/// frames : int
+///     Number of binary frames T (default 512).
+/// flux : float
+///     Mean detections per frame of a W pixel over the image (default 0.1).
+/// cfa : str
+///     Colour filter array: "rgbw-75-regular" (default), "bayer", "rgbw-75-bluenoise", ...
+/// sensor : {"spad", "jot", "cmos"}
+///     Sensor model (default "spad").
+/// seed : int
+///     Seed of motion, dark counts and photon noise (default 1): same seed, same bytes.
+/// size : (int, int)
+///     (width, height) in pixels (default (496, 254)).
+/// cfa_seed : int
+///     Seed of pseudorandom CFA patterns (default 0).
+/// hot_fraction : float
+///     Fraction of hot pixels (default 0.02).
+/// reference_frame : int, optional
+///     Reference frame (default T // 2).
+/// out : path, optional
+///     Also write the capture directory there (refused if it holds something other than a
+///     capture).
+/// progress : callable, optional
+///     Called as ``progress(stage, done, total)``.
+///
+/// Returns
+/// -------
+/// Capture
+///     The capture, with ``ground_truth`` (float32 (H, W, 3), λ of R, G, B at the reference
+///     frame).
+///
+/// Raises
+/// ------
+/// TypeError, ValueError
+///     A bad argument (the message names it); OSError when ``out`` cannot be written.
 #[pyfunction]
 #[pyo3(signature = (scene="builtin:chart", motion="handheld", frames=512, flux=0.1,
                     cfa="rgbw-75-regular", sensor="spad", seed=1, size=(496, 254), *,

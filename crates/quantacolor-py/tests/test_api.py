@@ -350,3 +350,7 @@ def test_reconstruct_explains_itself():
     for text in ["Parameters", "Returns", "Raises", '"burst"', '"naive"', '"chroma-bm3d"',
                  "float32", "progress"]:
         assert text in doc, text
+    for function, texts in [(qc.simulate, ['"fast-handheld"', '"jot"', "Returns"]),
+                            (qc.display, ['"mantiuk06"', "uint8", "Returns"])]:
+        for text in ["Parameters", *texts]:
+            assert text in function.__doc__, (function.__name__, text)
