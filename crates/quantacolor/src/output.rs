@@ -112,6 +112,31 @@ struct Report<'a> {
     timings: &'a [StageTiming],
 }
 
+/// Refuses the output directory `out` when it already holds files, unless `overwrite`: an
+/// earlier result is never replaced by accident. Checked before any work, so a refused run
+/// costs nothing; the replacement itself stays atomic ([`StagedDir`]). `name` is how the
+/// caller spells the directory's argument (`--out`, `out_dir`) and `allow` how to permit the
+/// replacement (`give --overwrite`, `pass overwrite=True`); both go into the message.
+pub fn check_out_dir(out: &Path, name: &str, allow: &str, overwrite: bool) -> Result<()> {
+    if !out.exists() {
+        return Ok(());
+    }
+    if !out.is_dir() {
+        return Err(Error::format(out, "exists and is not a directory"));
+    }
+    let mut entries = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?;
+    if entries.next().is_some() && !overwrite {
+        return Err(Error::format(
+            out,
+            format!(
+                "the directory already holds files (an earlier result?); choose another \
+                 {name}, or {allow} to replace them"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// True when `out` holds every file [`write_reconstruction`] writes (`report.toml` is moved
 /// into place last, so an interrupted commit is not mistaken for a finished one).
 pub fn reconstruction_complete(out: &Path) -> bool {
@@ -238,5 +263,28 @@ mod tests {
         assert_eq!(entries(&target), ["linear.npy", "notes.txt", "report.toml"]);
         assert_eq!(std::fs::read(target.join("linear.npy")).unwrap(), b"new");
         assert_eq!(std::fs::read(target.join("notes.txt")).unwrap(), b"kept");
+    }
+
+    #[test]
+    fn a_non_empty_out_dir_is_refused_unless_overwrite() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("out");
+        check_out_dir(&out, "--out", "give --overwrite", false).unwrap();
+        std::fs::create_dir(&out).unwrap();
+        check_out_dir(&out, "--out", "give --overwrite", false).unwrap();
+        std::fs::write(out.join("linear.npy"), b"earlier").unwrap();
+        let e = check_out_dir(&out, "out_dir", "pass overwrite=True", false)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(&out.display().to_string()), "{e}");
+        assert!(
+            e.contains("choose another out_dir, or pass overwrite=True"),
+            "{e}"
+        );
+        check_out_dir(&out, "out_dir", "pass overwrite=True", true).unwrap();
+        let file = tmp.path().join("file");
+        std::fs::write(&file, b"x").unwrap();
+        let e = check_out_dir(&file, "--out", "give --overwrite", true).unwrap_err();
+        assert!(e.to_string().contains("not a directory"), "{e}");
     }
 }
