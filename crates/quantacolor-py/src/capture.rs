@@ -16,10 +16,39 @@ use quantacolor::capture::{BinaryFrames, CaptureMeta};
 use std::path::PathBuf;
 use std::sync::Arc;
 
-/// A colour single-photon capture: T binary frames, the colour filter array and the metadata
-/// that turns counts into flux (paper §3, Eq. 2–3). Open a capture directory with
-/// `Capture.open(path)`, wrap arrays with `Capture.from_arrays(...)`, or simulate one with
-/// `quantacolor.simulate(...)`.
+/// A colour single-photon capture (paper §3, Eq. 1–4): T binary frames, the colour filter
+/// array in front of them and the metadata that turns detection counts into flux.
+///
+/// Not constructed directly: open a capture directory with ``Capture.open(path)``, wrap
+/// numpy arrays with ``Capture.from_arrays(...)``, or simulate one with
+/// ``quantacolor.simulate(...)``. Immutable; the frames of an opened directory stay
+/// memory-mapped. Linear images made from it are λ, mean photon detections per binary frame
+/// of an R, G or B pixel, dark counts removed (docs/capture-format.md).
+///
+/// Attributes
+/// ----------
+/// frames : numpy.ndarray
+///     Bit-packed frames, uint8 (T, H, ceil(W/8)), MSB first (a copy).
+/// frame_count : int
+///     Number of binary frames T.
+/// height : int
+///     Height H, pixels.
+/// width : int
+///     Width W, pixels.
+/// cfa : numpy.ndarray
+///     Colour filter array, uint8 (H, W): 0=R 1=G 2=B 3=W.
+/// ground_truth : numpy.ndarray or None
+///     float32 (H, W, 3) true λ of simulated captures, detections per frame.
+/// hot_pixels : numpy.ndarray or None
+///     bool (H, W) mask, True = hot or dead.
+/// exposure_s : float
+///     Exposure of one binary frame, seconds.
+/// dark_count_rate_hz : float
+///     Mean dark count rate of a pixel, counts per second.
+/// w_weights : (float, float, float)
+///     (wR, wG, wB) of W = wR·R + wG·G + wB·B.
+/// reference_frame : int
+///     Frame the reconstruction is registered to.
 #[pyclass(module = "quantacolor", name = "Capture", frozen)]
 pub(crate) struct PyCapture {
     pub(crate) inner: Arc<quantacolor::Capture>,
@@ -28,10 +57,31 @@ pub(crate) struct PyCapture {
 
 #[pymethods]
 impl PyCapture {
-    /// Opens and validates the capture directory `path` (frames.npy memory-mapped, cfa.npy or
-    /// cfa.png, capture.toml; docs/capture-format.md). A `ground_truth.npy` beside them is read
-    /// too. Without a hot-pixel mask in the capture, one is detected from its frames (as
-    /// `quantacolor reconstruct` does) unless `detect_hot_pixels=False`.
+    /// Opens and validates a capture directory (paper §3; docs/capture-format.md).
+    ///
+    /// ``frames.npy`` is memory-mapped, not read into memory; ``ground_truth.npy`` beside it
+    /// is read too.
+    ///
+    /// Parameters
+    /// ----------
+    /// path : path
+    ///     Directory holding ``frames.npy``, ``cfa.npy`` or ``cfa.png`` and ``capture.toml``
+    ///     (as ``quantacolor simulate`` or ``quantacolor convert`` write it).
+    /// detect_hot_pixels : bool
+    ///     Without a hot-pixel mask in the capture, detect one from its frames, as
+    ///     ``quantacolor reconstruct`` does (supplement §1.4). Default True.
+    ///
+    /// Returns
+    /// -------
+    /// Capture
+    ///     With ``ground_truth`` when the directory holds ``ground_truth.npy``.
+    ///
+    /// Raises
+    /// ------
+    /// ValueError
+    ///     A malformed file or key (the message names the file and the key).
+    /// OSError
+    ///     A missing directory or file, or one that cannot be read (the message names it).
     #[staticmethod]
     #[pyo3(signature = (path, *, detect_hot_pixels=true))]
     fn open(py: Python<'_>, path: PathBuf, detect_hot_pixels: bool) -> PyResult<Self> {
@@ -46,10 +96,42 @@ impl PyCapture {
         })
     }
 
-    /// A capture from arrays: `frames` uint8 (T, H, ceil(W/8)) packed MSB first
-    /// (`np.packbits(bits, axis=-1)`), or bool/uint8 0/1 (T, H, W) unpacked; `cfa` uint8 (H, W)
-    /// with 0=R 1=G 2=B 3=W; `exposure_s` of one binary frame in seconds. Optional
-    /// `hot_pixels` bool (H, W) and `ground_truth` float32 (H, W, 3).
+    /// Wraps numpy arrays as a capture (paper §3, Eq. 1–4).
+    ///
+    /// The arrays are copied (frames packed if given unpacked); nothing is written to disk.
+    ///
+    /// Parameters
+    /// ----------
+    /// frames : numpy.ndarray
+    ///     uint8 (T, H, ceil(W/8)) bit-packed along the width, MSB first
+    ///     (``np.packbits(bits, axis=-1)``), or bool / uint8 0 or 1 (T, H, W) unpacked.
+    /// cfa : numpy.ndarray
+    ///     uint8 (H, W) colour filter codes: 0=R 1=G 2=B 3=W.
+    /// exposure_s : float
+    ///     Exposure of one binary frame, seconds, > 0.
+    /// dark_count_rate_hz : float
+    ///     Mean dark count rate of a pixel, counts per second, >= 0 (default 0).
+    /// w_weights : (float, float, float), optional
+    ///     (wR, wG, wB) of W = wR·R + wG·G + wB·B, each >= 0, not all 0 (default
+    ///     (1, 1, 1)).
+    /// hot_pixels : numpy.ndarray, optional
+    ///     bool (H, W) mask, True = hot or dead (default: none, and none is detected).
+    /// reference_frame : int, optional
+    ///     Frame the reconstruction is registered to, 0 <= r < T (default: T // 2).
+    /// ground_truth : numpy.ndarray, optional
+    ///     float32 (H, W, 3) true λ, detections per frame, for scoring (default: none).
+    ///
+    /// Returns
+    /// -------
+    /// Capture
+    ///
+    /// Raises
+    /// ------
+    /// TypeError
+    ///     An array of the wrong dtype (the message names it).
+    /// ValueError
+    ///     Shapes that disagree with ``cfa``, values out of range (the message names the
+    ///     argument).
     #[staticmethod]
     #[pyo3(signature = (frames, cfa, exposure_s, dark_count_rate_hz=0.0, w_weights=None,
                         hot_pixels=None, reference_frame=None, ground_truth=None))]
@@ -81,8 +163,9 @@ impl PyCapture {
         arrays.capture(py)
     }
 
-    /// Bit-packed frames, uint8 (T, H, ceil(W/8)), MSB first (a copy). Multi-bit captures
-    /// (a conventional sensor's uint16 frames) raise ValueError.
+    /// Bit-packed frames, uint8 (T, H, ceil(W/8)), MSB first: pixel x of a row is bit
+    /// 7 - x % 8 of byte x // 8 (a copy). Multi-bit captures (a conventional sensor's uint16
+    /// frames) raise ValueError.
     #[getter]
     fn frames<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray3<u8>>> {
         if self.inner.frames.is_multibit() {
@@ -93,7 +176,7 @@ impl PyCapture {
         Ok(self.inner.frames.to_packed().into_pyarray(py))
     }
 
-    /// Number of binary frames T.
+    /// Number of binary frames T (frames).
     #[getter]
     fn frame_count(&self) -> usize {
         self.inner.frames.frame_count()
@@ -117,13 +200,15 @@ impl PyCapture {
         self.inner.cfa.codes().clone().into_pyarray(py)
     }
 
-    /// Linear ground truth, float32 (H, W, 3), of simulated captures; None otherwise.
+    /// Linear ground truth of simulated captures, float32 (H, W, 3): the true λ of an R, G
+    /// and B filter at every pixel, mean photon detections per binary frame, in the reference
+    /// frame's coordinates; None otherwise.
     #[getter]
     fn ground_truth<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray3<f32>>> {
         self.ground_truth.clone().map(|g| g.into_pyarray(py))
     }
 
-    /// Hot-pixel mask, bool (H, W), or None.
+    /// Hot-pixel mask, bool (H, W), True = hot or dead; None without one.
     #[getter]
     fn hot_pixels<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PyArray2<bool>>> {
         self.inner.hot_pixels.clone().map(|m| m.into_pyarray(py))
@@ -135,20 +220,20 @@ impl PyCapture {
         self.inner.meta.exposure_s
     }
 
-    /// Mean dark count rate, counts per second.
+    /// Mean dark count rate of a pixel, counts per second (Hz).
     #[getter]
     fn dark_count_rate_hz(&self) -> f64 {
         self.inner.meta.dark_count_rate_hz
     }
 
-    /// W = wR·R + wG·G + wB·B.
+    /// (wR, wG, wB) of W = wR·R + wG·G + wB·B: how a W pixel's λ sums the R, G and B λ.
     #[getter]
     fn w_weights(&self) -> (f64, f64, f64) {
         let w = self.inner.meta.w_weights;
         (w[0], w[1], w[2])
     }
 
-    /// The reference frame: the capture's, else T/2 rounded down.
+    /// The reference frame (a frame index): the capture's, else T // 2.
     #[getter]
     fn reference_frame(&self) -> usize {
         self.inner.reference_frame()

@@ -9,10 +9,46 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use quantacolor::denoise::chroma::{denoise_linear, DenoiseConfig, DenoiseInput, DenoiseMethod};
 
-/// Denoises a linear image (paper §4.3): binomial Anscombe, BM3D in the W-weighted YCbCr with
-/// chroma filtered harder (`chroma-bm3d`), or plain colour BM3D (`bm3d`). `frames` is the
-/// number of binary frames behind each pixel (it sets the Anscombe transform); without the
-/// merge's noise model, σ is estimated from the image unless `sigma_y` / `sigma_c` are given.
+/// Denoises a linear image (paper §4.3, Fig. 6; supplement §1.5).
+///
+/// The binomial Anscombe transform (supplement Eq. 7–8) per channel, then BM3D, then the
+/// exact unbiased inverse. Without the merge's noise model (which ``reconstruct`` has), σ is
+/// estimated from the image unless ``sigma_y`` / ``sigma_c`` are given.
+///
+/// Parameters
+/// ----------
+/// linear : numpy.ndarray
+///     Linear RGB (H, W, 3) in mean photon detections per binary frame, as ``reconstruct``
+///     returns (e.g. with ``denoise="none"``).
+/// frames : float
+///     Binary frames behind each pixel, >= 1 (it sets the Anscombe transform).
+/// method : {"chroma-bm3d", "bm3d", "none"}
+///     "chroma-bm3d" (default): BM3D in the W-weighted YCbCr, grouping on luma, chroma
+///     filtered harder (§4.3). "bm3d": plain colour BM3D with one σ. "none": no filtering.
+/// sigma_y, sigma_c : float, optional
+///     σ of luma and chroma in the variance-stabilised domain (``sigma_y`` is the one σ of
+///     "bm3d"). Default: estimated from the image.
+/// w_weights : (float, float, float), optional
+///     W = wR·R + wG·G + wB·B of the capture, the luma weights (default (1, 1, 1)).
+/// dark_counts_per_frame : float
+///     Mean dark counts of a pixel per binary frame, >= 0 (``dark_count_rate_hz`` ×
+///     ``exposure_s``; default 0).
+/// config : dict, optional
+///     Keys of ``report.toml``'s ``[config.denoise]`` (docs/pipeline.md §13); ``method``,
+///     ``sigma_y`` and ``sigma_c`` override it. Default: the CLI's defaults.
+///
+/// Returns
+/// -------
+/// numpy.ndarray
+///     float32 (H, W, 3), in the units of ``linear``.
+///
+/// Raises
+/// ------
+/// TypeError
+///     An argument of the wrong type.
+/// ValueError
+///     A bad shape, ``frames`` < 1, ``dark_counts_per_frame`` < 0, an unknown ``method`` or a
+///     bad ``config`` key (the message names it).
 #[pyfunction]
 #[pyo3(signature = (linear, frames, method="chroma-bm3d", *, sigma_y=None, sigma_c=None,
                     w_weights=None, dark_counts_per_frame=0.0, config=None))]

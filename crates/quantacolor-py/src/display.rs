@@ -32,9 +32,10 @@ use std::path::PathBuf;
 /// w_weights : (float, float, float), optional
 ///     W = wR·R + wG·G + wB·B of the capture (default (1, 1, 1)).
 /// ccm : path or array, optional
-///     Colour matrix: a ``calibrate-color`` TOML file or a (3, 3) / (3, 4) matrix.
+///     Colour matrix: a ``calibrate-color`` TOML file or a (3, 3) / (3, 4) matrix (paper
+///     Fig. 14). Default: none.
 /// frames : float, optional
-///     Frames merged into ``linear`` (for ``mesopic``).
+///     Binary frames merged into ``linear``, > 0 (for ``mesopic``; default: none).
 ///
 /// Returns
 /// -------

@@ -33,9 +33,31 @@ fn eval_pair(a: &Bound<'_, PyAny>, b: &Bound<'_, PyAny>) -> PyResult<(Array3<f32
     Ok((est, truth))
 }
 
-/// Scores `estimate` against `truth` as `quantacolor eval` does (paper §6): crop `border`,
-/// scale both so the truth's `normalize_percentile` is 1 (0 = no scaling), clip to [0, 1].
-/// Returns psnr_linear, ssim_linear, psnr_srgb, ssim_srgb (and lpips_srgb with `lpips=True`).
+/// Scores an estimate against ground truth (paper §6, Table 2; ``quantacolor eval``); the
+/// native function behind ``quantacolor.evaluate``, which documents it in full.
+///
+/// Parameters
+/// ----------
+/// estimate, truth : numpy.ndarray
+///     Linear RGB (H, W, 3) of the same shape.
+/// border : int
+///     Pixels cropped from every side, >= 0 (default 0).
+/// normalize_percentile : float
+///     Percentile of ``truth`` scaled to 1 before clipping to [0, 1], in percent; 0 = no
+///     scaling (default 99.5).
+/// lpips : bool
+///     Also compute LPIPS (default False).
+///
+/// Returns
+/// -------
+/// dict
+///     ``psnr_linear``, ``ssim_linear``, ``psnr_srgb``, ``ssim_srgb`` (PSNR in dB), and
+///     ``lpips_srgb`` with ``lpips=True``.
+///
+/// Raises
+/// ------
+/// TypeError, ValueError
+///     A bad argument or shapes that differ (the message names it).
 #[pyfunction]
 #[pyo3(signature = (estimate, truth, border=0, normalize_percentile=99.5, lpips=false))]
 pub(crate) fn evaluate_images<'py>(

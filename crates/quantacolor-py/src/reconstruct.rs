@@ -36,8 +36,8 @@ use std::path::PathBuf;
 /// reference_frame : int, optional
 ///     Frame the image is registered to (default: the capture's, else T // 2).
 /// config : dict, optional
-///     Any keys of ``report.toml``'s ``[config]`` (every stage's settings); the keyword
-///     options override it.
+///     Any keys of ``report.toml``'s ``[config]`` (every stage's settings,
+///     docs/pipeline.md); the keyword options override it. Default: the CLI's defaults.
 /// sigma_y, sigma_c : float, optional
 ///     Denoising σ of luma and chroma in the variance-stabilised domain (default: from the
 ///     merge's noise model).
@@ -48,7 +48,7 @@ use std::path::PathBuf;
 /// window : int, optional
 ///     Naive method: frames centred on the reference frame (default: all).
 /// progress : callable, optional
-///     Called as ``progress(stage, done, total)`` while stages run.
+///     Called as ``progress(stage, done, total)`` while stages run (default: none).
 ///
 /// Returns
 /// -------
@@ -102,14 +102,81 @@ pub(crate) fn reconstruct<'py>(
     reconstruct_capture(py, capture, &args, progress)
 }
 
-/// Reconstructs the capture directory `capture_dir` into `out_dir` exactly as `quantacolor
-/// reconstruct CAPTURE_DIR --out OUT_DIR` does (linear.npy, linear.exr, preview.png,
-/// report.toml; written atomically). Returns a summary dict.
+/// Reconstructs a capture directory into an output directory (paper §4, §7;
+/// ``quantacolor reconstruct CAPTURE_DIR --out OUT_DIR``).
+///
+/// Writes exactly the CLI's files with the same options: ``linear.npy``, ``linear.exr`` and
+/// ``preview.png`` byte-identical, ``report.toml`` differing only in timings. The files are
+/// staged beside ``out_dir`` and moved into place when complete (``report.toml`` last), so a
+/// failed or killed run leaves no partial result.
+///
+/// Parameters
+/// ----------
+/// capture_dir : path
+///     Capture directory (``frames.npy``, ``cfa.npy`` or ``cfa.png``, ``capture.toml``;
+///     docs/capture-format.md). Without a hot-pixel mask in it, one is detected from the
+///     frames, as the CLI does.
+/// out_dir : path
+///     Output directory, created if missing. One that already holds files is refused before
+///     any work unless ``overwrite=True`` (the CLI's ``--overwrite``).
+/// method : {"burst", "naive"}, optional
+///     "burst" (default): align, jointly demosaic and merge. "naive": the plain sum of the
+///     frames (the paper's Table 2 baseline), not denoised unless ``denoise`` is given.
+/// denoise : {"chroma-bm3d", "bm3d", "none"}, optional
+///     Default "chroma-bm3d" (BM3D in the W-weighted YCbCr, chroma filtered harder, §4.3).
+/// scale : int, optional
+///     Output grid scale, 1 (default) to 4 (2 = super-resolution); burst only.
+/// reference_frame : int, optional
+///     Frame the image is registered to (default: the capture's, else T // 2).
+/// config : dict, optional
+///     Any keys of ``report.toml``'s ``[config]`` (every stage's settings,
+///     docs/pipeline.md); the keyword options override it. Default: the CLI's defaults.
+/// sigma_y, sigma_c : float, optional
+///     Denoising σ of luma and chroma in the variance-stabilised domain (default: from the
+///     merge's noise model).
+/// block_size : int, optional
+///     Frames per temporal block for alignment (default: from T and the light level).
+/// max_sub_block_motion : float, optional
+///     Largest camera motion inside one sub-block, px (default 0.35).
+/// window : int, optional
+///     Naive method: frames centred on the reference frame (default: all).
+/// tonemap : {"global", "mantiuk06", "none"}
+///     Tone map of ``preview.png`` (default "global"); ``linear.npy`` is not tone mapped.
+/// mesopic : float or "auto", optional
+///     Noise-aware low-light view of ``preview.png`` (supplement Eq. 9–10): the offset L0 in
+///     decades of detections, or "auto". Default: off.
+/// ccm : path or array, optional
+///     Colour matrix of ``preview.png``: a ``calibrate-color`` TOML file or a (3, 3) / (3, 4)
+///     matrix (paper Fig. 14). Default: none.
+/// overwrite : bool
+///     Replace the files of a non-empty ``out_dir`` (default False: refuse it). Other files
+///     in it are kept.
+/// progress : callable, optional
+///     Called as ``progress(stage, done, total)`` while stages run (default: none).
+///
+/// Returns
+/// -------
+/// dict
+///     ``capture`` and ``out`` (the paths given), ``reference_frame``, ``frames_used``,
+///     ``height`` and ``width`` (pixels of ``linear.npy``) and ``seconds`` (the stages' time,
+///     s).
+///
+/// Raises
+/// ------
+/// TypeError
+///     An argument of the wrong type.
+/// ValueError
+///     An option out of range or unknown (the message names it), a malformed capture file
+///     (the message names it), or ``out_dir`` already holding files without
+///     ``overwrite=True``.
+/// OSError
+///     A missing capture file, or a file that cannot be read or written (the message names
+///     it).
 #[pyfunction]
 #[pyo3(signature = (capture_dir, out_dir, method=None, denoise=None, scale=None,
                     reference_frame=None, config=None, *, sigma_y=None, sigma_c=None,
                     block_size=None, max_sub_block_motion=None, window=None,
-                    tonemap="global", mesopic=None, ccm=None, progress=None))]
+                    tonemap="global", mesopic=None, ccm=None, overwrite=false, progress=None))]
 #[expect(
     clippy::too_many_arguments,
     reason = "pyo3: the parameters are the Python keyword arguments"
@@ -131,6 +198,7 @@ pub(crate) fn reconstruct_dir<'py>(
     tonemap: &str,
     mesopic: Option<&Bound<'py, PyAny>>,
     ccm: Option<&Bound<'py, PyAny>>,
+    overwrite: bool,
     progress: Option<Bound<'py, PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let args = ReconstructDirArgs {
@@ -151,6 +219,7 @@ pub(crate) fn reconstruct_dir<'py>(
         tonemap,
         mesopic,
         ccm,
+        overwrite,
     };
     reconstruct_capture_dir(py, args, progress)
 }
@@ -259,10 +328,12 @@ struct ReconstructDirArgs<'a, 'py> {
     tonemap: &'a str,
     mesopic: Option<&'a Bound<'py, PyAny>>,
     ccm: Option<&'a Bound<'py, PyAny>>,
+    overwrite: bool,
 }
 
-/// `reconstruct_dir`: the options checked, then the capture directory opened, reconstructed
-/// and written without the GIL; the summary dict.
+/// `reconstruct_dir`: the options checked, then the output directory (refused when it holds
+/// files, unless `overwrite`: the CLI's rule), then the capture directory opened,
+/// reconstructed and written without the GIL; the summary dict.
 fn reconstruct_capture_dir<'py>(
     py: Python<'py>,
     args: ReconstructDirArgs<'_, 'py>,
@@ -276,6 +347,7 @@ fn reconstruct_capture_dir<'py>(
         tonemap,
         mesopic,
         ccm,
+        overwrite,
     } = args;
     let ov = overrides.overrides()?;
     let cfg = reconstruct_config(config, &ov)?;
@@ -283,6 +355,8 @@ fn reconstruct_capture_dir<'py>(
     let tonemap = parse_arg::<ToneMap>("tonemap", tonemap)?;
     let mesopic = mesopic_arg(mesopic)?;
     let sink = PyProgress::new(progress)?;
+    quantacolor::output::check_out_dir(&out_dir, "out_dir", "pass overwrite=True", overwrite)
+        .map_err(|e| lib_err("out_dir", e))?;
     let result = compute(py, || {
         let capture = quantacolor::convert::open_capture(&capture_dir, None, true)
             .map_err(|e| lib_err("", e))?;
@@ -324,16 +398,48 @@ fn reconstruct_capture_dir<'py>(
     Ok(d)
 }
 
-/// The motion estimation of `reconstruct` on `capture` (paper §4.1 block alignment, then this
-/// project's sub-block refinement, fast-motion tracking and photon trajectory; `quantacolor
-/// align`), with the same settings (`config`: a dict of report.toml's [config] keys, whose
-/// `burst` settings and `reference_frame` apply). Returns a dict with `flow` float32
-/// (n_blocks, tiles_y, tiles_x, 2), the block alignment's tile flow as (dy, dx) from the
-/// reference frame, the keys of `flow.toml` (`block_size`, `block_start_frames`,
-/// `block_center_frames`, `tile_size`, `tile_stride`, `tile_centers_y`, `tile_centers_x`), and
-/// `camera` float64 (T, 2, 3) (`camera.npy`): for every frame t the affine map M_t taking a
-/// reference-frame pixel position (y, x, 1) (pixel centres at integers) to the same scene
-/// point's position in frame t; the camera motion only, not moving objects (docs/motion.md).
+/// Estimates the motion of a capture as ``reconstruct`` does (paper §4.1; ``quantacolor
+/// align``).
+///
+/// The block alignment of §4.1 (supplement §1.1), then this project's sub-block refinement,
+/// fast-motion tracking and photon trajectory, with ``reconstruct``'s settings. Conventions
+/// (pixel centres at integers, (dy, dx) order) and how to compare the result with a
+/// simulator's ``motion.toml``: docs/motion.md.
+///
+/// Parameters
+/// ----------
+/// capture : Capture
+///     From ``Capture.open``, ``Capture.from_arrays`` or ``simulate``.
+/// reference_frame : int, optional
+///     Frame the motion is measured from, 0 <= r < T (default: ``config``'s, else the
+///     capture's, else T // 2).
+/// block_size : int, optional
+///     Frames per temporal block, >= 1 (default: from T and the light level, supplement
+///     §1.1).
+/// config : dict, optional
+///     Keys of ``report.toml``'s ``[config]``; its ``burst`` settings and
+///     ``reference_frame`` apply. Default: the CLI's defaults.
+/// progress : callable, optional
+///     Called as ``progress(stage, done, total)`` while stages run (default: none).
+///
+/// Returns
+/// -------
+/// dict
+///     ``flow``: float32 (n_blocks, tiles_y, tiles_x, 2), the block alignment's tile flow as
+///     (dy, dx) in pixels from the reference frame (``flow.npy``); the keys of ``flow.toml``:
+///     ``block_size`` (frames), ``block_start_frames``, ``block_center_frames``,
+///     ``tile_size`` and ``tile_stride`` (px), ``tile_centers_y``, ``tile_centers_x`` (px);
+///     ``camera``: float64 (T, 2, 3) (``camera.npy``), for every frame t the affine map M_t
+///     taking a reference-frame pixel position (y, x, 1) to the same scene point's position
+///     in frame t (camera motion only, not moving objects).
+///
+/// Raises
+/// ------
+/// TypeError
+///     An argument of the wrong type.
+/// ValueError
+///     ``reference_frame`` outside the capture, ``block_size`` < 1 or a bad ``config`` key
+///     (the message names it).
 #[pyfunction]
 #[pyo3(signature = (capture, reference_frame=None, block_size=None, *, config=None, progress=None))]
 pub(crate) fn align<'py>(

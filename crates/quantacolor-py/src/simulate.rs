@@ -43,9 +43,9 @@ use std::sync::Arc;
 ///     Reference frame (default T // 2).
 /// out : path, optional
 ///     Also write the capture directory there (refused if it holds something other than a
-///     capture).
+///     capture). Default: none, the capture stays in memory.
 /// progress : callable, optional
-///     Called as ``progress(stage, done, total)``.
+///     Called as ``progress(stage, done, total)`` (default: none).
 ///
 /// Returns
 /// -------

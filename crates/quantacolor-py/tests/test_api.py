@@ -74,6 +74,36 @@ def test_reconstruct_dir_byte_identical_to_cli(cli, tmp_path, capture_dirs):
     assert a == b
 
 
+def test_reconstruct_dir_refuses_a_non_empty_out_dir_unless_overwrite(tmp_path, capture_dirs):
+    """The CLI's rule: an output directory that holds files is refused before any work (so the
+    error names it, not the missing capture), unless overwrite=True."""
+    cap = capture_dirs[0]
+    out = tmp_path / "rec"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError) as info:
+        qc.reconstruct_dir(tmp_path / "no-such-capture", out, method="naive")
+    assert str(out) in str(info.value) and "overwrite=True" in str(info.value), info.value
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+    qc.reconstruct_dir(cap, out, method="naive", overwrite=True)
+    assert sorted(p.name for p in out.iterdir()) == sorted([*qc.RECONSTRUCTION_FILES, "notes.txt"])
+    first = (out / "linear.npy").read_bytes()
+    with pytest.raises(ValueError, match="overwrite=True"):
+        qc.reconstruct_dir(cap, out, method="naive", denoise="bm3d")
+    assert (out / "linear.npy").read_bytes() == first
+    qc.reconstruct_dir(cap, out, method="naive", denoise="bm3d", overwrite=True)
+    assert (out / "linear.npy").read_bytes() != first
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec"], "no staging left behind"
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    qc.reconstruct_dir(cap, empty, method="naive")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ValueError, match="not a directory"):
+        qc.reconstruct_dir(cap, tmp_path / "file", method="naive", overwrite=True)
+
+
 def test_from_arrays_packed_and_unpacked(capture):
     packed = capture.frames
     assert packed.dtype == np.uint8 and packed.shape == (64, 64, 8)
@@ -351,6 +381,165 @@ def test_reconstruct_explains_itself():
                  "float32", "progress"]:
         assert text in doc, text
     for function, texts in [(qc.simulate, ['"fast-handheld"', '"jot"', "Returns"]),
-                            (qc.display, ['"mantiuk06"', "uint8", "Returns"])]:
+                            (qc.display, ['"mantiuk06"', "uint8", "Returns"]),
+                            (qc.reconstruct_dir, ['"mantiuk06"', "overwrite", "Raises"])]:
         for text in ["Parameters", *texts]:
             assert text in function.__doc__, (function.__name__, text)
+
+
+def _public_api():
+    """(name, object) of every public function, class and static method of the package:
+    ``quantacolor.__all__`` (but its constants) and ``quantacolor.batch``."""
+    import quantacolor.batch as batch
+
+    api = [(f"quantacolor.{n}", getattr(qc, n)) for n in qc.__all__ if callable(getattr(qc, n))]
+    api += [(f"quantacolor.batch.{n}", getattr(batch, n)) for n in batch.__all__]
+    api += [("quantacolor.Capture.open", qc.Capture.open),
+            ("quantacolor.Capture.from_arrays", qc.Capture.from_arrays)]
+    return api
+
+
+def _sections(doc):
+    """The numpydoc sections of ``doc`` (title underlined with dashes) as {title: lines}."""
+    import inspect
+
+    lines = inspect.cleandoc(doc).splitlines()
+    sections, title = {}, None
+    for i, line in enumerate(lines):
+        underline = lines[i + 1].strip() if i + 1 < len(lines) else ""
+        if line.strip() and underline and set(underline) == {"-"} and len(underline) == len(line.strip()):
+            title = line.strip()
+            sections[title] = []
+        elif title is not None and not (line.strip() and set(line.strip()) == {"-"}):
+            sections[title].append(line)
+    return sections
+
+
+def _entries(lines):
+    """The entries of a Parameters / Attributes section in order: [(name, text)]; ``a, b : t``
+    gives an entry for each name, ``**options`` the name ``options``."""
+    entries = []
+    for line in lines:
+        if line.strip() and not line[0].isspace():
+            head = line.split(" : ")[0]
+            names = [n.strip().lstrip("*") for n in head.split(",")]
+            entries.extend([n, line] for n in names)
+        elif entries:
+            for entry in entries[-len(names):]:
+                entry[1] += " " + line.strip()
+    return [(n, t) for n, t in entries]
+
+
+def _default_words(default):
+    """How a literal default is written in a docstring (None when it is not a literal)."""
+    if isinstance(default, bool):
+        return [str(default)]
+    if isinstance(default, str):
+        return [f'"{default}"']
+    if isinstance(default, (int, float)):
+        return [str(default)] + ([str(int(default))] if float(default).is_integer() else [])
+    if isinstance(default, tuple):
+        return [str(default)]
+    return None
+
+
+def test_batch_all_names_every_public_function():
+    import inspect
+
+    import quantacolor.batch as batch
+
+    defined = {name for name, obj in vars(batch).items()
+               if inspect.isfunction(obj) and obj.__module__ == batch.__name__
+               and not name.startswith("_")}
+    assert defined == set(batch.__all__), defined ^ set(batch.__all__)
+
+
+_API = _public_api()
+
+
+@pytest.mark.parametrize("name,obj", _API, ids=[name for name, _ in _API])
+def test_every_public_name_documents_its_signature(name, obj):
+    """numpydoc docstrings that cannot drift: a summary line, Parameters listing exactly the
+    signature's parameters in order (each default stated), Returns for every function."""
+    import inspect
+
+    doc = obj.__doc__
+    assert doc and doc.strip().splitlines()[0].strip(), f"{name}: no summary line"
+    sections = _sections(doc)
+    if inspect.isclass(obj) and obj is qc.Capture:
+        # No constructor: the properties are its interface, each with a docstring.
+        properties = [n for n, v in vars(obj).items() if inspect.isgetsetdescriptor(v)]
+        assert properties
+        documented = [n for n, _ in _entries(sections.get("Attributes", []))]
+        assert sorted(documented) == sorted(properties), name
+        for p in properties:
+            assert (getattr(obj, p).__doc__ or "").strip(), f"{name}.{p}: no docstring"
+        with pytest.raises(TypeError):
+            obj()
+        return
+    signature = inspect.signature(obj)
+    params = [p for p in signature.parameters.values() if p.name not in ("self", "cls")]
+    assert "Parameters" in sections, f"{name}: no Parameters section"
+    entries = _entries(sections["Parameters"])
+    assert [n for n, _ in entries] == [p.name for p in params], name
+    for p, (_, text) in zip(params, entries):
+        if p.default is inspect.Parameter.empty:
+            continue
+        assert "default" in text.lower(), f"{name}: {p.name} does not state its default"
+        words = _default_words(p.default)
+        if words is not None:
+            assert any(w in text for w in words), f"{name}: {p.name} default {p.default!r}"
+    if not inspect.isclass(obj):
+        assert sections.get("Returns"), f"{name}: no Returns section"
+
+
+def test_the_stub_matches_the_native_module():
+    """_native.pyi names every native function, method and property with the run-time
+    signature's parameters, kinds and (literal) defaults."""
+    import ast
+    import inspect
+    from pathlib import Path
+
+    from quantacolor import _native
+
+    stub = ast.parse((Path(_native.__file__).parent / "_native.pyi").read_text())
+
+    def check(node, runtime, where):
+        params = [p for p in inspect.signature(runtime).parameters.values()
+                  if p.name not in ("self", "cls")]
+        a = node.args
+        positional = [x.arg for x in a.args]
+        stub_names = positional + [x.arg for x in a.kwonlyargs]
+        assert stub_names == [p.name for p in params], where
+        kw_only = {p.name for p in params if p.kind is p.KEYWORD_ONLY}
+        assert {x.arg for x in a.kwonlyargs} == kw_only, where
+        defaults = dict(zip(positional[len(positional) - len(a.defaults):], a.defaults))
+        defaults.update({x.arg: d for x, d in zip(a.kwonlyargs, a.kw_defaults) if d is not None})
+        for p in params:
+            if p.default is inspect.Parameter.empty:
+                assert p.name not in defaults, (where, p.name)
+            else:
+                assert p.name in defaults, (where, p.name)
+                if p.default is not Ellipsis:
+                    stub_default = ast.literal_eval(defaults[p.name])
+                    assert stub_default == p.default, (where, p.name, stub_default, p.default)
+
+    seen = set()
+    for node in stub.body:
+        if isinstance(node, ast.FunctionDef):
+            check(node, getattr(_native, node.name), node.name)
+            seen.add(node.name)
+        elif isinstance(node, ast.ClassDef):
+            cls = getattr(_native, node.name)
+            seen.add(node.name)
+            props = set()
+            for item in node.body:
+                if isinstance(item, ast.FunctionDef):
+                    if any(getattr(d, "id", None) == "property" for d in item.decorator_list):
+                        props.add(item.name)
+                    else:
+                        check(item, getattr(cls, item.name), f"{node.name}.{item.name}")
+            runtime_props = {n for n, v in vars(cls).items() if inspect.isgetsetdescriptor(v)}
+            assert props == runtime_props, props ^ runtime_props
+    public = {n for n in dir(_native) if not n.startswith("_") and callable(getattr(_native, n))}
+    assert public <= seen, public - seen

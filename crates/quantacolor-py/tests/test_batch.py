@@ -45,6 +45,28 @@ def test_reconstruct_many(client, cli, capture_dirs, tmp_path):
     assert [r["status"] for r in rows] == ["skipped", "done", "skipped"]
 
 
+def test_interrupted_outputs_are_redone_and_other_files_refused(client, capture_dirs, tmp_path):
+    """An output holding only some reconstruction files (an interrupted write) is redone; one
+    holding other files is refused as reconstruct_dir refuses it, unless overwrite=True."""
+    from quantacolor.batch import output_complete, reconstruct_many
+
+    out = tmp_path / "out"
+    interrupted, foreign = out / capture_dirs[0].name, out / capture_dirs[1].name
+    interrupted.mkdir(parents=True)
+    (interrupted / "linear.npy").write_bytes(b"half")
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    rows = reconstruct_many(capture_dirs[:2], out, client=client, method="naive")
+    assert [r["status"] for r in rows] == ["done", "failed"], rows
+    assert output_complete(interrupted)
+    assert str(foreign) in rows[1]["error"] and "overwrite=True" in rows[1]["error"], rows[1]
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+
+    rows = reconstruct_many(capture_dirs[:2], out, client=client, method="naive", overwrite=True)
+    assert [r["status"] for r in rows] == ["skipped", "done"], rows
+    assert output_complete(foreign) and (foreign / "notes.txt").read_text() == "mine"
+
+
 def test_failures_are_reported(client, capture_dirs, tmp_path):
     from quantacolor.batch import reconstruct_many
 

@@ -13,49 +13,63 @@ __version__: str
 RECONSTRUCTION_FILES: list[str]
 
 class Capture:
-    """T binary frames, the colour filter array and the metadata (paper §3, Eq. 2–3)."""
+    """T binary frames, the colour filter array and the metadata (paper §3, Eq. 1–4). Made by
+    ``Capture.open``, ``Capture.from_arrays`` or ``simulate``; immutable."""
 
     @staticmethod
     def open(path: _Path, *, detect_hot_pixels: bool = True) -> Capture:
-        """Opens and validates a capture directory (frames.npy, cfa.npy/cfa.png,
+        """Opens and validates a capture directory (frames.npy memory-mapped, cfa.npy/cfa.png,
         capture.toml; ground_truth.npy when present). Without a hot-pixel mask in the capture,
-        one is detected from its frames, as ``quantacolor reconstruct`` does."""
+        one is detected from its frames (as ``quantacolor reconstruct`` does) unless
+        ``detect_hot_pixels=False``."""
     @staticmethod
     def from_arrays(
         frames: npt.NDArray[Union[np.uint8, np.bool_]],
         cfa: npt.NDArray[np.uint8],
         exposure_s: float,
         dark_count_rate_hz: float = 0.0,
-        w_weights: Sequence[float] = (1.0, 1.0, 1.0),
+        w_weights: Optional[Sequence[float]] = None,
         hot_pixels: Optional[npt.NDArray[np.bool_]] = None,
         reference_frame: Optional[int] = None,
         ground_truth: Optional[npt.NDArray[np.float32]] = None,
     ) -> Capture:
         """``frames``: uint8 (T, H, ceil(W/8)) packed MSB first, or bool/uint8 0/1 (T, H, W);
-        ``cfa``: uint8 (H, W) with 0=R 1=G 2=B 3=W."""
+        ``cfa``: uint8 (H, W) with 0=R 1=G 2=B 3=W; ``exposure_s``: seconds per binary frame;
+        ``dark_count_rate_hz``: counts/s; ``w_weights`` default (1, 1, 1); ``reference_frame``
+        default T // 2."""
     @property
     def frames(self) -> npt.NDArray[np.uint8]:
-        """Packed frames, uint8 (T, H, ceil(W/8)) (a copy)."""
+        """Packed frames, uint8 (T, H, ceil(W/8)), MSB first (a copy)."""
     @property
-    def frame_count(self) -> int: ...
+    def frame_count(self) -> int:
+        """Number of binary frames T."""
     @property
-    def height(self) -> int: ...
+    def height(self) -> int:
+        """Height H, pixels."""
     @property
-    def width(self) -> int: ...
+    def width(self) -> int:
+        """Width W, pixels."""
     @property
-    def cfa(self) -> npt.NDArray[np.uint8]: ...
+    def cfa(self) -> npt.NDArray[np.uint8]:
+        """uint8 (H, W): 0=R 1=G 2=B 3=W."""
     @property
-    def ground_truth(self) -> Optional[npt.NDArray[np.float32]]: ...
+    def ground_truth(self) -> Optional[npt.NDArray[np.float32]]:
+        """float32 (H, W, 3) true λ (detections per binary frame) of simulated captures."""
     @property
-    def hot_pixels(self) -> Optional[npt.NDArray[np.bool_]]: ...
+    def hot_pixels(self) -> Optional[npt.NDArray[np.bool_]]:
+        """bool (H, W), True = hot or dead; None without a mask."""
     @property
-    def exposure_s(self) -> float: ...
+    def exposure_s(self) -> float:
+        """Exposure of one binary frame, seconds."""
     @property
-    def dark_count_rate_hz(self) -> float: ...
+    def dark_count_rate_hz(self) -> float:
+        """Mean dark count rate of a pixel, counts per second."""
     @property
-    def w_weights(self) -> tuple[float, float, float]: ...
+    def w_weights(self) -> tuple[float, float, float]:
+        """(wR, wG, wB) of W = wR·R + wG·G + wB·B."""
     @property
-    def reference_frame(self) -> int: ...
+    def reference_frame(self) -> int:
+        """Frame index the reconstruction is registered to."""
 
 def reconstruct(
     capture: Capture,
@@ -95,9 +109,11 @@ def reconstruct_dir(
     tonemap: str = "global",
     mesopic: Optional[Union[float, str]] = None,
     ccm: Optional[Union[_Path, Sequence[Sequence[float]]]] = None,
+    overwrite: bool = False,
     progress: _Progress = None,
 ) -> dict[str, Any]:
-    """``quantacolor reconstruct CAPTURE_DIR --out OUT_DIR``: the same four files."""
+    """``quantacolor reconstruct CAPTURE_DIR --out OUT_DIR``: the same four files, written
+    atomically. A non-empty ``out_dir`` is refused (ValueError) unless ``overwrite=True``."""
 
 def align(
     capture: Capture,
@@ -119,11 +135,12 @@ def denoise(
     *,
     sigma_y: Optional[float] = None,
     sigma_c: Optional[float] = None,
-    w_weights: Sequence[float] = (1.0, 1.0, 1.0),
+    w_weights: Optional[Sequence[float]] = None,
     dark_counts_per_frame: float = 0.0,
     config: Optional[dict[str, Any]] = None,
 ) -> npt.NDArray[np.float32]:
-    """Chrominance-focused BM3D of a linear image (paper §4.3)."""
+    """Chroma-BM3D (default), colour BM3D or no denoising of a linear image (paper §4.3);
+    ``frames`` (>= 1) sets the binomial Anscombe transform; ``w_weights`` default (1, 1, 1)."""
 
 def display(
     linear: npt.NDArray[np.floating[Any]],
@@ -131,11 +148,12 @@ def display(
     mesopic: Optional[Union[float, str]] = None,
     exposure: Optional[float] = None,
     *,
-    w_weights: Sequence[float] = (1.0, 1.0, 1.0),
+    w_weights: Optional[Sequence[float]] = None,
     ccm: Optional[Union[_Path, Sequence[Sequence[float]]]] = None,
     frames: Optional[float] = None,
 ) -> npt.NDArray[np.uint8]:
-    """8-bit sRGB (H, W, 3) as ``quantacolor display`` renders it."""
+    """8-bit sRGB (H, W, 3) as ``quantacolor display`` renders it (paper §7); ``w_weights``
+    default (1, 1, 1)."""
 
 def evaluate_images(
     estimate: npt.NDArray[np.floating[Any]],
@@ -143,7 +161,9 @@ def evaluate_images(
     border: int = 0,
     normalize_percentile: float = 99.5,
     lpips: bool = False,
-) -> dict[str, float]: ...
+) -> dict[str, float]:
+    """The scores of ``quantacolor.evaluate`` (paper §6): psnr_linear, ssim_linear, psnr_srgb,
+    ssim_srgb (PSNR in dB), and lpips_srgb with ``lpips=True``."""
 
 def simulate(
     scene: str = "builtin:chart",

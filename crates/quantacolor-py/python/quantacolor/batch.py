@@ -22,10 +22,11 @@ or on SLURM with dask-jobqueue::
     cluster.scale(jobs=20)
     rows = reconstruct_many(paths, "out", client=Client(cluster))
 
-Every worker needs ``quantacolor`` installed (``pip install ./crates/quantacolor-py``) and the
-capture and output paths visible at the same names (a shared file system). One reconstruction
-uses every core of its worker (rayon), so run one task per machine (``processes=1`` or
-``threads_per_worker=1`` with one worker per node).
+Every worker needs ``quantacolor`` installed (the README's wheel, ``pip install
+dist/quantacolor-*.whl``: no Rust on the workers) and the capture and output paths visible at
+the same names (a shared file system). One reconstruction uses every core of its worker
+(rayon), so run one task per machine (``processes=1`` or ``threads_per_worker=1`` with one
+worker per node).
 """
 
 from __future__ import annotations
@@ -40,13 +41,35 @@ from . import RECONSTRUCTION_FILES
 
 PathLike = Union[str, "os.PathLike[str]"]
 
-__all__ = ["reconstruct_many", "reconstruct_video", "output_complete"]
+__all__ = ["reconstruct_many", "reconstruct_video", "output_complete", "video_complete"]
 
 
 def output_complete(out: PathLike) -> bool:
-    """True when ``out`` holds every file of a finished reconstruction (``report.toml`` is
-    moved into place last)."""
+    """Whether a directory holds a finished reconstruction.
+
+    Parameters
+    ----------
+    out : path
+        An output directory of :func:`quantacolor.reconstruct_dir` or ``quantacolor
+        reconstruct``.
+
+    Returns
+    -------
+    bool
+        True when ``out`` holds every file of a finished reconstruction
+        (``quantacolor.RECONSTRUCTION_FILES``; ``report.toml`` is moved into place last).
+    """
     return all((Path(out) / name).is_file() for name in RECONSTRUCTION_FILES)
+
+
+def _interrupted(out: Path) -> bool:
+    """True when ``out`` holds some, not all, of a reconstruction's files and nothing else: an
+    interrupted commit (or a removed ``report.toml``), which a rerun replaces."""
+    try:
+        names = {p.name for p in out.iterdir()}
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    return bool(names) and names <= set(RECONSTRUCTION_FILES)
 
 
 def _reconstruct_one(capture: str, out: str, options: dict[str, Any]) -> dict[str, Any]:
@@ -101,22 +124,50 @@ def reconstruct_many(
     n_workers: Optional[int] = None,
     **options: Any,
 ) -> list[dict[str, Any]]:
-    """Reconstructs every capture directory in ``captures`` into ``out_dir/<capture name>``.
+    """Reconstructs many capture directories on a Dask cluster (paper §4, as
+    :func:`quantacolor.reconstruct_dir`).
 
-    ``options`` are those of :func:`quantacolor.reconstruct_dir` (``method``, ``denoise``,
-    ``scale``, ``config``, ``tonemap``, ...); each output directory holds exactly what
+    Each capture goes to ``out_dir/<capture directory name>``, holding exactly what
     ``quantacolor reconstruct CAPTURE --out OUT`` writes with the same options (linear.npy,
     linear.exr and preview.png byte-identical; report.toml differs only in timings).
 
-    ``client`` is a ``dask.distributed.Client``; without one a ``LocalCluster`` with
-    ``n_workers`` worker processes (dask's default when None) is started and closed again.
+    Restartable: finished outputs are skipped (status ``"skipped"``), so an interrupted batch
+    is resumed by running it again; an output holding only some of a reconstruction's files
+    (an interrupted write) is redone. An output directory holding other files is refused, as
+    ``reconstruct_dir`` refuses it, unless ``overwrite=True``. A capture that fails does not
+    stop the others (status ``"failed"`` with the error).
 
-    Finished outputs are skipped (status ``"skipped"``), so an interrupted batch is resumed by
-    running it again. A capture that fails does not stop the others (status ``"failed"`` with
-    the error). Returns one row (dict) per capture in input order: ``capture``, ``out``,
-    ``status``, ``error``, ``wall_seconds`` and, for finished ones, ``reference_frame``,
-    ``frames_used``, ``height``, ``width``, ``seconds`` (stage time) — ready for
-    ``pandas.DataFrame(rows)``.
+    Parameters
+    ----------
+    captures : iterable of path
+        Capture directories, with distinct directory names.
+    out_dir : path
+        Directory of the outputs, created if missing.
+    client : dask.distributed.Client, optional
+        The cluster to run on (a ``LocalCluster``'s, a scheduler's, dask-jobqueue's); see the
+        module docstring. Default: a ``LocalCluster`` started and closed again.
+    n_workers : int, optional
+        Worker processes of that ``LocalCluster`` (default: dask's choice); ignored with
+        ``client``.
+    **options
+        Those of :func:`quantacolor.reconstruct_dir` with its defaults (``method``,
+        ``denoise``, ``scale``, ``config``, ``tonemap``, ``overwrite``, ...), but
+        ``progress``.
+
+    Returns
+    -------
+    list of dict
+        One row per capture in input order: ``capture``, ``out``, ``status`` ("done",
+        "skipped" or "failed"), ``error`` (None or the message), ``wall_seconds`` (s) and,
+        for ones done now, ``reference_frame``, ``frames_used``, ``height``, ``width`` and
+        ``seconds`` (stage time, s); ready for ``pandas.DataFrame(rows)``.
+
+    Raises
+    ------
+    ValueError
+        Two captures with the same directory name.
+    TypeError
+        A ``progress`` option (callbacks cannot run on remote workers).
     """
     capture_paths = [Path(c) for c in captures]
     out_root = Path(out_dir)
@@ -138,22 +189,36 @@ def reconstruct_many(
         if output_complete(out):
             rows[i] = {"capture": str(path), "out": str(out), "status": "skipped", "error": None}
         else:
-            todo.append((i, str(path), str(out)))
+            # The files of an interrupted run are this batch's own: replaced, not refused.
+            opts = {**options, "overwrite": True} if _interrupted(out) else options
+            todo.append((i, str(path), str(out), opts))
     if todo:
         out_root.mkdir(parents=True, exist_ok=True)
         with _OwnClient(client, n_workers) as c:
             futures = [
-                c.submit(_reconstruct_one, capture, out, options, pure=False)
-                for _, capture, out in todo
+                c.submit(_reconstruct_one, capture, out, opts, pure=False)
+                for _, capture, out, opts in todo
             ]
             results = c.gather(futures)
-        for (i, _, _), row in zip(todo, results):
+        for (i, _, _, _), row in zip(todo, results):
             rows[i] = row
     return [r for r in rows if r is not None]
 
 
 def video_complete(out: PathLike) -> bool:
-    """True when ``out`` holds a finished video (``video.toml`` is moved into place last)."""
+    """Whether a directory holds a finished video.
+
+    Parameters
+    ----------
+    out : path
+        An output directory of :func:`reconstruct_video` or ``quantacolor reconstruct
+        --video``.
+
+    Returns
+    -------
+    bool
+        True when ``out`` holds ``video.toml``, which is moved into place last.
+    """
     return (Path(out) / "video.toml").is_file()
 
 
@@ -183,29 +248,56 @@ def reconstruct_video(
     frames_per_task: int = 4,
     **options: Any,
 ) -> dict[str, Any]:
-    """Reconstructs a video of the capture directory ``capture`` into ``out_dir`` on a Dask
-    cluster: the files of ``quantacolor reconstruct CAPTURE --out OUT_DIR --video --stride
-    STRIDE --window WINDOW`` (``frame_NNNNN.png``, ``linear.npy`` (N, H, W, 3) and
-    ``video.toml``, byte for byte, with ``capture`` given as the same path).
+    """Reconstructs a video of a long recording on a Dask cluster (paper §4 per frame;
+    ``quantacolor reconstruct CAPTURE --out OUT_DIR --video --stride STRIDE --window WINDOW``).
 
-    A reference frame every ``stride`` frames; each video frame is reconstructed from the
-    ``window`` frames centred on it (``None``: every frame, which costs the whole recording
-    per video frame; give a window for long recordings). Tasks of ``frames_per_task``
-    consecutive video frames go to the workers; ``options`` are those of
-    :func:`quantacolor.reconstruct` but ``reference_frame``, ``window`` and ``progress``
-    (``method``, ``denoise``, ``scale``, ``config``, ``sigma_y``, ``sigma_c``, ``block_size``,
-    ``max_sub_block_motion``). Each frame estimates its own motion (the CLI's default
-    ``--video-motion per-frame``).
+    Writes the CLI's files byte for byte (``frame_NNNNN.png``, ``linear.npy`` (N, H, W, 3) and
+    ``video.toml``, with ``capture`` given as the same path). Each video frame estimates its
+    own motion (the CLI's default ``--video-motion per-frame``). Tasks of ``frames_per_task``
+    consecutive video frames go to the workers.
 
     Restartable: finished frames wait in ``.<out_dir name>.video-parts`` beside ``out_dir``
     until every frame is done, a rerun makes only the missing ones, and a finished
-    ``out_dir`` is skipped. The video is then written atomically and the parts removed.
+    ``out_dir`` is skipped. The video is then written atomically and the parts removed. A
+    failed frame raises (its error), keeping the finished ones for the next run.
 
-    ``client`` is a ``dask.distributed.Client``; without one a ``LocalCluster`` of
-    ``n_workers`` processes is started and closed again. A failed frame raises (its error),
-    keeping the finished ones for the next run. Returns a dict: ``out``, ``status``
-    (``"done"`` or ``"skipped"``), ``frames`` (video frames), ``made`` (frames reconstructed by
-    this call), ``frame_seconds`` (their times) and ``wall_seconds``.
+    Parameters
+    ----------
+    capture : path
+        Capture directory (docs/capture-format.md).
+    out_dir : path
+        Video directory, created if missing.
+    stride : int
+        Frames between consecutive video frames' reference frames, >= 1 (default 256).
+    window : int, optional
+        Binary frames each video frame is reconstructed from, centred on its reference frame,
+        >= 1 (default None: every frame, which costs the whole recording per video frame;
+        give a window, e.g. 2000, for long recordings).
+    client : dask.distributed.Client, optional
+        The cluster to run on. Default: a ``LocalCluster`` started and closed again.
+    n_workers : int, optional
+        Worker processes of that ``LocalCluster`` (default: dask's choice); ignored with
+        ``client``.
+    frames_per_task : int
+        Video frames per Dask task, >= 1 (default 4).
+    **options
+        Those of :func:`quantacolor.reconstruct` with its defaults (``method``, ``denoise``,
+        ``scale``, ``config``, ``sigma_y``, ``sigma_c``, ``block_size``,
+        ``max_sub_block_motion``), but ``reference_frame``, ``window`` and ``progress``.
+
+    Returns
+    -------
+    dict
+        ``out``, ``status`` ("done" or "skipped"), ``frames`` (video frames; None when
+        skipped), ``made`` (frames reconstructed by this call), ``frame_seconds`` (their
+        times, s) and ``wall_seconds`` (s).
+
+    Raises
+    ------
+    TypeError
+        A ``progress``, ``reference_frame`` or ``window`` option, or an unknown one.
+    ValueError
+        A bad ``stride``, ``window``, ``frames_per_task`` or option value, or a bad capture.
     """
     from . import _native
 
