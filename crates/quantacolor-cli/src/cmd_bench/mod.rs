@@ -106,8 +106,10 @@ pub enum BenchCommand {
         #[arg(long)]
         denoise_config: Option<PathBuf>,
     },
-    /// Speed: align + merge of a simulated 10,000-frame capture, against the naive sum of the
-    /// same frames in the same process.
+    /// Speed: align + merge + denoise of simulated 10,000-frame handheld captures (the built-in
+    /// chart and the quality suite's validation photographs, or --scene), every stage timed,
+    /// against the naive sum of the same frames in the same process, and against the capture's
+    /// own duration at the colour SwissSPAD2's 16,000 frames per second.
     Speed {
         #[arg(long, default_value_t = 10_000)]
         frames: usize,
@@ -121,6 +123,16 @@ pub enum BenchCommand {
         /// time instead of the default pipeline: how far a speed setting moves the ratio.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Scene to simulate the capture from instead of the default set (repeatable or
+        /// comma-separated): an image file (PNG, EXR, ...) or builtin:chart. Each is a 496x254
+        /// colour-SPAD capture of hand shake at 0.1 photons/pixel/frame, seed 1, as the chart.
+        #[arg(long, value_delimiter = ',')]
+        scene: Vec<String>,
+        /// Folder of the quality suite's scenes: without --scene, its validation photographs
+        /// are timed after the built-in chart (without the default folder, the chart only)
+        /// [default: ../shared/data/scenes].
+        #[arg(long, conflicts_with = "scene")]
+        scenes: Option<PathBuf>,
     },
     /// Video: `reconstruct --video` (motion estimated once, composed to every reference frame)
     /// against a full reconstruction per reference frame, in the same process, on a simulated
@@ -166,6 +178,8 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             frames,
             runs,
             config,
+            scene,
+            scenes,
         } => {
             let (pipeline, name) = match config {
                 Some(path) => (
@@ -174,7 +188,15 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
                 ),
                 None => (ReconstructConfig::default(), "default pipeline".to_string()),
             };
-            speed::speed(*frames, *runs as usize, (&pipeline, &name), progress)
+            // Every scene is loaded before anything is simulated, so a bad one fails at once.
+            let scenes = speed::speed_scenes(scene, scenes.as_deref())?;
+            speed::speed(
+                &scenes,
+                *frames,
+                *runs as usize,
+                (&pipeline, &name),
+                progress,
+            )
         }
         BenchCommand::Video {
             frames,

@@ -1,9 +1,12 @@
 //! `bench speed`: align + merge (and the whole pipeline with denoising) of a simulated capture
-//! against the naive sum of the same frames, in interleaved rounds in the same process.
+//! against the naive sum of the same frames, in interleaved rounds in the same process, on the
+//! built-in chart and photographs; with each capture's real-time factor at the colour
+//! SwissSPAD2's 16,000 frames per second.
 
 #![forbid(unsafe_code)]
 
-use anyhow::Result;
+use super::{suite, SuiteSet};
+use anyhow::{Context, Result};
 use quantacolor::burst::reconstruct_burst;
 use quantacolor::capture::Capture;
 use quantacolor::cfa::colorspad_cfa;
@@ -14,11 +17,98 @@ use quantacolor::progress::{Progress, Silent};
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
 use quantacolor::stats::median_f64;
 use quantacolor::timing::StageTiming;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Naive sums timed in each round of [`speed`]: it takes tens of milliseconds against about a
 /// second for the pipeline, so more samples of it cost little and steady its median.
 const NAIVE_RUNS_PER_ROUND: usize = 3;
+
+/// Frame rate of the colour SwissSPAD2 at 496x254: the real-time factor's clock.
+const SENSOR_FPS: f64 = 16_000.0;
+
+/// Mean light of every capture, photons per pixel per frame.
+const FLUX: f64 = 0.1;
+
+/// Where the quality suite's scenes are by default (as `bench quality --scenes`).
+const DEFAULT_SCENES: &str = "../shared/data/scenes";
+
+/// One scene of `bench speed`: its label in the report and the scene to simulate.
+pub(super) struct SpeedScene {
+    pub(super) label: String,
+    pub(super) scene: Scene,
+}
+
+/// The scenes to time: the `--scene` specs (files `Scene::load` reads, or `builtin:…`) when
+/// given, loaded here so that a bad one fails before anything is simulated; otherwise the
+/// built-in chart, then the quality suite's validation photographs from `scenes` (default
+/// [`DEFAULT_SCENES`]; without that folder a note and the chart only, unless the folder was
+/// named explicitly).
+pub(super) fn speed_scenes(specs: &[String], scenes: Option<&Path>) -> Result<Vec<SpeedScene>> {
+    if !specs.is_empty() {
+        return specs
+            .iter()
+            .map(|spec| {
+                let scene = Scene::from_spec(spec).with_context(|| format!("--scene {spec}"))?;
+                Ok(SpeedScene {
+                    label: scene_label(spec),
+                    scene,
+                })
+            })
+            .collect();
+    }
+    let mut out = vec![SpeedScene {
+        label: "chart".into(),
+        scene: Scene::from_spec("builtin:chart")?,
+    }];
+    let dir = scenes.map_or_else(|| PathBuf::from(DEFAULT_SCENES), Path::to_path_buf);
+    if !dir.is_dir() {
+        anyhow::ensure!(
+            scenes.is_none(),
+            "{}: scene folder not found (--scenes)",
+            dir.display()
+        );
+        eprintln!(
+            "{}: no scene folder (the quality suite's photographs); timing the built-in chart only",
+            dir.display()
+        );
+        return Ok(out);
+    }
+    for name in validation_photographs() {
+        let path = dir.join(name);
+        let scene = Scene::load(&path).with_context(|| format!("{}", path.display()))?;
+        out.push(SpeedScene {
+            label: scene_label(name),
+            scene,
+        });
+    }
+    Ok(out)
+}
+
+/// The distinct photographs (PNG) of the quality suite's validation set, in its order.
+fn validation_photographs() -> Vec<&'static str> {
+    let mut names: Vec<&'static str> = Vec::new();
+    for case in suite::suite() {
+        if case.set == SuiteSet::Validation
+            && case.scene.ends_with(".png")
+            && !names.contains(&case.scene)
+        {
+            names.push(case.scene);
+        }
+    }
+    names
+}
+
+/// A scene's label: a file's stem, or the built-in name without `builtin:`.
+fn scene_label(spec: &str) -> String {
+    if let Some(name) = spec.strip_prefix("builtin:") {
+        return name.to_string();
+    }
+    Path::new(spec)
+        .file_stem()
+        .map_or_else(|| spec.to_string(), |s| s.to_string_lossy().into_owned())
+}
 
 /// One timed run of the default pipeline in [`speed`].
 struct WholeRun {
@@ -30,6 +120,18 @@ struct WholeRun {
     timings: Vec<StageTiming>,
 }
 
+/// What [`speed`] reports of one capture: the medians of its rounds and their ranges.
+struct Measured {
+    label: String,
+    /// Every naive sum's seconds.
+    naive_times: Vec<f64>,
+    naive_s: f64,
+    /// The fastest and slowest whole pipeline.
+    whole_range: (f64, f64),
+    /// The pipeline's run of median whole time.
+    median: WholeRun,
+}
+
 /// Seconds of one timed call of `f`, with its result.
 fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(f64, T)> {
     let start = Instant::now();
@@ -37,7 +139,14 @@ fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(f64, T)> {
     Ok((start.elapsed().as_secs_f64(), out))
 }
 
+/// The pipeline's seconds over the capture's own duration at [`SENSOR_FPS`]: above 1, the
+/// reconstruction takes longer than the sensor took to record the frames.
+fn real_time_factor(whole_s: f64, frames: usize) -> f64 {
+    whole_s / (frames as f64 / SENSOR_FPS)
+}
+
 pub(super) fn speed(
+    scenes: &[SpeedScene],
     frames: usize,
     runs: usize,
     (pipeline, name): (&ReconstructConfig, &str),
@@ -45,59 +154,192 @@ pub(super) fn speed(
 ) -> Result<()> {
     let config = SimulationConfig {
         frames,
-        flux: FluxSpec::Mean { flux: 0.1 },
+        flux: FluxSpec::Mean { flux: FLUX },
         motion: "handheld".parse::<MotionConfig>()?,
         ..SimulationConfig::default()
     };
-    eprintln!("simulating {frames} frames of 496x254 (not timed)");
-    let sim = simulate_with_cfa(
-        &config,
-        &Scene::from_spec("builtin:chart")?,
-        &colorspad_cfa(),
-        progress,
-    )?;
-    let capture = sim.to_capture()?;
-    let (mut naive_times, mut whole_runs) = time_rounds(&capture, pipeline, frames, runs)?;
+    let mut results = Vec::with_capacity(scenes.len());
+    for (i, scene) in scenes.iter().enumerate() {
+        eprintln!(
+            "simulating {frames} frames of {}x{} of {} (not timed)",
+            config.width, config.height, scene.label
+        );
+        let capture = simulate_with_cfa(&config, &scene.scene, &colorspad_cfa(), progress)
+            .and_then(|sim| sim.to_capture())
+            .with_context(|| format!("simulating {}", scene.label))?;
+        eprintln!("timing {} ({runs} rounds)", scene.label);
+        let measured = measure(&scene.label, &capture, pipeline, frames, runs)?;
+        drop(capture);
+        if i > 0 {
+            println!();
+        }
+        println!(
+            "== {}: handheld, {FLUX} photons/pixel/frame, colour-SPAD CFA, seed {}",
+            scene.label, config.seed
+        );
+        print!(
+            "{}",
+            capture_report(&measured, frames, runs, (pipeline, name), &config)
+        );
+        results.push(measured);
+    }
+    println!();
+    print!("{}", summary_table(&results, frames, name));
+    Ok(())
+}
+
+/// Times `runs` rounds on `capture` and keeps the medians.
+fn measure(
+    label: &str,
+    capture: &Capture,
+    pipeline: &ReconstructConfig,
+    frames: usize,
+    runs: usize,
+) -> Result<Measured> {
+    let (mut naive_times, mut whole_runs) = time_rounds(capture, pipeline, frames, runs)?;
     let naive_s = median_f64(&mut naive_times);
     whole_runs.sort_by(|a, b| a.whole_s.total_cmp(&b.whole_s));
     let whole_range = (
         whole_runs[0].whole_s,
         whole_runs[whole_runs.len() - 1].whole_s,
     );
+    let median = whole_runs.swap_remove(whole_runs.len() / 2);
+    Ok(Measured {
+        label: label.to_string(),
+        naive_times,
+        naive_s,
+        whole_range,
+        median,
+    })
+}
+
+/// The report of one capture: every stage, the blocks, the naive sum, the whole pipeline, its
+/// ratio to the naive sum and its real-time factor.
+fn capture_report(
+    m: &Measured,
+    frames: usize,
+    runs: usize,
+    (pipeline, name): (&ReconstructConfig, &str),
+    config: &SimulationConfig,
+) -> String {
     let WholeRun {
         whole_s,
         burst_s,
         denoise_s,
         blocks,
         sub_blocks,
-        timings,
-    } = whole_runs.swap_remove(whole_runs.len() / 2);
-    println!(
-        "{frames} frames 496x254, {} threads, medians of {runs} rounds: naive {naive_s:.3} s \
+        ref timings,
+    } = m.median;
+    let naive_s = m.naive_s;
+    let mut out = String::new();
+    writeln!(
+        out,
+        "{frames} frames {}x{}, {} threads, medians of {runs} rounds: naive {naive_s:.3} s \
          ({} runs, {:.3}-{:.3} s), burst (align + merge) {burst_s:.3} s, ratio {:.1}x",
+        config.width,
+        config.height,
         rayon::current_num_threads(),
-        naive_times.len(),
-        naive_times.iter().copied().fold(f64::INFINITY, f64::min),
-        naive_times.iter().copied().fold(0.0, f64::max),
+        m.naive_times.len(),
+        m.naive_times.iter().copied().fold(f64::INFINITY, f64::min),
+        m.naive_times.iter().copied().fold(0.0, f64::max),
         burst_s / naive_s
-    );
-    println!("  {blocks} alignment blocks, {sub_blocks} sub-blocks merged");
-    for t in &timings {
-        println!("  {:<32} {:.3} s", t.stage, t.seconds);
+    )
+    .ok();
+    writeln!(
+        out,
+        "  {blocks} alignment blocks, {sub_blocks} sub-blocks merged"
+    )
+    .ok();
+    for t in timings {
+        writeln!(out, "  {:<32} {:.3} s", t.stage, t.seconds).ok();
     }
-    println!(
+    writeln!(
+        out,
         "  {:<32} {denoise_s:.3} s ({:.1}x the naive sum)",
         format!("denoise ({})", pipeline.denoise.method),
         denoise_s / naive_s
-    );
-    println!(
+    )
+    .ok();
+    writeln!(
+        out,
         "whole {name} (align, merge, denoise): {whole_s:.3} s ({:.3}-{:.3} s), ratio \
          {:.1}x the naive sum",
-        whole_range.0,
-        whole_range.1,
+        m.whole_range.0,
+        m.whole_range.1,
         whole_s / naive_s
-    );
-    Ok(())
+    )
+    .ok();
+    let factor = real_time_factor(whole_s, frames);
+    writeln!(
+        out,
+        "real-time factor at 16 kfps: {factor:.2}x ({frames} frames = {:.3} s of capture, \
+         {whole_s:.3} s to reconstruct: {})",
+        frames as f64 / SENSOR_FPS,
+        if factor > 1.0 {
+            "slower than real time"
+        } else {
+            "faster than real time"
+        }
+    )
+    .ok();
+    out
+}
+
+/// A stage's column header: its name without the parenthesised detail.
+fn short_stage(stage: &str) -> &str {
+    stage.split_once(" (").map_or(stage, |(a, _)| a)
+}
+
+/// The summary: a Markdown table with a row per capture (every stage of any capture as a
+/// column, blank where a capture's pipeline did not run it).
+fn summary_table(results: &[Measured], frames: usize, name: &str) -> String {
+    let mut stages: Vec<&str> = Vec::new();
+    for m in results {
+        for t in &m.median.timings {
+            if !stages.contains(&t.stage.as_str()) {
+                stages.push(&t.stage);
+            }
+        }
+    }
+    let mut out = String::new();
+    writeln!(
+        out,
+        "summary: {name}, {frames} frames ({:.3} s at 16 kfps), {} threads, medians (s)",
+        frames as f64 / SENSOR_FPS,
+        rayon::current_num_threads()
+    )
+    .ok();
+    let mut header = "| scene | blocks | sub-blocks | naive |".to_string();
+    for stage in &stages {
+        write!(header, " {} |", short_stage(stage)).ok();
+    }
+    header.push_str(" denoise | whole | x naive | x real time |");
+    writeln!(out, "{header}").ok();
+    writeln!(out, "{}", "|---".repeat(stages.len() + 8) + "|").ok();
+    for m in results {
+        let w = &m.median;
+        let mut row = format!(
+            "| {} | {} | {} | {:.3} |",
+            m.label, w.blocks, w.sub_blocks, m.naive_s
+        );
+        for stage in &stages {
+            match w.timings.iter().find(|t| t.stage == *stage) {
+                Some(t) => write!(row, " {:.3} |", t.seconds).ok(),
+                None => write!(row, " |").ok(),
+            };
+        }
+        write!(
+            row,
+            " {:.3} | {:.3} | {:.1}x | {:.2}x |",
+            w.denoise_s,
+            w.whole_s,
+            w.whole_s / m.naive_s,
+            real_time_factor(w.whole_s, frames)
+        )
+        .ok();
+        writeln!(out, "{row}").ok();
+    }
+    out
 }
 
 /// The timed rounds of [`speed`]: each runs the naive sum [`NAIVE_RUNS_PER_ROUND`] times, then
