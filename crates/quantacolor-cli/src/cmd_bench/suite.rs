@@ -75,10 +75,10 @@ impl Case {
         if self.cfa == CfaKind::Bayer {
             id.push_str("-bayer");
         }
-        if let FluxSpec::Mean { flux } = self.flux {
-            if flux < 0.1 {
-                id.push_str("-dark");
-            }
+        match self.flux {
+            FluxSpec::Mean { flux } if flux < 0.1 => id.push_str("-dark"),
+            FluxSpec::Percentile { peak, .. } if peak > 1.0 => id.push_str("-bright"),
+            _ => {}
         }
         if self.supersampling > 1 {
             id.push_str("-2x");
@@ -90,7 +90,7 @@ impl Case {
 /// The quality suite. Tuning set: kodim02, kodim07, kodim15, ScanLines_StillLife, seeds 200+;
 /// validation set: kodim04, kodim12, kodim22, ScanLines_Cannon, MultiResolution_Bonita, seeds
 /// 300+. Each set has one capture of every kind (handheld, pan or static, moving object, fast
-/// handheld, long HDR handheld, dark, Bayer, 2x detail).
+/// handheld, long HDR handheld, dark, Bayer, 2x detail, bright HDR handheld).
 pub(super) fn suite() -> Vec<Case> {
     let mut cases = tuning_cases();
     cases.extend(validation_cases());
@@ -115,6 +115,12 @@ const DARK: FluxSpec = FluxSpec::Mean { flux: 0.02 };
 const HDR: FluxSpec = FluxSpec::Percentile {
     percentile: 50.0,
     peak: 0.1,
+};
+/// Bright HDR scenes (issue's high-light case): the 99th-percentile W pixel at 4 detections
+/// per frame, where the photons allow a merge as sharp as the pixel itself.
+const BRIGHT: FluxSpec = FluxSpec::Percentile {
+    percentile: 99.0,
+    peak: 4.0,
 };
 /// Sensor (height, width) of the 1x captures.
 const FULL: (usize, usize) = (254, 496);
@@ -196,6 +202,14 @@ fn tuning_cases() -> Vec<Case> {
             supersampling: 2,
             ..case(T, "kodim15.png", "handheld", handheld(), 2000, MEAN)
         },
+        case(
+            T,
+            "ScanLines_StillLife.exr",
+            "handheld",
+            handheld(),
+            2000,
+            BRIGHT,
+        ),
     ]
 }
 
@@ -253,6 +267,14 @@ fn validation_cases() -> Vec<Case> {
             supersampling: 2,
             ..case(V, "kodim22.png", "handheld", handheld(), 2000, MEAN)
         },
+        case(
+            V,
+            "MultiResolution_Bonita.exr",
+            "handheld",
+            handheld(),
+            2000,
+            BRIGHT,
+        ),
     ]
 }
 

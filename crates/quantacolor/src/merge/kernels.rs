@@ -4,6 +4,7 @@
 #![deny(unsafe_code)]
 
 use super::warp::positive;
+use super::GreyNoise;
 use crate::cfa::{Cfa, Channel};
 use crate::error::{Error, Result};
 use crate::stats;
@@ -36,6 +37,17 @@ pub struct KernelConfig {
     pub k_shrink: f32, // 1
     /// Upper bound of the anisotropy A = min(sqrt(λ1/λ2), max_anisotropy).
     pub max_anisotropy: f32, // 5
+    /// Detail transition in units of the reference's noise (this project's heuristic; 0 =
+    /// off): D_tr = min(d_tr·range, detail_noise_sigmas·σ(p)), σ(p) the std of the reference
+    /// at p ([`ReferenceNoise`]). Where photons are plenty a gradient far above the noise is
+    /// detail even if it is small against the image's range; in the dark σ is large and
+    /// `d_tr` decides. Measurements: docs/tuning.md.
+    pub detail_noise_sigmas: f32, // 11 (noise stds; 0 = off)
+    /// Signal-to-noise ratio of the reference above which the flat-area kernel narrows (this
+    /// project's heuristic; 0 = off): k_denoise·min(1, flat_snr / SNR(p)), never below
+    /// k_detail, so that where a pixel's own photons already give a clean value the merge does
+    /// not blur it. Measurements: docs/tuning.md.
+    pub flat_snr: f32, // 0 (dimensionless; 0 = off)
     /// Floor on every kernel std (px): narrower kernels than this underflow in f32 for samples
     /// one pixel away and leave holes.
     pub min_std: f32, // 0.25 px
@@ -55,6 +67,8 @@ impl Default for KernelConfig {
             k_stretch: 1.0,
             k_shrink: 1.0,
             max_anisotropy: 5.0,
+            detail_noise_sigmas: 11.0,
+            flat_snr: 0.0,
             min_std: 0.25,
             output_scale_exponent: 0.5,
         }
@@ -108,6 +122,22 @@ impl KernelField {
     }
 }
 
+/// The noise of the merged reference image: a grey value's noise ([`GreyNoise`]) averaged over
+/// `blocks` blocks (the Wiener merge's flat-area limit, supplement §1.2).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ReferenceNoise {
+    pub grey: GreyNoise,
+    /// Blocks merged into the reference.
+    pub blocks: f32,
+}
+
+impl ReferenceNoise {
+    /// Standard deviation of a reference pixel whose value is `value`.
+    pub fn std(&self, value: f32) -> f32 {
+        (self.grey.variance(value.max(0.0)) / self.blocks.max(1.0)).sqrt()
+    }
+}
+
 /// Value at the `q`-quantile of `values` (finite values only, nearest rank; 0 if none).
 fn quantile(values: &Array2<f32>, q: f64) -> f32 {
     stats::quantile(values.iter().copied(), q).unwrap_or(0.0)
@@ -122,6 +152,16 @@ fn quantile(values: &Array2<f32>, q: f64) -> f32 {
 /// toward k_denoise as (1 − D)·k + D·k_denoise, floored at min_std, and
 /// Ω = k1²·e_edge·e_edgeᵀ + k2²·e_grad·e_gradᵀ.
 pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<KernelField> {
+    kernel_field_with_noise(reference, None, config)
+}
+
+/// [`kernel_field`] with the reference's noise, which `detail_noise_sigmas` and `flat_snr`
+/// need (without it, or with both 0, the two make no difference).
+pub fn kernel_field_with_noise(
+    reference: &Array2<f32>,
+    noise: Option<ReferenceNoise>,
+    config: &KernelConfig,
+) -> Result<KernelField> {
     let (h, w) = reference.dim();
     if h == 0 || w == 0 {
         return Err(Error::invalid("kernels: the reference image is empty"));
@@ -142,6 +182,12 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
              and max_anisotropy at least 1",
         ));
     }
+    let non_negative = |v: f32| v.is_finite() && v >= 0.0;
+    if !(non_negative(config.detail_noise_sigmas) && non_negative(config.flat_snr)) {
+        return Err(Error::invalid(
+            "kernels: detail_noise_sigmas and flat_snr must be finite and at least 0 (0 = off)",
+        ));
+    }
     let range = (quantile(reference, 0.99) - quantile(reference, 0.01)).max(1e-6);
     let d_tr = config.d_tr * range;
     let products = gradient_products(reference);
@@ -160,7 +206,11 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
             let mut row_max = 0.0f32;
             for x in 0..w {
                 let tensor = structure_tensor_3x3(products, (h, w), y, x);
-                let kernel = PixelKernel::of(tensor, d_tr, config);
+                let (d_tr, k_flat) = match noise {
+                    Some(noise) => noise_adapted(reference[[y, x]], noise, d_tr, config),
+                    None => (d_tr, config.k_denoise),
+                };
+                let kernel = PixelKernel::of(tensor, d_tr, k_flat, config);
                 row_max = row_max.max(kernel.k_edge).max(kernel.k_grad);
                 for (c, v) in kernel.inv_cov.into_iter().enumerate() {
                     inv_row[[x, c]] = v;
@@ -177,6 +227,32 @@ pub fn kernel_field(reference: &Array2<f32>, config: &KernelConfig) -> Result<Ke
         flatness,
         max_std,
     })
+}
+
+/// The detail transition and the flat-area kernel std of a reference pixel of value `value`
+/// (`detail_noise_sigmas`, `flat_snr`; `d_tr` the range-based transition).
+fn noise_adapted(
+    value: f32,
+    noise: ReferenceNoise,
+    d_tr: f32,
+    config: &KernelConfig,
+) -> (f32, f32) {
+    let std = noise.std(value);
+    if !(std.is_finite() && std > 0.0) {
+        return (d_tr, config.k_denoise);
+    }
+    let d_tr = if config.detail_noise_sigmas > 0.0 {
+        d_tr.min(config.detail_noise_sigmas * std)
+    } else {
+        d_tr
+    };
+    let snr = value.max(0.0) / std;
+    let k_flat = if config.flat_snr > 0.0 && snr > config.flat_snr {
+        (config.k_denoise * config.flat_snr / snr).max(config.k_detail.min(config.k_denoise))
+    } else {
+        config.k_denoise
+    };
+    (d_tr.max(f32::MIN_POSITIVE), k_flat)
 }
 
 /// Per pixel of `reference`, the products (gy², gy·gx, gx²) of its central-difference
@@ -240,8 +316,9 @@ impl PixelKernel {
     /// The kernel of a pixel whose 3x3 structure tensor is `[syy, syx, sxx]`: anisotropy
     /// A = √(λ1/λ2) (capped at `max_anisotropy`), flatness D = clamp(1 − √λ1 / `d_tr` + D_th),
     /// stds k_detail·k_stretch·A along the edge and k_detail / (k_shrink·A) along the
-    /// gradient, each blended with k_denoise by D and floored at `min_std`.
-    fn of([syy, syx, sxx]: [f32; 3], d_tr: f32, config: &KernelConfig) -> Self {
+    /// gradient, each blended with the flat-area std `k_flat` (k_denoise, or its noise-adapted
+    /// value) by D and floored at `min_std`.
+    fn of([syy, syx, sxx]: [f32; 3], d_tr: f32, k_flat: f32, config: &KernelConfig) -> Self {
         let half_trace = 0.5 * (syy + sxx);
         let disc = (0.25 * (syy - sxx) * (syy - sxx) + syx * syx).sqrt();
         let l1 = (half_trace + disc).max(0.0);
@@ -267,8 +344,8 @@ impl PixelKernel {
         }
         let k_edge = config.k_detail * config.k_stretch * a;
         let k_grad = config.k_detail / (config.k_shrink * a);
-        let k_edge = ((1.0 - d) * k_edge + d * config.k_denoise).max(config.min_std);
-        let k_grad = ((1.0 - d) * k_grad + d * config.k_denoise).max(config.min_std);
+        let k_edge = ((1.0 - d) * k_edge + d * k_flat).max(config.min_std);
+        let k_grad = ((1.0 - d) * k_grad + d * k_flat).max(config.min_std);
         // Ω⁻¹ = e_grad e_gradᵀ / k_grad² + e_edge e_edgeᵀ / k_edge², e_edge = (−ex, ey).
         let (ig, ie) = (1.0 / (k_grad * k_grad), 1.0 / (k_edge * k_edge));
         PixelKernel {
@@ -300,7 +377,7 @@ mod tests {
     #[test]
     fn a_flat_pixel_gets_the_isotropic_denoising_kernel() {
         let config = KernelConfig::default();
-        let kernel = PixelKernel::of([0.0; 3], 0.5, &config);
+        let kernel = PixelKernel::of([0.0; 3], 0.5, config.k_denoise, &config);
         // No gradient: flatness 1 (clamped from 1 + D_th), anisotropy 1, both stds k_denoise.
         assert_eq!((kernel.flatness, kernel.anisotropy), (1.0, 1.0));
         assert_eq!((kernel.k_edge, kernel.k_grad), (1.0, 1.0));
@@ -311,7 +388,7 @@ mod tests {
     fn a_strong_horizontal_edge_stretches_the_kernel_along_x() {
         // Gradient along y only (a horizontal edge), far above the flatness threshold.
         let config = KernelConfig::default();
-        let kernel = PixelKernel::of([100.0, 0.0, 0.0], 0.5, &config);
+        let kernel = PixelKernel::of([100.0, 0.0, 0.0], 0.5, config.k_denoise, &config);
         assert_eq!(kernel.flatness, 0.0);
         assert_eq!(kernel.anisotropy, config.max_anisotropy);
         // Along the edge (x): k_detail·k_stretch·A; across it (y): k_detail / (k_shrink·A),
@@ -326,6 +403,61 @@ mod tests {
         assert!((yy - 1.0 / (0.25 * 0.25)).abs() < 1e-3, "{yy}");
         assert!((xx - 1.0 / (1.5 * 1.5)).abs() < 1e-5, "{xx}");
         assert_eq!(yx, 0.0);
+    }
+
+    /// A reference merged from 100 blocks of 16 binary frames each.
+    fn noise() -> ReferenceNoise {
+        ReferenceNoise {
+            grey: GreyNoise::from(16.0),
+            blocks: 100.0,
+        }
+    }
+
+    #[test]
+    fn noise_adaptation_is_off_at_zero_and_in_the_dark() {
+        let config = KernelConfig {
+            detail_noise_sigmas: 0.0,
+            flat_snr: 0.0,
+            ..KernelConfig::default()
+        };
+        assert_eq!(noise_adapted(0.5, noise(), 0.3, &config), (0.3, 1.0));
+        // Both on, but a dim pixel: std of 0.001 over 1,600 frames is 7.9e-4, SNR 1.3, so
+        // 8 σ = 6.3e-3 sits above a transition of 1e-3 and the SNR below 20.
+        let on = KernelConfig {
+            detail_noise_sigmas: 8.0,
+            flat_snr: 20.0,
+            ..config
+        };
+        assert_eq!(noise_adapted(0.001, noise(), 1e-3, &on), (1e-3, 1.0));
+    }
+
+    #[test]
+    fn plenty_of_photons_narrow_the_transition_and_the_flat_kernel() {
+        let config = KernelConfig {
+            detail_noise_sigmas: 8.0,
+            flat_snr: 20.0,
+            ..KernelConfig::default()
+        };
+        // p = 0.5 over 1,600 frames: std 0.0125, SNR 40.
+        let std = noise().std(0.5);
+        assert!((std - 0.0125).abs() < 1e-6, "{std}");
+        let (d_tr, k_flat) = noise_adapted(0.5, noise(), 0.3, &config);
+        assert!((d_tr - 0.1).abs() < 1e-6, "{d_tr}");
+        assert!((k_flat - 0.5).abs() < 1e-6, "{k_flat}");
+        // SNR 400 (100x the frames): the flat kernel stops at k_detail.
+        let many = ReferenceNoise {
+            blocks: 10_000.0,
+            ..noise()
+        };
+        assert_eq!(noise_adapted(0.5, many, 0.3, &config).1, config.k_detail);
+        // A gradient of 0.05 per pixel: flat under the range-based transition, detail once
+        // the transition follows the noise.
+        let tensor = [9.0 * 0.05 * 0.05, 0.0, 0.0];
+        let by_range = PixelKernel::of(tensor, 0.3, 1.0, &config);
+        let by_noise = PixelKernel::of(tensor, d_tr, k_flat, &config);
+        assert!(by_range.flatness > 0.45, "{}", by_range.flatness);
+        assert_eq!(by_noise.flatness, 0.0);
+        assert!(by_noise.k_grad < by_range.k_grad);
     }
 
     #[test]

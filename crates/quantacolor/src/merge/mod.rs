@@ -28,7 +28,9 @@ pub use accumulate::{
     demosaic_merge, reference_position, AccumulateConfig, MergeAccumulator, MergedPlanes, SubBlock,
     SubBlockMotion, SubBlockRobustness,
 };
-pub use kernels::{kernel_field, KernelConfig, KernelField};
+pub use kernels::{
+    kernel_field, kernel_field_with_noise, KernelConfig, KernelField, ReferenceNoise,
+};
 pub use reference::{reference_image, reference_image_streamed, WienerConfig};
 pub use robustness::{robustness, robustness_against, ReferenceStats, RobustnessConfig};
 pub use warp::warp_to_reference;
@@ -184,6 +186,7 @@ pub fn merge_guide_streamed(
     noise: impl Into<GreyNoise>,
     config: &MergeConfig,
 ) -> Result<MergeGuide> {
+    let noise: GreyNoise = noise.into();
     let reference = reference_image_streamed(
         grey_blocks,
         block_flow,
@@ -191,8 +194,13 @@ pub fn merge_guide_streamed(
         noise,
         &config.wiener,
     )?;
-    let kernels = kernel_field(
+    let reference_noise = ReferenceNoise {
+        grey: noise,
+        blocks: grey_blocks.len() as f32,
+    };
+    let kernels = kernel_field_with_noise(
         &reference,
+        Some(reference_noise),
         &config.kernels.for_output_scale(config.accumulate.scale),
     )?;
     Ok(MergeGuide {
