@@ -11,7 +11,7 @@ use clap::Args;
 use quantacolor::align::write_alignment;
 use quantacolor::burst::estimate_burst_motion;
 use quantacolor::capture::io;
-use quantacolor::pipeline::ReconstructConfig;
+use quantacolor::pipeline::{Profile, ReconstructConfig};
 use quantacolor::progress::Progress;
 use std::path::PathBuf;
 
@@ -47,7 +47,7 @@ pub struct AlignArgs {
 pub fn run_align(args: &AlignArgs, progress: &dyn Progress) -> Result<()> {
     crate::output::check_out_dir(&args.out, "--out", args.overwrite)?;
     let mut config = match &args.config {
-        Some(path) => crate::cmd_reconstruct::read_config(path)?,
+        Some(path) => crate::cmd_reconstruct::read_config(path, Profile::Default)?,
         None => ReconstructConfig::default(),
     };
     if args.block_size.is_some() {

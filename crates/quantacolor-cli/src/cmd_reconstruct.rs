@@ -11,7 +11,7 @@ use quantacolor::capture::{io, Capture};
 use quantacolor::denoise::chroma::DenoiseMethod;
 use quantacolor::display::{ColorMatrix, MesopicConfig, MesopicOffset, RenderOptions};
 use quantacolor::pipeline::{
-    reconstruct, Method, ReconstructConfig, ReconstructOverrides, Reconstruction,
+    reconstruct, Method, Profile, ReconstructConfig, ReconstructOverrides, Reconstruction,
 };
 use quantacolor::progress::Progress;
 use quantacolor::video::{
@@ -33,10 +33,15 @@ pub struct ReconstructArgs {
     /// frames, not denoised unless --denoise is given).
     #[arg(long)]
     pub method: Option<Method>,
-    /// TOML file with a full or partial reconstruction config (see report.toml for the keys);
-    /// command-line options override it.
+    /// TOML file with a full or partial reconstruction config (see report.toml for the keys),
+    /// laid over the profile; command-line options override it.
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Named settings: default, or fast (fewer alignment blocks, longer sub-blocks, one
+    /// refinement pass, BM3D's fast profile: 1.5x faster, 0.1-0.2 dB lower; docs/speed.md).
+    /// report.toml lists the settings that ran.
+    #[arg(long, default_value_t = Profile::Default)]
+    pub profile: Profile,
     /// Denoising (paper §4.3): chroma-bm3d (BM3D in the W-weighted YCbCr, chroma filtered
     /// harder), bm3d (plain colour BM3D, one σ) or none [default: chroma-bm3d; none with --method
     /// naive].
@@ -149,11 +154,11 @@ pub fn preview_options(
     })
 }
 
-/// The reconstruction config: defaults, then `--config`, then the other options.
+/// The reconstruction config: the profile, then `--config`, then the other options.
 pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
     let mut config = match &args.config {
-        Some(path) => read_config(path)?,
-        None => ReconstructConfig::default(),
+        Some(path) => read_config(path, args.profile)?,
+        None => args.profile.config()?,
     };
     ReconstructOverrides {
         method: args.method,
@@ -170,11 +175,11 @@ pub fn config_from_args(args: &ReconstructArgs) -> Result<ReconstructConfig> {
     Ok(config)
 }
 
-/// A full or partial reconstruction config from the TOML file `path`, every stage's settings
-/// checked before any work (a bad denoiser setting would otherwise surface after the merge);
-/// errors name the file.
-pub fn read_config(path: &Path) -> Result<ReconstructConfig> {
-    let config: ReconstructConfig = crate::config_file::read(path)?;
+/// A full or partial reconstruction config from the TOML file `path` laid over `profile`'s
+/// settings, every stage's settings checked before any work (a bad denoiser setting would
+/// otherwise surface after the merge); errors name the file.
+pub fn read_config(path: &Path, profile: Profile) -> Result<ReconstructConfig> {
+    let config: ReconstructConfig = crate::config_file::read_over(profile.toml(), path)?;
     config
         .denoise
         .bm3d_config()

@@ -453,9 +453,9 @@ fn reconstruct_denoise_and_preview_options() {
     assert!(report["preview"]["mesopic"]["frames"].as_float().unwrap() > 0.0);
     assert_ne!(none, chroma);
     assert_ne!(chroma, plain);
-    // The speed settings of docs/speed.md load and reach the stages they name.
-    let fast_config = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../docs/fast.toml");
-    let (fast, report) = run("fast", &["--config", fast_config.to_str().unwrap()]);
+    // The fast profile (docs/speed.md) reaches the stages it names, and report.toml lists
+    // its settings; a --config goes over it.
+    let (fast, report) = run("fast", &["--profile", "fast"]);
     let config = &report["config"];
     assert_eq!(
         config["denoise"]["bm3d"]["search_window"].as_integer(),
@@ -472,6 +472,29 @@ fn reconstruct_denoise_and_preview_options() {
         Some(60.0)
     );
     assert_ne!(fast, chroma);
+    let passes = tmp.path().join("passes.toml");
+    std::fs::write(&passes, "[burst.refine]\npasses = 2\n").unwrap();
+    let (_, report) = run(
+        "fast-2",
+        &["--profile", "fast", "--config", passes.to_str().unwrap()],
+    );
+    let config = &report["config"];
+    assert_eq!(config["burst"]["refine"]["passes"].as_integer(), Some(2));
+    assert_eq!(
+        config["burst"]["align"]["blocks"]["target_counts"].as_float(),
+        Some(60.0)
+    );
+    expect_failure(
+        &[
+            "reconstruct",
+            cap.to_str().unwrap(),
+            "--out",
+            tmp.path().join("bad").to_str().unwrap(),
+            "--profile",
+            "turbo",
+        ],
+        "turbo",
+    );
     expect_failure(
         &[
             "reconstruct",

@@ -27,6 +27,33 @@ pub fn parse<T: DeserializeOwned>(text: &str) -> Result<T> {
     }
 }
 
+/// The configuration `T` of TOML `text` laid over TOML `base` (both partial configs): keys of
+/// `text` replace those of `base`, tables merge key by key; unknown keys are an error as in
+/// [`parse`].
+pub fn parse_over<T: DeserializeOwned>(base: &str, text: &str) -> Result<T> {
+    let table = |text: &str| -> Result<toml::Table> {
+        text.parse::<toml::Table>()
+            .map_err(|e| Error::invalid(e.to_string().trim_end().to_string()))
+    };
+    let mut merged = table(base)?;
+    merge_into(&mut merged, table(text)?);
+    parse(&merged.to_string())
+}
+
+/// Lays `over` onto `base`: tables merge recursively, any other value replaces.
+fn merge_into(base: &mut toml::Table, over: toml::Table) {
+    for (key, value) in over {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(inner)), toml::Value::Table(value)) => {
+                merge_into(inner, value)
+            }
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -41,6 +68,42 @@ mod tests {
             toml::to_string(&config).unwrap(),
             toml::to_string(&expected).unwrap()
         );
+    }
+
+    #[test]
+    fn a_config_over_a_base_keeps_the_base_where_it_is_silent() {
+        let base = "[burst.refine]\npasses = 1\nmax_sub_block_motion_px = 0.7\n";
+        let over = "method = \"naive\"\n[burst.refine]\npasses = 3\n";
+        let config: ReconstructConfig = parse_over(base, over).unwrap();
+        assert_eq!(config.method, crate::pipeline::Method::Naive);
+        assert_eq!(config.burst.refine.passes, 3);
+        assert_eq!(config.burst.refine.max_sub_block_motion_px, 0.7);
+        let err = parse_over::<ReconstructConfig>(base, "[burst.refine]\npases = 2\n");
+        assert!(err.unwrap_err().to_string().contains("burst.refine.pases"));
+    }
+
+    #[test]
+    fn the_fast_profile_changes_only_its_own_settings() {
+        use crate::pipeline::Profile;
+        assert_eq!(
+            Profile::Default.config().unwrap(),
+            ReconstructConfig::default()
+        );
+        let fast = Profile::Fast.config().unwrap();
+        let default = ReconstructConfig::default();
+        assert_eq!(fast.burst.align.blocks.target_counts, 60.0);
+        assert_eq!(fast.burst.refine.passes, 1);
+        assert_eq!(fast.burst.refine.max_sub_block_motion_px, 0.7);
+        assert_eq!(fast.burst.merge, default.burst.merge);
+        assert_eq!(fast.burst.trajectory, default.burst.trajectory);
+        assert_ne!(fast.denoise.bm3d, default.denoise.bm3d);
+        assert_eq!(fast.method, default.method);
+        // A user's config goes over the profile.
+        let mine = Profile::Fast
+            .config_with("[burst.refine]\npasses = 2\n")
+            .unwrap();
+        assert_eq!(mine.burst.refine.passes, 2);
+        assert_eq!(mine.burst.align.blocks.target_counts, 60.0);
     }
 
     #[test]

@@ -48,6 +48,59 @@ impl std::fmt::Display for Method {
     }
 }
 
+/// A named set of settings (`reconstruct --profile`): `default`, or `fast` for those who need
+/// speed more than the last 0.1–0.2 dB (this project's: fewer alignment blocks, longer
+/// sub-blocks, one refinement pass, BM3D's fast profile; the settings are
+/// `profiles/fast.toml` of this crate, measured in docs/speed.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Profile {
+    #[default]
+    Default,
+    Fast,
+}
+
+impl std::str::FromStr for Profile {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "default" => Ok(Profile::Default),
+            "fast" => Ok(Profile::Fast),
+            other => Err(Error::invalid(format!(
+                "unknown profile '{other}' (available: default, fast)"
+            ))),
+        }
+    }
+}
+
+impl std::fmt::Display for Profile {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Profile::Default => "default",
+            Profile::Fast => "fast",
+        })
+    }
+}
+
+impl Profile {
+    /// The profile's settings: a partial config in TOML (empty for the default).
+    pub fn toml(self) -> &'static str {
+        match self {
+            Profile::Default => "",
+            Profile::Fast => include_str!("../profiles/fast.toml"),
+        }
+    }
+
+    /// The reconstruction config of this profile.
+    pub fn config(self) -> Result<ReconstructConfig> {
+        crate::config_toml::parse(self.toml())
+    }
+
+    /// The partial config in TOML `text` laid over this profile's settings.
+    pub fn config_with(self, text: &str) -> Result<ReconstructConfig> {
+        crate::config_toml::parse_over(self.toml(), text)
+    }
+}
+
 /// Configuration of a whole reconstruction.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]

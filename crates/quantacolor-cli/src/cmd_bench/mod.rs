@@ -21,7 +21,7 @@ use clap::{Args, Subcommand};
 use denoise::{chart_captures, denoise_grid, suite_captures, DenoiseGrid};
 use quantacolor::burst::BurstConfig;
 use quantacolor::denoise::chroma::{DenoiseConfig, DenoiseMethod};
-use quantacolor::pipeline::ReconstructConfig;
+use quantacolor::pipeline::Profile;
 use quantacolor::progress::Progress;
 use quantacolor::simulate::MotionConfig;
 use std::path::{Path, PathBuf};
@@ -123,6 +123,9 @@ pub enum BenchCommand {
         /// time instead of the default pipeline: how far a speed setting moves the ratio.
         #[arg(long)]
         config: Option<PathBuf>,
+        /// Named settings to time (as `reconstruct --profile`; --config goes over them).
+        #[arg(long, default_value_t = Profile::Default)]
+        profile: Profile,
         /// Scene to simulate the capture from instead of the default set (repeatable or
         /// comma-separated): an image file (PNG, EXR, ...) or builtin:chart. Each is a 496x254
         /// colour-SPAD capture of hand shake at 0.1 photons/pixel/frame, seed 1, as the chart.
@@ -178,15 +181,16 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
             frames,
             runs,
             config,
+            profile,
             scene,
             scenes,
         } => {
             let (pipeline, name) = match config {
                 Some(path) => (
-                    crate::cmd_reconstruct::read_config(path)?,
-                    format!("pipeline of {}", path.display()),
+                    crate::cmd_reconstruct::read_config(path, *profile)?,
+                    format!("pipeline of {} over the {profile} profile", path.display()),
                 ),
-                None => (ReconstructConfig::default(), "default pipeline".to_string()),
+                None => (profile.config()?, format!("{profile} pipeline")),
             };
             // Every scene is loaded before anything is simulated, so a bad one fails at once.
             let scenes = speed::speed_scenes(scene, scenes.as_deref())?;
