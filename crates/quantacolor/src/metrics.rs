@@ -345,6 +345,48 @@ pub fn evaluate_lpips(
     lpips(encode_srgb(&est_lin).view(), encode_srgb(&tru_lin).view())
 }
 
+/// Fewest expected frames without a detection for a pixel to count as measurable in
+/// [`measurable_light_ratio`] (issue 45's protocol): brighter pixels are censored by
+/// saturation (paper §3, Eq. 3) and no method can be held to their light.
+pub const MEASURABLE_DARK_FRAMES: f64 = 100.0;
+
+/// The light a linear reconstruction keeps: Σ estimate / Σ truth over the pixels (outside
+/// `border`) that a binary capture of `frames` frames can measure, those whose true W flux
+/// λ_W = Σ_c w_c·truth_c leaves at least [`MEASURABLE_DARK_FRAMES`] expected frames without a
+/// detection (frames·e^(−λ_W)). Both images in the merge's units (detections per frame of an
+/// R, G or B pixel); 1 = all the light. `None` where no pixel is measurable.
+pub fn measurable_light_ratio(
+    estimate: ArrayView3<f32>,
+    truth: ArrayView3<f32>,
+    w_weights: [f64; 3],
+    frames: usize,
+    border: usize,
+) -> Result<Option<f64>> {
+    check_same_shape(estimate.shape(), truth.shape())?;
+    let (h, w, c) = truth.dim();
+    if c != 3 || 2 * border >= h || 2 * border >= w {
+        return Err(Error::invalid(format!(
+            "light ratio: needs (H, W, 3) images larger than twice the border {border}, got \
+             {h}x{w}x{c}"
+        )));
+    }
+    let max_flux = (frames as f64 / MEASURABLE_DARK_FRAMES).ln();
+    let (mut kept, mut total) = (0.0f64, 0.0f64);
+    for y in border..h - border {
+        for x in border..w - border {
+            let t = [0, 1, 2].map(|ch| f64::from(truth[[y, x, ch]]));
+            let w_flux: f64 = t.iter().zip(w_weights).map(|(v, k)| v * k).sum();
+            if w_flux <= max_flux {
+                total += t.iter().sum::<f64>();
+                kept += (0..3)
+                    .map(|ch| f64::from(estimate[[y, x, ch]]))
+                    .sum::<f64>();
+            }
+        }
+    }
+    Ok((total > 0.0).then(|| kept / total))
+}
+
 /// sRGB encoding of clipped linear values, the display-referred images of the sRGB scores.
 fn encode_srgb(linear: &Array3<f32>) -> Array3<f32> {
     linear.map(|&v| linear_to_srgb(v))
@@ -398,6 +440,24 @@ fn protocol_linear(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_light_ratio_counts_measurable_pixels_only() {
+        // 100 frames: only pixels with λ_W ≤ ln(1) = 0 count; 1,000 frames: λ_W ≤ ln 10.
+        let truth = Array3::from_shape_fn((4, 4, 3), |(y, _, _)| if y < 2 { 0.1 } else { 2.0 });
+        let mut estimate = truth.mapv(|v| 0.9 * v);
+        // The bright rows (λ_W = 6 > ln 10) lose everything: not measurable, not counted.
+        estimate.slice_mut(s![2.., .., ..]).fill(0.0);
+        let ratio = |frames| {
+            measurable_light_ratio(estimate.view(), truth.view(), [1.0; 3], frames, 0).unwrap()
+        };
+        assert!((ratio(1000).unwrap() - 0.9).abs() < 1e-6);
+        assert_eq!(ratio(100), None);
+        // Every pixel measurable: the bright rows' loss shows.
+        let all = ratio(1_000_000).unwrap();
+        assert!((all - 0.9 * 0.1 / 2.1).abs() < 1e-6, "{all}");
+        assert!(measurable_light_ratio(estimate.view(), truth.view(), [1.0; 3], 1000, 2).is_err());
+    }
 
     #[test]
     fn reflect_index_is_half_sample_symmetric() {

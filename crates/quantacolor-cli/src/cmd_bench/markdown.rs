@@ -17,6 +17,11 @@ fn mean_of(rows: &[&Row], f: impl Fn(&Row) -> f64) -> f64 {
     rows.iter().map(|r| f(r)).sum::<f64>() / rows.len().max(1) as f64
 }
 
+/// A light ratio as a percentage with one decimal, "–" where nothing was measurable.
+fn percent(ratio: Option<f64>) -> String {
+    ratio.map_or_else(|| "–".to_string(), |r| format!("{:.1}", 100.0 * r))
+}
+
 /// The Markdown report: one section per set.
 pub(super) fn report(
     cases: &[Case],
@@ -74,6 +79,9 @@ pub(super) fn report(
          kernels are noisy at low light and sharp at high light, so the burst should come \
          close to it where photons are plenty. Blur σ: the σ of the Gaussian blur of the \
          ground truth that the image matches best (sRGB PSNR; 0 = as sharp as the truth). \
+         Light: the image's sum over the truth's, in linear units, over the pixels the capture \
+         can measure (at least 100 expected frames without a W detection; 16-pixel border \
+         excluded), for the burst without denoising and the default output. \
          EPE: median alignment end-point error |merge flow − true flow| (px) over the \
          pixels (16-pixel border excluded) at 16 evenly spaced frames; for moving objects over \
          all pixels (camera and object). Motion: the median true displacement from the \
@@ -132,10 +140,15 @@ fn write_scores_table(
 ) -> Result<Vec<(f64, f64, f64)>> {
     writeln!(
         md,
-        "| capture | {} | blur σ (px): burst / splat | EPE (px) | motion (px) | time (s) |",
+        "| capture | {} | blur σ (px): burst / splat | light (%): burst / default | EPE (px) | \
+         motion (px) | time (s) |",
         METHODS.join(" | ")
     )?;
-    writeln!(md, "|---|{}---|---|---|---|", "---|".repeat(METHODS.len()))?;
+    writeln!(
+        md,
+        "|---|{}---|---|---|---|---|",
+        "---|".repeat(METHODS.len())
+    )?;
     for row in rows {
         let cells: Vec<String> = row
             .scores
@@ -145,11 +158,13 @@ fn write_scores_table(
             .collect();
         writeln!(
             md,
-            "| {} | {} | {:.2} / {:.2} | {:.3} | {:.2} | {:.0} |",
+            "| {} | {} | {:.2} / {:.2} | {} / {} | {:.3} | {:.2} | {:.0} |",
             cases[row.case].label(),
             cells.join(" | "),
             row.blur_sigma[0],
             row.blur_sigma[1],
+            percent(row.light[0]),
+            percent(row.light[1]),
             row.epe,
             row.motion_px,
             row.seconds
@@ -166,7 +181,7 @@ fn write_scores_table(
         .collect();
     writeln!(
         md,
-        "| **mean** | {} | {:.2} / {:.2} | | | |",
+        "| **mean** | {} | {:.2} / {:.2} | | | | |",
         means
             .iter()
             .map(|m| format!("**{:.2} / {:.3} / {:.3}**", m.0, m.1, m.2))
@@ -277,6 +292,21 @@ fn write_merge_summary(
             mean_of(rows, |r| r.blur_sigma[0]),
             mean_of(rows, |r| r.blur_sigma[1]),
         )?;
+    }
+    // Light over the measurable pixels, farthest from 100 % first.
+    let light_error = |r: &&&Row, k: usize| r.light[k].map_or(0.0, |l| (l - 1.0).abs());
+    for (k, name) in [(0, "burst"), (1, "default (burst + chroma-BM3D)")] {
+        if let Some(worst) = rows
+            .iter()
+            .max_by(|a, b| light_error(a, k).total_cmp(&light_error(b, k)))
+        {
+            writeln!(
+                md,
+                "- light over the measurable pixels, {name}: worst {} % on {} (target 98–102 %)",
+                percent(worst.light[k]),
+                cases[worst.case].label(),
+            )?;
+        }
     }
     writeln!(
         md,

@@ -17,7 +17,7 @@ use quantacolor::burst::{
 use quantacolor::capture::Capture;
 use quantacolor::denoise::chroma::{denoise_linear, DenoiseConfig, DenoiseMethod};
 use quantacolor::filters::bicubic_upsample;
-use quantacolor::metrics::{evaluate, evaluate_lpips, EvalOptions, Scores};
+use quantacolor::metrics::{evaluate, evaluate_lpips, measurable_light_ratio, EvalOptions, Scores};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
 use quantacolor::pipeline::{burst_config_for, denoise_input, ReconstructConfig};
 use quantacolor::progress::{Progress, Silent};
@@ -70,6 +70,9 @@ pub(super) struct Row {
     /// Sharpness: the σ (px) of the Gaussian blur of the ground truth that the burst (without
     /// denoising) and the true-motion splat match best ([`blur_sigma`]).
     pub(super) blur_sigma: [f64; 2],
+    /// Light kept over the measurable pixels ([`measurable_light_ratio`]) by the burst without
+    /// denoising and by the default (burst + chroma-BM3D); `None` where nothing is measurable.
+    pub(super) light: [Option<f64>; 2],
     /// Median alignment end-point error, px.
     pub(super) epe: f64,
     /// Median true motion, px (at the same pixels and frames).
@@ -123,7 +126,7 @@ fn run_case(
     let capture = sim.to_capture()?;
     let (h, w) = (capture.cfa.height(), capture.cfa.width());
     let oracle = |t: f64| sim.motion.dense_flow(t, h, w);
-    let (burst, scored, blur_sigma) =
+    let (burst, scored, Sharpness { blur_sigma, light }) =
         score_methods(&capture, &sim, case, opts, burst_config, &oracle)?;
     let scores = scored.map(|(s, _)| s);
     let lpips = scored.map(|(_, l)| l);
@@ -134,6 +137,7 @@ fn run_case(
         scores,
         lpips,
         blur_sigma,
+        light,
         epe,
         motion_px,
         sr,
@@ -141,6 +145,12 @@ fn run_case(
     };
     log_case(case, &row, simulated_s);
     Ok(row)
+}
+
+/// What [`score_methods`] measures beside the scores: [`Row::blur_sigma`] and [`Row::light`].
+struct Sharpness {
+    blur_sigma: [f64; 2],
+    light: [Option<f64>; 2],
 }
 
 /// Reconstructs `capture` by every method of [`METHODS`] (burst, burst at the true motion
@@ -155,7 +165,7 @@ fn score_methods(
     opts: &EvalOptions,
     burst_config: &BurstConfig,
     oracle: MotionOracle<'_>,
-) -> Result<(BurstReconstruction, MethodScores, [f64; 2])> {
+) -> Result<(BurstReconstruction, MethodScores, Sharpness)> {
     let reference = capture.reference_frame();
     let config = burst_config.clone();
     let burst = reconstruct_burst(capture, reference, &config, &Silent)?;
@@ -186,14 +196,14 @@ fn score_methods(
     let score = |image: ArrayView3<f32>| -> Result<(Scores, f64)> {
         Ok((evaluate(image, gt, opts)?, evaluate_lpips(image, gt, opts)?))
     };
-    let denoised = |method| -> Result<(Scores, f64)> {
+    let denoise = |method| -> Result<_> {
         let config = DenoiseConfig {
             method,
             ..denoised_config.denoise.clone()
         };
-        let (out, _) = denoise_linear(for_denoising.merged.linear.view(), &input, &config)?;
-        score(out.view())
+        Ok(denoise_linear(for_denoising.merged.linear.view(), &input, &config)?.0)
     };
+    let chroma = denoise(DenoiseMethod::ChromaBm3d)?;
     let scored = [
         score(burst.merged.linear.view())?,
         score(truth.merged.linear.view())?,
@@ -201,14 +211,20 @@ fn score_methods(
         score(long.linear.view())?,
         score(short.linear.view())?,
         score(for_denoising.merged.linear.view())?,
-        denoised(DenoiseMethod::Bm3d)?,
-        denoised(DenoiseMethod::ChromaBm3d)?,
+        score(denoise(DenoiseMethod::Bm3d)?.view())?,
+        score(chroma.view())?,
     ];
-    let blur = [
-        blur_sigma(burst.merged.linear.view(), gt, opts)?,
-        blur_sigma(splat.view(), gt, opts)?,
-    ];
-    Ok((burst, scored, blur))
+    let light = |image: ArrayView3<f32>| {
+        measurable_light_ratio(image, gt, capture.meta.w_weights, case.frames, opts.border)
+    };
+    let sharpness = Sharpness {
+        blur_sigma: [
+            blur_sigma(burst.merged.linear.view(), gt, opts)?,
+            blur_sigma(splat.view(), gt, opts)?,
+        ],
+        light: [light(burst.merged.linear.view())?, light(chroma.view())?],
+    };
+    Ok((burst, scored, sharpness))
 }
 
 /// Super-resolution scores of a 2x-detail capture (`None` for the others): the burst merged at

@@ -132,10 +132,24 @@ pub struct ReferenceNoise {
 }
 
 impl ReferenceNoise {
-    /// Standard deviation of a reference pixel whose value is `value`.
+    /// Standard deviation of a reference pixel whose (local mean) value is `value`, the value
+    /// floored at one detection over all the reference's frames: a dark pixel that saw nothing
+    /// is not noise-free.
     pub fn std(&self, value: f32) -> f32 {
-        (self.grey.variance(value.max(0.0)) / self.blocks.max(1.0)).sqrt()
+        let blocks = self.blocks.max(1.0);
+        let one_detection = 1.0 / (self.grey.trials.max(1.0) * blocks);
+        (self.grey.variance(value.max(one_detection)) / blocks).sqrt()
     }
+}
+
+/// The mean of each pixel's 3x3 window of `reference` (the structure tensor's window),
+/// truncated at the image's edges; non-finite values count as 0.
+fn local_mean_3x3(reference: &Array2<f32>) -> Array2<f32> {
+    let taps = [1.0f32; 3];
+    let values = reference.mapv(finite);
+    let sums = crate::filters::separable_par(&values, &taps);
+    let counts = crate::filters::separable_par(&Array2::ones(reference.dim()), &taps);
+    sums / counts
 }
 
 /// Value at the `q`-quantile of `values` (finite values only, nearest rank; 0 if none).
@@ -191,6 +205,8 @@ pub fn kernel_field_with_noise(
     let range = (quantile(reference, 0.99) - quantile(reference, 0.01)).max(1e-6);
     let d_tr = config.d_tr * range;
     let products = gradient_products(reference);
+    // The noise is judged at the window's mean: a single pixel's value is itself noisy.
+    let local_mean = noise.map(|_| local_mean_3x3(reference));
     // Plain (y, x, product) slices for the 3x3 sums below.
     let products = products.as_slice().expect("fresh array is contiguous");
     let mut inv_cov = Array3::<f32>::zeros((h, w, 3));
@@ -206,9 +222,9 @@ pub fn kernel_field_with_noise(
             let mut row_max = 0.0f32;
             for x in 0..w {
                 let tensor = structure_tensor_3x3(products, (h, w), y, x);
-                let (d_tr, k_flat) = match noise {
-                    Some(noise) => noise_adapted(reference[[y, x]], noise, d_tr, config),
-                    None => (d_tr, config.k_denoise),
+                let (d_tr, k_flat) = match (noise, &local_mean) {
+                    (Some(noise), Some(mean)) => noise_adapted(mean[[y, x]], noise, d_tr, config),
+                    _ => (d_tr, config.k_denoise),
                 };
                 let kernel = PixelKernel::of(tensor, d_tr, k_flat, config);
                 row_max = row_max.max(kernel.k_edge).max(kernel.k_grad);
