@@ -48,6 +48,10 @@ pub struct KernelConfig {
     /// k_detail, so that where a pixel's own photons already give a clean value the merge does
     /// not blur it. Measurements: docs/tuning.md.
     pub flat_snr: f32, // 0 (dimensionless; 0 = off)
+    /// Signal-to-noise ratio of the reference below which the flat-area kernel widens (this
+    /// project's heuristic; 0 = off): k_denoise·min(2, dark_snr / SNR(p)), so that where a
+    /// pixel's neighbourhood holds only a few detections more of them are pooled.
+    pub dark_snr: f32, // 2 (dimensionless; 0 = off)
     /// Floor on every kernel std (px): narrower kernels than this underflow in f32 for samples
     /// one pixel away and leave holes.
     pub min_std: f32, // 0.25 px
@@ -69,6 +73,7 @@ impl Default for KernelConfig {
             max_anisotropy: 5.0,
             detail_noise_sigmas: 11.0,
             flat_snr: 0.0,
+            dark_snr: 2.0,
             min_std: 0.25,
             output_scale_exponent: 0.5,
         }
@@ -197,9 +202,11 @@ pub fn kernel_field_with_noise(
         ));
     }
     let non_negative = |v: f32| v.is_finite() && v >= 0.0;
-    if !(non_negative(config.detail_noise_sigmas) && non_negative(config.flat_snr)) {
+    let noise_settings = [config.detail_noise_sigmas, config.flat_snr, config.dark_snr];
+    if !noise_settings.into_iter().all(non_negative) {
         return Err(Error::invalid(
-            "kernels: detail_noise_sigmas and flat_snr must be finite and at least 0 (0 = off)",
+            "kernels: detail_noise_sigmas, flat_snr and dark_snr must be finite and at least 0 \
+             (0 = off)",
         ));
     }
     let range = (quantile(reference, 0.99) - quantile(reference, 0.01)).max(1e-6);
@@ -265,6 +272,8 @@ fn noise_adapted(
     let snr = value.max(0.0) / std;
     let k_flat = if config.flat_snr > 0.0 && snr > config.flat_snr {
         (config.k_denoise * config.flat_snr / snr).max(config.k_detail.min(config.k_denoise))
+    } else if config.dark_snr > 0.0 && snr < config.dark_snr {
+        config.k_denoise * (config.dark_snr / snr.max(f32::MIN_POSITIVE)).min(2.0)
     } else {
         config.k_denoise
     };
@@ -434,6 +443,7 @@ mod tests {
         let config = KernelConfig {
             detail_noise_sigmas: 0.0,
             flat_snr: 0.0,
+            dark_snr: 0.0,
             ..KernelConfig::default()
         };
         assert_eq!(noise_adapted(0.5, noise(), 0.3, &config), (0.3, 1.0));
@@ -474,6 +484,27 @@ mod tests {
         assert!(by_range.flatness > 0.45, "{}", by_range.flatness);
         assert_eq!(by_noise.flatness, 0.0);
         assert!(by_noise.k_grad < by_range.k_grad);
+    }
+
+    #[test]
+    fn few_detections_widen_the_flat_kernel_up_to_twice() {
+        let config = KernelConfig {
+            dark_snr: 4.0,
+            ..KernelConfig::default()
+        };
+        // p = 0.01 over 1,600 frames: std 0.00249, SNR 4.02: just above, unchanged.
+        assert_eq!(
+            noise_adapted(0.01, noise(), 0.3, &config).1,
+            config.k_denoise
+        );
+        // p = 0.004: SNR 2.535, widened by 4 / 2.535 = 1.578.
+        let k = noise_adapted(0.004, noise(), 0.3, &config).1;
+        assert!((k - 1.578 * config.k_denoise).abs() < 0.002, "{k}");
+        // Nothing seen: SNR 0 (the noise floored at one detection), widening capped at 2.
+        assert_eq!(
+            noise_adapted(0.0, noise(), 0.3, &config).1,
+            2.0 * config.k_denoise
+        );
     }
 
     #[test]
