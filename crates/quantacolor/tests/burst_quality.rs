@@ -7,11 +7,18 @@ use quantacolor::cfa::colorspad_cfa;
 use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
 use quantacolor::progress::Silent;
-use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
+use quantacolor::simulate::{
+    simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulatedCapture, SimulationConfig,
+};
+
+/// A capture of the built-in `scene` through the real colour-SPAD CFA.
+fn simulate_colorspad(scene: &str, config: &SimulationConfig) -> SimulatedCapture {
+    let scene = Scene::from_spec(scene).unwrap();
+    simulate_with_cfa(config, &scene, &colorspad_cfa(), &Silent).unwrap()
+}
 
 #[test]
 fn burst_beats_naive_and_approaches_true_motion() {
-    let cfa = colorspad_cfa();
     let config = SimulationConfig {
         frames: 1024,
         flux: FluxSpec::Mean { flux: 0.1 },
@@ -19,13 +26,7 @@ fn burst_beats_naive_and_approaches_true_motion() {
         seed: 5,
         ..SimulationConfig::default()
     };
-    let sim = simulate_with_cfa(
-        &config,
-        &Scene::from_spec("builtin:chart").unwrap(),
-        &cfa,
-        &Silent,
-    )
-    .unwrap();
+    let sim = simulate_colorspad("builtin:chart", &config);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let opts = EvalOptions {
@@ -106,13 +107,7 @@ fn noise_aware_kernels_add_no_dark_dots_to_dim_hdr_regions() {
         seed: 1,
         ..SimulationConfig::default()
     };
-    let sim = simulate_with_cfa(
-        &config,
-        &Scene::from_spec("builtin:chart-hdr").unwrap(),
-        &colorspad_cfa(),
-        &Silent,
-    )
-    .unwrap();
+    let sim = simulate_colorspad("builtin:chart-hdr", &config);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let dots = |config: &BurstConfig| {
@@ -134,7 +129,6 @@ fn noise_aware_kernels_add_no_dark_dots_to_dim_hdr_regions() {
 /// (`detail_noise_sigmas = 0`, the kernels before issue 45) on a handheld capture of the
 /// built-in chart at `flux`.
 fn noise_aware_and_range_only(frames: usize, flux: FluxSpec, seed: u64) -> (f64, f64) {
-    let cfa = colorspad_cfa();
     let config = SimulationConfig {
         frames,
         flux,
@@ -142,13 +136,7 @@ fn noise_aware_and_range_only(frames: usize, flux: FluxSpec, seed: u64) -> (f64,
         seed,
         ..SimulationConfig::default()
     };
-    let sim = simulate_with_cfa(
-        &config,
-        &Scene::from_spec("builtin:chart").unwrap(),
-        &cfa,
-        &Silent,
-    )
-    .unwrap();
+    let sim = simulate_colorspad("builtin:chart", &config);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let opts = EvalOptions {
