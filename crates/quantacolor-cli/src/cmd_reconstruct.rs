@@ -37,8 +37,8 @@ pub struct ReconstructArgs {
     /// laid over the profile; command-line options override it.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Named settings: default, or fast (fewer alignment blocks, longer sub-blocks, one
-    /// refinement pass, BM3D's fast profile: 1.5x faster, 0.1-0.2 dB lower; docs/speed.md).
+    /// Named settings: default, or fast (longer sub-blocks, one refinement pass, BM3D's fast
+    /// profile: about 1.4x faster, 0.1-0.2 dB lower; docs/speed.md).
     /// report.toml lists the settings that ran.
     #[arg(long, default_value_t = Profile::Default)]
     pub profile: Profile,

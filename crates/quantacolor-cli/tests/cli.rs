@@ -467,10 +467,6 @@ fn reconstruct_denoise_and_preview_options() {
         config["burst"]["refine"]["max_sub_block_motion_px"].as_float(),
         Some(0.7)
     );
-    assert_eq!(
-        config["burst"]["align"]["blocks"]["target_counts"].as_float(),
-        Some(60.0)
-    );
     assert_ne!(fast, chroma);
     let passes = tmp.path().join("passes.toml");
     std::fs::write(&passes, "[burst.refine]\npasses = 2\n").unwrap();
@@ -481,8 +477,8 @@ fn reconstruct_denoise_and_preview_options() {
     let config = &report["config"];
     assert_eq!(config["burst"]["refine"]["passes"].as_integer(), Some(2));
     assert_eq!(
-        config["burst"]["align"]["blocks"]["target_counts"].as_float(),
-        Some(60.0)
+        config["burst"]["refine"]["max_sub_block_motion_px"].as_float(),
+        Some(0.7)
     );
     expect_failure(
         &[

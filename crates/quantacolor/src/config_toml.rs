@@ -91,7 +91,7 @@ mod tests {
         );
         let fast = Profile::Fast.config().unwrap();
         let default = ReconstructConfig::default();
-        assert_eq!(fast.burst.align.blocks.target_counts, 60.0);
+        assert_eq!(fast.burst.align, default.burst.align);
         assert_eq!(fast.burst.refine.passes, 1);
         assert_eq!(fast.burst.refine.max_sub_block_motion_px, 0.7);
         assert_eq!(fast.burst.merge, default.burst.merge);
@@ -103,7 +103,7 @@ mod tests {
             .config_with("[burst.refine]\npasses = 2\n")
             .unwrap();
         assert_eq!(mine.burst.refine.passes, 2);
-        assert_eq!(mine.burst.align.blocks.target_counts, 60.0);
+        assert_eq!(mine.burst.refine.max_sub_block_motion_px, 0.7);
     }
 
     #[test]

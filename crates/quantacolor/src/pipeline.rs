@@ -49,8 +49,8 @@ impl std::fmt::Display for Method {
 }
 
 /// A named set of settings (`reconstruct --profile`): `default`, or `fast` for those who need
-/// speed more than the last 0.1–0.2 dB (this project's: fewer alignment blocks, longer
-/// sub-blocks, one refinement pass, BM3D's fast profile; the settings are
+/// speed more than the last 0.1–0.2 dB (this project's: longer sub-blocks, one refinement
+/// pass, BM3D's fast profile; the settings are
 /// `profiles/fast.toml` of this crate, measured in docs/speed.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Profile {
