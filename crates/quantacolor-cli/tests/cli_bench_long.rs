@@ -3,7 +3,7 @@
 //! the cached captures, and bad input exits with status 2 naming the option.
 
 mod cli_support;
-use cli_support::{ok, quantacolor};
+use cli_support::{ok, quantacolor, table_cells};
 use std::path::Path;
 
 fn s(p: &Path) -> &str {
@@ -15,12 +15,7 @@ fn table_rows(stdout: &str) -> Vec<Vec<String>> {
     stdout
         .lines()
         .filter(|l| l.starts_with("| ") && !l.starts_with("| case"))
-        .map(|l| {
-            l.trim_matches('|')
-                .split('|')
-                .map(|c| c.trim().to_string())
-                .collect()
-        })
+        .map(table_cells)
         .collect()
 }
 

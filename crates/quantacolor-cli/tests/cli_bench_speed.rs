@@ -5,7 +5,7 @@
 //! wall-clock value is asserted, only that the numbers are there and parse.
 
 mod cli_support;
-use cli_support::{ok, quantacolor};
+use cli_support::{ok, quantacolor, table_cells};
 use std::path::Path;
 use std::process::Command;
 
@@ -140,12 +140,7 @@ fn summary_rows(stdout: &str) -> Vec<Vec<String>> {
     lines[2..]
         .iter()
         .take_while(|l| l.starts_with("| "))
-        .map(|l| {
-            l.trim_matches('|')
-                .split('|')
-                .map(|c| c.trim().to_string())
-                .collect()
-        })
+        .map(|l| table_cells(l))
         .collect()
 }
 

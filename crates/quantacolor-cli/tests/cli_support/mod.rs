@@ -20,3 +20,12 @@ pub fn ok(args: &[&str]) -> Output {
     );
     out
 }
+
+/// The cells of a Markdown table row `| a | b |`, trimmed (for the bench tables).
+#[allow(dead_code, reason = "used by the bench tests only")]
+pub fn table_cells(row: &str) -> Vec<String> {
+    row.trim_matches('|')
+        .split('|')
+        .map(|c| c.trim().to_string())
+        .collect()
+}
