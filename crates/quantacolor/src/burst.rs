@@ -28,10 +28,10 @@
 #![forbid(unsafe_code)]
 
 use crate::align::{
-    align, fast_motion_spans, fit_photon_trajectory, fit_photon_trajectory_over, plan_sub_blocks,
-    refine_camera_motion, shortest_sub_block, split_for_merge, split_for_merge_in,
-    steady_block_smear, track_fast_camera_motion, track_span, AlignConfig, Alignment, BlockConfig,
-    FrameMotion, GreyMethod, RefineConfig, TrackConfig, TrajectoryConfig, TrajectorySpan,
+    align, fast_motion_spans, fit_photon_trajectory_over, plan_sub_blocks, refine_camera_motion,
+    shortest_sub_block, split_for_merge_in, steady_block_smear, track_fast_camera_motion,
+    track_span, AlignConfig, Alignment, BlockConfig, FrameMotion, GreyMethod, RefineConfig,
+    TrackConfig, TrajectoryConfig, TrajectorySpan,
 };
 use crate::capture::Capture;
 use crate::error::{Error, Result};
@@ -302,11 +302,13 @@ pub(crate) fn estimate_motion(
         laps.lap("motion refinement");
         if !throughout {
             let spans = MotionSpans {
-                capture,
-                grey_method: alignment.grey_method,
-                config,
+                fast: FastSubBlocks {
+                    capture,
+                    grey_method: alignment.grey_method,
+                    config,
+                    followable_px_per_frame,
+                },
                 spans: &spans,
-                followable_px_per_frame,
             };
             tracked = spans.follow(&mut motion, laps, progress)?;
         }
@@ -347,8 +349,11 @@ fn align_blocks_replanned(
 
 /// Stage 2 under fast motion: when [`track_fast_camera_motion`] finds the camera too fast for
 /// the refinement and tracks it, the block flows' local residual is dropped (streak matching,
-/// not motion) and the photon trajectory is fitted (or the sub-blocks split for the merge);
-/// returns whether it tracked. Each stage's time is recorded in `laps`.
+/// not motion) and the photon trajectory is fitted where the tracked camera moves faster than
+/// the refinement follows ([`fit_fast_sub_blocks`]); returns whether it tracked. When no
+/// sub-block moves that fast (long blocks of a slow hand: their cameras differ by more than
+/// the trigger, yet each frame moves little), `motion` is given back as it was, for the
+/// refinement. Each stage's time is recorded in `laps`.
 fn follow_fast_motion(
     capture: &Capture,
     grey_method: GreyMethod,
@@ -358,6 +363,7 @@ fn follow_fast_motion(
     laps: &mut Laps,
     progress: &dyn Progress,
 ) -> Result<bool> {
+    let untracked = motion.clone();
     if !track_fast_camera_motion(
         capture,
         grey_method,
@@ -370,32 +376,85 @@ fn follow_fast_motion(
     }
     motion.drop_local_motion();
     laps.lap("fast motion tracking");
-    if fit_photon_trajectory(
+    let reference = motion.plan.reference_frame;
+    let fast = FastSubBlocks {
         capture,
         grey_method,
-        motion,
-        &config.trajectory,
-        config.refine.max_sub_block_motion_px,
-        progress,
-    )? {
-        laps.lap("photon trajectory");
-    } else {
-        split_for_merge(motion, config.refine.max_sub_block_motion_px);
+        config,
+        followable_px_per_frame,
+    };
+    if !fast.fit(motion, 0..motion.plan.len(), reference, laps, progress)? {
+        *motion = untracked;
+        return Ok(false);
     }
     Ok(true)
 }
 
-/// Stage 2 where the camera moves fast in some spans of blocks only ([`fast_motion_spans`]):
-/// after the refinement of every sub-block, each span is tracked ([`track_span`]) and its
-/// photon trajectory fitted over its own frames ([`fit_photon_trajectory_over`]), or its
-/// sub-blocks split for the merge; time and memory follow the spans, not the recording.
-struct MotionSpans<'a> {
+/// The photon trajectory of tracked blocks, over their sub-blocks that move faster than the
+/// refinement follows ([`trajectory_sub_blocks`]).
+struct FastSubBlocks<'a> {
     capture: &'a Capture,
     grey_method: GreyMethod,
     config: &'a BurstConfig,
-    spans: &'a [Range<usize>],
     /// The fastest camera the refinement follows (px per frame at the image corners).
     followable_px_per_frame: f64,
+}
+
+impl FastSubBlocks<'_> {
+    /// After the blocks `blocks` of `motion` were tracked (from `anchor_frame`, the frame whose
+    /// tracked camera was kept), fits the photon trajectory over their sub-blocks that move
+    /// faster than the refinement follows, or splits those sub-blocks for the merge when no
+    /// trajectory is fitted. Returns `false`, fitting nothing, when none moves that fast.
+    fn fit(
+        &self,
+        motion: &mut FrameMotion,
+        blocks: Range<usize>,
+        anchor_frame: usize,
+        laps: &mut Laps,
+        progress: &dyn Progress,
+    ) -> Result<bool> {
+        let max_motion_px = self.config.refine.max_sub_block_motion_px;
+        let Some(sub_blocks) = trajectory_sub_blocks(motion, &blocks, self.followable_px_per_frame)
+        else {
+            return Ok(false);
+        };
+        let reference = motion.plan.reference_frame;
+        let first = &motion.sub_blocks[sub_blocks.start];
+        let frames = first.start..motion.sub_blocks[sub_blocks.end - 1].end;
+        let anchor_frame = if frames.contains(&reference) && anchor_frame == reference {
+            reference
+        } else {
+            (first.start + first.end - 1) / 2
+        };
+        let span = TrajectorySpan {
+            sub_blocks,
+            anchor_frame,
+        };
+        if fit_photon_trajectory_over(
+            self.capture,
+            self.grey_method,
+            motion,
+            &span,
+            &self.config.trajectory,
+            max_motion_px,
+            progress,
+        )? {
+            laps.lap("photon trajectory");
+        } else {
+            split_for_merge_in(motion, blocks, max_motion_px);
+        }
+        Ok(true)
+    }
+}
+
+/// Stage 2 where the camera moves fast in some spans of blocks only ([`fast_motion_spans`]):
+/// after the refinement of every sub-block, each span is tracked ([`track_span`]) and its
+/// photon trajectory fitted over its own frames ([`FastSubBlocks::fit`]); a span whose tracked
+/// camera nowhere moves faster than the refinement follows keeps the refinement's motion. Time
+/// and memory follow the spans, not the recording.
+struct MotionSpans<'a> {
+    fast: FastSubBlocks<'a>,
+    spans: &'a [Range<usize>],
 }
 
 impl MotionSpans<'_> {
@@ -407,53 +466,26 @@ impl MotionSpans<'_> {
         laps: &mut Laps,
         progress: &dyn Progress,
     ) -> Result<bool> {
-        let config = self.config;
-        let max_motion_px = config.refine.max_sub_block_motion_px;
+        let fast = &self.fast;
         let mut tracked = false;
         for blocks in self.spans {
+            let refined = motion.clone();
             let Some(anchor_frame) = track_span(
-                self.capture,
-                self.grey_method,
+                fast.capture,
+                fast.grey_method,
                 motion,
                 blocks.clone(),
-                &config.track,
+                &fast.config.track,
                 progress,
             )?
             else {
                 continue;
             };
-            tracked = true;
             laps.lap("fast motion tracking");
-            let Some(sub_blocks) =
-                trajectory_sub_blocks(motion, blocks, self.followable_px_per_frame)
-            else {
-                continue;
-            };
-            let reference = motion.plan.reference_frame;
-            let frames = motion.sub_blocks[sub_blocks.start].start
-                ..motion.sub_blocks[sub_blocks.end - 1].end;
-            let anchor_frame = if frames.contains(&reference) && anchor_frame == reference {
-                reference
+            if fast.fit(motion, blocks.clone(), anchor_frame, laps, progress)? {
+                tracked = true;
             } else {
-                let first = &motion.sub_blocks[sub_blocks.start];
-                (first.start + first.end - 1) / 2
-            };
-            let span = TrajectorySpan {
-                sub_blocks,
-                anchor_frame,
-            };
-            if fit_photon_trajectory_over(
-                self.capture,
-                self.grey_method,
-                motion,
-                &span,
-                &config.trajectory,
-                max_motion_px,
-                progress,
-            )? {
-                laps.lap("photon trajectory");
-            } else {
-                split_for_merge_in(motion, blocks.clone(), max_motion_px);
+                *motion = refined;
             }
         }
         Ok(tracked)
