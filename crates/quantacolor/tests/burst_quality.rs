@@ -6,6 +6,7 @@ use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, Burst
 use quantacolor::cfa::colorspad_cfa;
 use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::naive::{reconstruct_naive, NaiveConfig};
+use quantacolor::pipeline::{self, ReconstructConfig};
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{
     simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulatedCapture, SimulationConfig,
@@ -78,6 +79,14 @@ fn burst_beats_naive_and_approaches_true_motion() {
 /// Pixels (16-pixel border excluded) whose mean over R, G, B is 5x darker than the median of
 /// their 5x5 neighbourhood where the truth's is not: the isolated dark dots of issue 45.
 fn isolated_dark_pixels(image: &ndarray::Array3<f32>, truth: &ndarray::Array3<f32>) -> usize {
+    isolated_dark_pixels_where(image, truth).len()
+}
+
+/// Where [`isolated_dark_pixels`] are, (y, x).
+fn isolated_dark_pixels_where(
+    image: &ndarray::Array3<f32>,
+    truth: &ndarray::Array3<f32>,
+) -> Vec<(usize, usize)> {
     let (h, w, _) = image.dim();
     let mean = |a: &ndarray::Array3<f32>, y: usize, x: usize| {
         (a[[y, x, 0]] + a[[y, x, 1]] + a[[y, x, 2]]) / 3.0
@@ -94,7 +103,7 @@ fn isolated_dark_pixels(image: &ndarray::Array3<f32>, truth: &ndarray::Array3<f3
     (16..h - 16)
         .flat_map(|y| (16..w - 16).map(move |x| (y, x)))
         .filter(|&(y, x)| dark(image, y, x) && !dark(truth, y, x))
-        .count()
+        .collect()
 }
 
 /// Issue 45: in the dark parts of an HDR capture (under one detection per pixel) a pixel's own
@@ -122,6 +131,41 @@ fn noise_aware_kernels_add_no_dark_dots_to_dim_hdr_regions() {
     assert!(
         aware as f64 <= range as f64 * 1.1,
         "noise-aware {aware} vs range-only {range}"
+    );
+}
+
+/// Issue 45 item 4, on the default pipeline (burst and chroma-BM3D): on the 256-frame HDR chart,
+/// whose dark parts get well under one detection per pixel, the denoiser removes most of the
+/// merge's dark dots (pixels of [`isolated_dark_pixels`] that are also 3x darker than their
+/// own truth), and no more than a tenth of them remains. Not yet the issue's target (at most
+/// 5): measured 82 against the merge's 1,259 (docs/tuning.md).
+#[test]
+fn the_default_pipeline_removes_most_dark_dots_of_dim_hdr_regions() {
+    let config = SimulationConfig {
+        frames: 256,
+        seed: 1,
+        ..SimulationConfig::default()
+    };
+    let sim = simulate_colorspad("builtin:chart-hdr", &config);
+    let capture = sim.to_capture().unwrap();
+    let output = pipeline::reconstruct(&capture, &ReconstructConfig::default(), &Silent).unwrap();
+    let truth = &sim.ground_truth;
+    let mean = |a: &ndarray::Array3<f32>, y: usize, x: usize| {
+        (a[[y, x, 0]] + a[[y, x, 1]] + a[[y, x, 2]]) / 3.0
+    };
+    let dots = |image: &ndarray::Array3<f32>| {
+        isolated_dark_pixels_where(image, truth)
+            .into_iter()
+            .filter(|&(y, x)| 3.0 * mean(image, y, x) < mean(truth, y, x))
+            .count()
+    };
+    let merged = output.merged_linear.as_ref().expect("denoised by default");
+    let (denoised, merged) = (dots(&output.linear), dots(merged));
+    println!("dark dots: default {denoised}, its merge {merged}");
+    assert!(merged >= 100, "the premise: a merge with dots ({merged})");
+    assert!(
+        10 * denoised <= merged,
+        "{denoised} of the merge's {merged} remain"
     );
 }
 
