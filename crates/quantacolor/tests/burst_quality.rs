@@ -18,6 +18,17 @@ fn simulate_colorspad(scene: &str, config: &SimulationConfig) -> SimulatedCaptur
     simulate_with_cfa(config, &scene, &colorspad_cfa(), &Silent).unwrap()
 }
 
+/// 256 frames of the built-in HDR chart at a mean W flux of 0.1 (its dark parts under one
+/// detection per pixel), colour-SPAD CFA.
+fn dim_hdr_chart() -> SimulatedCapture {
+    let config = SimulationConfig {
+        frames: 256,
+        seed: 1,
+        ..SimulationConfig::default()
+    };
+    simulate_colorspad("builtin:chart-hdr", &config)
+}
+
 #[test]
 fn burst_beats_naive_and_approaches_true_motion() {
     let config = SimulationConfig {
@@ -111,12 +122,7 @@ fn isolated_dark_pixels_where(
 /// at one detection, and must not narrow there into more dark dots than the range-based ones.
 #[test]
 fn noise_aware_kernels_add_no_dark_dots_to_dim_hdr_regions() {
-    let config = SimulationConfig {
-        frames: 256,
-        seed: 1,
-        ..SimulationConfig::default()
-    };
-    let sim = simulate_colorspad("builtin:chart-hdr", &config);
+    let sim = dim_hdr_chart();
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let dots = |config: &BurstConfig| {
@@ -141,12 +147,7 @@ fn noise_aware_kernels_add_no_dark_dots_to_dim_hdr_regions() {
 /// 5): measured 82 against the merge's 1,259 (docs/tuning.md).
 #[test]
 fn the_default_pipeline_removes_most_dark_dots_of_dim_hdr_regions() {
-    let config = SimulationConfig {
-        frames: 256,
-        seed: 1,
-        ..SimulationConfig::default()
-    };
-    let sim = simulate_colorspad("builtin:chart-hdr", &config);
+    let sim = dim_hdr_chart();
     let capture = sim.to_capture().unwrap();
     let output = pipeline::reconstruct(&capture, &ReconstructConfig::default(), &Silent).unwrap();
     let truth = &sim.ground_truth;
