@@ -50,7 +50,8 @@ pub struct KernelConfig {
     pub flat_snr: f32, // 0 (dimensionless; 0 = off)
     /// Signal-to-noise ratio of the reference below which the flat-area kernel widens (this
     /// project's heuristic; 0 = off): k_denoise·min(2, dark_snr / SNR(p)), so that where a
-    /// pixel's neighbourhood holds only a few detections more of them are pooled.
+    /// pixel's neighbourhood holds only a few detections more of them are pooled; the detail
+    /// kernel widens by the same factor.
     pub dark_snr: f32, // 2 (dimensionless; 0 = off)
     /// Floor on every kernel std (px): narrower kernels than this underflow in f32 for samples
     /// one pixel away and leave holes.
@@ -342,7 +343,10 @@ impl PixelKernel {
     /// A = √(λ1/λ2) (capped at `max_anisotropy`), flatness D = clamp(1 − √λ1 / `d_tr` + D_th),
     /// stds k_detail·k_stretch·A along the edge and k_detail / (k_shrink·A) along the
     /// gradient, each blended with the flat-area std `k_flat` (k_denoise, or its noise-adapted
-    /// value) by D and floored at `min_std`.
+    /// value) by D and floored at `min_std`. Where `dark_snr` widens `k_flat` beyond k_denoise,
+    /// the detail stds and their floor widen by the same factor (this project's heuristic): at a
+    /// fraction of a detection per pixel a thin dark line's own pixel holds no photon, and the
+    /// detail kernel must pool along and across it too (issue 45's isolated dark pixels).
     fn of([syy, syx, sxx]: [f32; 3], d_tr: f32, k_flat: f32, config: &KernelConfig) -> Self {
         let half_trace = 0.5 * (syy + sxx);
         let disc = (0.25 * (syy - sxx) * (syy - sxx) + syx * syx).sqrt();
@@ -367,10 +371,12 @@ impl PixelKernel {
         } else {
             (ey, ex) = (0.0, 1.0);
         }
-        let k_edge = config.k_detail * config.k_stretch * a;
-        let k_grad = config.k_detail / (config.k_shrink * a);
-        let k_edge = ((1.0 - d) * k_edge + d * k_flat).max(config.min_std);
-        let k_grad = ((1.0 - d) * k_grad + d * k_flat).max(config.min_std);
+        let dark_widening = (k_flat / config.k_denoise).max(1.0);
+        let k_edge = config.k_detail * config.k_stretch * a * dark_widening;
+        let k_grad = config.k_detail / (config.k_shrink * a) * dark_widening;
+        let floor = config.min_std * dark_widening;
+        let k_edge = ((1.0 - d) * k_edge + d * k_flat).max(floor);
+        let k_grad = ((1.0 - d) * k_grad + d * k_flat).max(floor);
         // Ω⁻¹ = e_grad e_gradᵀ / k_grad² + e_edge e_edgeᵀ / k_edge², e_edge = (−ex, ey).
         let (ig, ie) = (1.0 / (k_grad * k_grad), 1.0 / (k_edge * k_edge));
         PixelKernel {
@@ -407,6 +413,21 @@ mod tests {
         assert_eq!((kernel.flatness, kernel.anisotropy), (1.0, 1.0));
         assert_eq!((kernel.k_edge, kernel.k_grad), (1.0, 1.0));
         assert_eq!(kernel.inv_cov, [1.0, 0.0, 1.0]);
+    }
+
+    /// Where `dark_snr` widens the flat kernel 2x, an edge's detail kernel widens 2x as well,
+    /// along the edge, across it and at the floor.
+    #[test]
+    fn a_dark_edge_widens_like_the_flat_kernel() {
+        let config = KernelConfig::default();
+        let tensor = [100.0, 0.0, 0.0];
+        let lit = PixelKernel::of(tensor, 0.5, config.k_denoise, &config);
+        let dark = PixelKernel::of(tensor, 0.5, 2.0 * config.k_denoise, &config);
+        assert_eq!(dark.flatness, 0.0);
+        assert!((dark.k_edge - 2.0 * lit.k_edge).abs() < 1e-6);
+        // Across the edge both sit at the floor: min_std and twice it.
+        assert_eq!(lit.k_grad, config.min_std);
+        assert_eq!(dark.k_grad, 2.0 * config.min_std);
     }
 
     #[test]
