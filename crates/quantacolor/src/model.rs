@@ -568,6 +568,23 @@ impl PixelModel {
         }
     }
 
+    /// Second-order (delta-method) bias E[λ̂] − λ of [`PixelModel::flux`] from a mean sample
+    /// `mean` over `frames` frames: binary, ½·f''(p)·p(1 − p)/n = p / (2·n·(1 − p)) for the
+    /// convex f(p) = −ln(1 − p) of Eq. 6, with the expected frames without a detection n·(1 − p)
+    /// floored at one (the delta method says nothing closer to saturation); conventional, 0
+    /// (the inversion is linear). [`crate::merge::MergeAccumulator`] removes it from the fluxes
+    /// of single phase bins, whose few frames make it matter.
+    pub fn flux_bias(&self, mean: f64, frames: f64) -> f64 {
+        match self.readout {
+            Readout::Binary => {
+                let p = mean.clamp(0.0, 1.0);
+                let zeros = (frames * (1.0 - p)).max(1.0);
+                p / (2.0 * zeros)
+            }
+            Readout::GaussianPoisson(_) => 0.0,
+        }
+    }
+
     /// Asymptotic variance of the flux estimate λ̂ at flux `lambda` from `frames` frames:
     /// binary, the Cramér–Rao bound p/((1 − p)·n) of [`mle_std`] with p kept below the
     /// saturation count; conventional, (λ + d + σ_r² + gain²/12)/n.

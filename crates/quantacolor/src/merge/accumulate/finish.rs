@@ -35,6 +35,7 @@ impl MergeAccumulator<'_> {
         let sums = self.regression([true; 4]);
         let (bit_rate, mut flux, effective_frames) = self.fluxes(&sums);
         drop(sums);
+        self.flux_domain_floor(&mut flux);
         fill_holes(&mut flux, channel_scale, scale);
         let w_fallback = self.w_fallback(w_weights, &mut flux, &bit_rate, &effective_frames);
         if self.config.colour_ratios && channel_scale[..3].iter().all(|&s| s > 0.0) {

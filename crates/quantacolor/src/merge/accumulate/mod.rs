@@ -20,6 +20,7 @@ mod bins;
 mod colour_ratios;
 mod config;
 mod finish;
+mod flux_domain;
 mod positions;
 mod regression;
 mod sub_block;
