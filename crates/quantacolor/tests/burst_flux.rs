@@ -52,13 +52,13 @@ fn wedge_scene() -> Array3<f32> {
     for c in 0..3 {
         image.slice_mut(s![.., .., c]).fill(BACKGROUND / 3.0);
     }
-    for row in 0..3 {
+    for (row, colour) in COLOURS.iter().enumerate() {
         for col in 0..8 {
             let (y0, x0) = patch_origin(row, col);
-            for c in 0..3 {
+            for (c, &share) in colour.iter().enumerate() {
                 image
                     .slice_mut(s![y0..y0 + PATCH, x0..x0 + PATCH, c])
-                    .fill(wedge_flux(row, col) * COLOURS[row][c]);
+                    .fill(wedge_flux(row, col) * share);
             }
         }
     }
