@@ -350,7 +350,7 @@ fn align_blocks_replanned(
 /// Stage 2 under fast motion: when [`track_fast_camera_motion`] finds the camera too fast for
 /// the refinement and tracks it, the block flows' local residual is dropped (streak matching,
 /// not motion) and the photon trajectory is fitted where the tracked camera moves faster than
-/// the refinement follows ([`fit_fast_sub_blocks`]); returns whether it tracked. When no
+/// the refinement follows ([`FastSubBlocks::fit`]); returns whether it tracked. When no
 /// sub-block moves that fast (long blocks of a slow hand: their cameras differ by more than
 /// the trigger, yet each frame moves little), `motion` is given back as it was, for the
 /// refinement. Each stage's time is recorded in `laps`.

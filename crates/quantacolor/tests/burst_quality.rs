@@ -29,22 +29,30 @@ fn dim_hdr_chart() -> SimulatedCapture {
     simulate_colorspad("builtin:chart-hdr", &config)
 }
 
-#[test]
-fn burst_beats_naive_and_approaches_true_motion() {
+/// A handheld capture of the built-in chart (colour-SPAD CFA).
+fn handheld_chart(frames: usize, flux: FluxSpec, seed: u64) -> SimulatedCapture {
     let config = SimulationConfig {
-        frames: 1024,
-        flux: FluxSpec::Mean { flux: 0.1 },
+        frames,
+        flux,
         motion: "handheld".parse::<MotionConfig>().unwrap(),
-        seed: 5,
+        seed,
         ..SimulationConfig::default()
     };
-    let sim = simulate_colorspad("builtin:chart", &config);
+    simulate_colorspad("builtin:chart", &config)
+}
+
+/// The quality suite's protocol: 16-pixel border, 99.5th-percentile normalisation.
+const SCORED: EvalOptions = EvalOptions {
+    border: 16,
+    normalize_percentile: Some(99.5),
+};
+
+#[test]
+fn burst_beats_naive_and_approaches_true_motion() {
+    let sim = handheld_chart(1024, FluxSpec::Mean { flux: 0.1 }, 5);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
+    let opts = SCORED;
     let score = |linear: &ndarray::Array3<f32>| {
         evaluate(linear.view(), sim.ground_truth.view(), &opts).unwrap()
     };
@@ -64,7 +72,7 @@ fn burst_beats_naive_and_approaches_true_motion() {
         &capture,
         reference,
         &NaiveConfig {
-            window: Some(config.frames / 16),
+            window: Some(capture.frames.frame_count() / 16),
         },
     )
     .unwrap();
@@ -175,20 +183,10 @@ fn the_default_pipeline_removes_most_dark_dots_of_dim_hdr_regions() {
 /// (`detail_noise_sigmas = 0`, the kernels before issue 45) on a handheld capture of the
 /// built-in chart at `flux`.
 fn noise_aware_and_range_only(frames: usize, flux: FluxSpec, seed: u64) -> (f64, f64) {
-    let config = SimulationConfig {
-        frames,
-        flux,
-        motion: "handheld".parse::<MotionConfig>().unwrap(),
-        seed,
-        ..SimulationConfig::default()
-    };
-    let sim = simulate_colorspad("builtin:chart", &config);
+    let sim = handheld_chart(frames, flux, seed);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
+    let opts = SCORED;
     let psnr = |config: &BurstConfig| {
         let burst = reconstruct_burst(&capture, reference, config, &Silent).unwrap();
         evaluate(burst.merged.linear.view(), sim.ground_truth.view(), &opts)

@@ -36,8 +36,8 @@ pub use refine::{
     RefineConfig, RefineLevel,
 };
 pub use track::{
-    fast_motion_spans, split_for_merge, split_for_merge_in, steady_block_smear,
-    track_fast_camera_motion, track_span, TrackConfig,
+    fast_motion_spans, split_for_merge_in, steady_block_smear, track_fast_camera_motion,
+    track_span, TrackConfig,
 };
 pub use trajectory::{
     fit_photon_trajectory, fit_photon_trajectory_over, TrajectoryConfig, TrajectorySpan,

@@ -12,7 +12,7 @@
 //!
 //! Tracking runs only when the block motion says the camera moves fast (see
 //! [`TrackConfig::trigger_px`]) and only on CFAs whose grey channel is W; afterwards the merge
-//! uses sub-blocks short enough for the tracked motion ([`split_for_merge`]).
+//! uses sub-blocks short enough for the tracked motion ([`split_for_merge_in`]).
 #![forbid(unsafe_code)]
 
 use super::grey::GreyMethod;
@@ -622,15 +622,10 @@ impl<'a> Tracker<'a> {
     }
 }
 
-/// Cuts every sub-block of `motion` so that its camera moves at most `max_motion_px` inside
-/// each piece (down to single frames), each piece at the camera interpolated to its centre:
-/// once the motion is known at every few frames, the merge need not blur it.
-pub fn split_for_merge(motion: &mut FrameMotion, max_motion_px: f64) {
-    let blocks = 0..motion.plan.len();
-    split_for_merge_in(motion, blocks, max_motion_px);
-}
-
-/// [`split_for_merge`] of the sub-blocks in the blocks `blocks` only; the others are kept.
+/// Cuts every sub-block of `motion` in the blocks `blocks` (the others are kept) so that its
+/// camera moves at most `max_motion_px` inside each piece (down to single frames), each piece
+/// at the camera interpolated to its centre: once the motion is known at every few frames, the
+/// merge need not blur it.
 pub fn split_for_merge_in(
     motion: &mut FrameMotion,
     blocks: std::ops::Range<usize>,
