@@ -154,7 +154,7 @@ pub unsafe fn transpose8x8(r: &[std::arch::x86_64::__m256i; 8]) -> [std::arch::x
 /// A vector of `len` default values (zeros for numbers) written by all threads at once: the
 /// zeroing, and the first touch of fresh pages (their faults), shared between the cores
 /// instead of taken by the calling thread alone (`vec![0.0; len]` of a large buffer, e.g. the
-/// merge's 26 MB of phase bins, is one thread's memset). The same values as `vec!`.
+/// merge's 35 MB of phase bins, is one thread's memset). The same values as `vec!`.
 pub fn zeroed_par<T: Default + Clone + Send + Sync>(len: usize) -> Vec<T> {
     let mut out = Vec::new();
     resize_par(&mut out, len, T::default());

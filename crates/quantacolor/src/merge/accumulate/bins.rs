@@ -172,7 +172,7 @@ impl MergeAccumulator<'_> {
                             // The three sums of the site's channel in one sub-slice (one
                             // bounds check instead of three): the bins of a band are whole
                             // bin rows of SUMS planes, so the slice is inside the band.
-                            let slot = bin - first + (code as usize & 3) * 3 * stride;
+                            let slot = bin - first + (code as usize & 3) * PLANES * stride;
                             let cell = &mut cells[slot..slot + 2 * stride + 1];
                             cell[0] += r * count as f32;
                             cell[stride] += r * frames;
@@ -214,13 +214,13 @@ impl MergeAccumulator<'_> {
     /// `bins_per_output_px` to `sparse_bins_per_output_px`, in the same plane layout (the other
     /// channels' planes stay 0): coarse bin (k, j) sits on fine bin (f·k, f·j) and takes every
     /// fine bin within f − 1 of it along each axis with the tent weight (1 − |d|/f) per axis
-    /// (all four sums: the fine bin's samples are shared between the nearest coarse bins, as
-    /// when splatting with bilinear weights). Unlike rounding to the coarse grid it moves no
+    /// (each channel's first `planes` sums: the fine bin's samples are shared between the nearest
+    /// coarse bins, as when splatting with bilinear weights). Unlike rounding to the coarse grid it moves no
     /// sample on average: the positions of a static burst (every site on a whole reference
     /// pixel) stay where they are (rounding pairs of fine bins instead shifted the sparse
     /// channels by a quarter pixel; measured in docs/tuning.md). The
     /// splat itself stays one pass over the fine bins.
-    pub(super) fn coarse_bins(&self, sparse: [bool; 4]) -> CoarseBins {
+    pub(super) fn coarse_bins(&self, sparse: [bool; 4], planes: usize) -> CoarseBins {
         let f = self.config.bins_per_output_px / self.config.sparse_bins_per_output_px;
         // (bins − 1) is a multiple of the bins per reference px, hence of f.
         let (bins_h, bins_w) = ((self.bins_h - 1) / f + 1, (self.bins_w - 1) / f + 1);
@@ -237,8 +237,8 @@ impl MergeAccumulator<'_> {
                 |rows, (cy, row)| {
                     let centre = (cy * f) as isize;
                     for ch in (0..4).filter(|&ch| sparse[ch]) {
-                        for k in 0..3 {
-                            let plane = ch * 3 + k;
+                        for k in 0..planes {
+                            let plane = ch * PLANES + k;
                             // The fine rows around the coarse row, tent-weighted...
                             rows.fill(0.0);
                             for by in (centre - reach).max(0)..=(centre + reach).min(fine_rows - 1)

@@ -71,12 +71,12 @@ impl MergeAccumulator<'_> {
                     let at_bin = bilinear(guide_flux.view(), oy, output_position(bx));
                     let at_bin = if at_bin.is_finite() { at_bin } else { 0.0 };
                     for ch in (0..3).filter(|&ch| guided[ch]) {
-                        let frames = row[(ch * 3 + 1) * stride + bx];
-                        row[ch * 3 * stride + bx] = at_bin * frames;
+                        let frames = row[(ch * PLANES + 1) * stride + bx];
+                        row[ch * PLANES * stride + bx] = at_bin * frames;
                     }
                 }
             });
-        let sums = self.regression(guided);
+        let sums = self.regression(guided, false);
         let guide_frames = effective_frames.index_axis(Axis(0), guide);
         let ws = guide_flux.ncols();
         for ch in (0..3).filter(|&ch| guided[ch]) {
@@ -88,7 +88,7 @@ impl MergeAccumulator<'_> {
                 .for_each(|(oy, (mut plane_row, sums_row))| {
                     for (ox, (value, s)) in plane_row.iter_mut().zip(sums_row).enumerate() {
                         let n = guide_frames[[oy, ox]];
-                        let s = &s[ch * 3..ch * 3 + 2];
+                        let s = &s[ch * PLANES..ch * PLANES + 2];
                         if n.is_finite() && n > 0.0 && s[1] > 1e-6 {
                             let floor = 1.0 / n;
                             let guide_seen_by_colour = (s[0] / s[1]).max(floor);

@@ -32,10 +32,13 @@ impl MergeAccumulator<'_> {
     pub fn finish(mut self, w_weights: [f64; 3]) -> MergedPlanes {
         let scale = self.config.scale;
         let channel_scale = self.channel_scale;
-        let sums = self.regression([true; 4]);
+        let with_flux = self.fill_flux_planes();
+        let sums = self.regression([true; 4], with_flux);
         let (bit_rate, mut flux, effective_frames) = self.fluxes(&sums);
+        if with_flux {
+            self.flux_domain_floor(&mut flux, &sums);
+        }
         drop(sums);
-        self.flux_domain_floor(&mut flux);
         fill_holes(&mut flux, channel_scale, scale);
         let w_fallback = self.w_fallback(w_weights, &mut flux, &bit_rate, &effective_frames);
         if self.config.colour_ratios && channel_scale[..3].iter().all(|&s| s > 0.0) {
@@ -74,7 +77,7 @@ impl MergeAccumulator<'_> {
                 .zip(sums.par_chunks(ws))
                 .for_each(|(((mut rate, mut frames), mut flux), row)| {
                     for (ox, s) in row.iter().enumerate() {
-                        let s = &s[ch * 3..ch * 3 + 3];
+                        let s = &s[ch * PLANES..ch * PLANES + 3];
                         if s[1] > 1e-6 && s[2] > 0.0 {
                             let p = s[0] / s[1];
                             let n_eff = s[1] as f64 * s[1] as f64 / s[2] as f64;

@@ -10,7 +10,7 @@
 //!
 //! Each phase bin's flux is its own inversion f(p_b) over its own (Kish) frames, less its
 //! second-order bias ([`PixelModel::flux_bias`]: a bin holds few frames, and f(p̂_b) of a
-//! noisy p̂_b is biased upward by the same convexity); the bins' fluxes are regressed with the
+//! noisy p̂_b is biased upward by the same convexity); the bins' fluxes (a fourth plane per channel) are regressed in the same pass, with the
 //! same kernels and weights, and a pixel takes the larger of that and f(p̄). In a flat region
 //! f(p̄) pools the frames before the inversion and is the better (maximum-likelihood)
 //! estimate, and the bias-corrected flux mean falls below it on average, so f(p̄) stays;
@@ -21,35 +21,43 @@
 use super::*;
 
 impl MergeAccumulator<'_> {
-    /// Raises every present channel of `flux` (binary frames; dark removed) to the kernel mean
-    /// of its phase bins' own bias-corrected fluxes where that is larger. Rewrites the bins'
-    /// Σ r·counts (each becomes Σ r·F times the bin's flux); Σ r·F and Σ r²·F stay.
-    pub(super) fn flux_domain_floor(&mut self, flux: &mut Array3<f32>) {
+    /// Fills each present channel's plane S3 of every phase bin with Σ r·F times the bin's own
+    /// bias-corrected flux (0 where the bin holds no frames), for the regression to gather with
+    /// the other sums; whether it did (binary frames only).
+    pub(super) fn fill_flux_planes(&mut self) -> bool {
         let model = self.model;
         if !model.is_binary() {
-            return;
+            return false;
         }
         let present: [bool; 4] = std::array::from_fn(|ch| self.channel_scale[ch] > 0.0);
         let (stride, bins_w) = (self.stride, self.bins_w);
         self.bins.par_chunks_mut(SUMS * stride).for_each(|row| {
             for ch in (0..4).filter(|&ch| present[ch]) {
-                let (counts, rest) =
-                    row[ch * 3 * stride..(ch * 3 + 3) * stride].split_at_mut(stride);
+                let (sums, own_flux) =
+                    row[ch * PLANES * stride..(ch + 1) * PLANES * stride].split_at_mut(3 * stride);
+                let (counts, rest) = sums.split_at(stride);
                 let (frames, squares) = rest.split_at(stride);
                 for bx in 0..bins_w {
                     let (f, f2) = (frames[bx], squares[bx]);
-                    if f > 1e-6 && f2 > 0.0 {
+                    own_flux[bx] = if f > 1e-6 && f2 > 0.0 {
                         let p = (counts[bx] / f) as f64;
                         let n = f as f64 * f as f64 / f2 as f64;
                         let lambda = model.flux(p, n) - model.flux_bias(p, n);
-                        counts[bx] = f * lambda as f32;
+                        f * lambda as f32
                     } else {
-                        counts[bx] = 0.0;
-                    }
+                        0.0
+                    };
                 }
             }
         });
-        let sums = self.regression(present);
+        true
+    }
+
+    /// Raises every present channel of `flux` (binary frames; dark removed) to the kernel mean
+    /// of its phase bins' own bias-corrected fluxes, Σ g·S3 / Σ g·S1 of the regression `sums`
+    /// made after [`Self::fill_flux_planes`], where that is larger.
+    pub(super) fn flux_domain_floor(&self, flux: &mut Array3<f32>, sums: &[[f32; SUMS]]) {
+        let present: [bool; 4] = std::array::from_fn(|ch| self.channel_scale[ch] > 0.0);
         let ws = flux.dim().2;
         for ch in (0..4).filter(|&ch| present[ch]) {
             flux.index_axis_mut(Axis(0), ch)
@@ -58,9 +66,9 @@ impl MergeAccumulator<'_> {
                 .zip(sums.par_chunks(ws))
                 .for_each(|(mut plane_row, sums_row)| {
                     for (value, s) in plane_row.iter_mut().zip(sums_row) {
-                        let s = &s[ch * 3..ch * 3 + 2];
-                        if value.is_finite() && s[1] > 1e-6 {
-                            *value = value.max(s[0] / s[1]);
+                        let (frames, own_flux) = (s[ch * PLANES + 1], s[ch * PLANES + 3]);
+                        if value.is_finite() && frames > 1e-6 {
+                            *value = value.max(own_flux / frames);
                         }
                     }
                 });

@@ -54,8 +54,11 @@ use weights::{make_weights, snap_scales, ChannelPlan};
 
 /// Lanes of the vectorised kernel regression (eight f32: one AVX2 register).
 const LANES: usize = 8;
-/// Sums per bin: 4 channels × (Σ r·counts, Σ r·F, Σ r²·F).
-const SUMS: usize = 12;
+/// Planes per channel: Σ r·counts, Σ r·F, Σ r²·F, and Σ r·F·λ_bin (each bin's own flux, filled
+/// by [`MergeAccumulator::fill_flux_planes`] before the regression; `flux_domain`).
+const PLANES: usize = 4;
+/// Sums per bin: 4 channels × [`PLANES`].
+const SUMS: usize = 4 * PLANES;
 
 /// Streaming form of [`demosaic_merge`] whose cost does not grow with the number of sub-blocks
 /// times the kernel footprint, so motion at (close to) frame granularity costs about as much as
@@ -72,7 +75,7 @@ const SUMS: usize = 12;
 /// against the kernels' ≥ 0.25 px std); the test `fast_merge_matches_the_per_sample_merge`
 /// compares it with the direct per-sample sum.
 ///
-/// Memory: 12 f32 per bin, about 26 MB for 496x254 at scale 1 and 100 MB at scale 2,
+/// Memory: 16 f32 per bin, about 35 MB for 496x254 at scale 1 and 133 MB at scale 2,
 /// whatever the number of frames. The bins are stored as planes (structure of arrays: one row
 /// of bins per channel and sum), so the regression reads a row segment of bins as contiguous
 /// lanes and evaluates eight kernel weights at once ([`gather_row`]).
@@ -101,8 +104,8 @@ pub struct MergeAccumulator<'a> {
     /// Floats per plane row: `bins_w` padded so that eight lanes read from any bin of a row
     /// stay inside the row ([`LANES`]).
     stride: usize,
-    /// bins[((by·4 + c)·3 + k)·stride + bx] with k = {0: Σ r·counts, 1: Σ r·F, 2: Σ r²·F}
-    /// (padding columns stay 0); bin (by, bx) sits at reference position
+    /// bins[((by·4 + c)·PLANES + k)·stride + bx] with k = {0: Σ r·counts, 1: Σ r·F, 2: Σ r²·F,
+    /// 3: Σ r·F·λ_bin} (padding columns stay 0); bin (by, bx) sits at reference position
     /// (by/u − margin, bx/u − margin).
     bins: Vec<f32>,
     /// The instruction set of the splat's targets and of the regression, taken once by
@@ -170,7 +173,7 @@ impl<'a> MergeAccumulator<'a> {
             bins_h,
             bins_w,
             stride,
-            // Zeroed by all threads (26 MB for 496x254: ~10 ms of one thread's memset).
+            // Zeroed by all threads (35 MB for 496x254: ~13 ms of one thread's memset).
             bins: cpu::zeroed_par(len),
             isa: cpu::Isa::current(),
             targets: Vec::new(),

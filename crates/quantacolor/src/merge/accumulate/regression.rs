@@ -15,10 +15,11 @@ const OWN_ELLIPSE_RATIO: f64 = 0.8;
 
 impl MergeAccumulator<'_> {
     /// (Σ g·S0, Σ g·S1, Σ g²·S2) per channel (the sums of supplement Eq. 1–3 over the bins, g the
-    /// kernel weight) of every output pixel, row-major, in parallel by output rows. The sparse
-    /// channels ([`MergeAccumulator::sparse_channels`]), if any, gather from coarser bins
-    /// ([`MergeAccumulator::coarse_bins`]), the others from the phase bins.
-    pub(super) fn regression(&self, channels: [bool; 4]) -> Vec<[f32; SUMS]> {
+    /// kernel weight) of every output pixel, row-major, in parallel by output rows; `with_flux`:
+    /// Σ g·S3 as well (the bins' own fluxes, [`MergeAccumulator::fill_flux_planes`]), else 0.
+    /// The sparse channels ([`MergeAccumulator::sparse_channels`]), if any, gather from
+    /// coarser bins ([`MergeAccumulator::coarse_bins`]), the others from the phase bins.
+    pub(super) fn regression(&self, channels: [bool; 4], with_flux: bool) -> Vec<[f32; SUMS]> {
         let (hs, ws) = (
             self.cfa.height() * self.config.scale,
             self.cfa.width() * self.config.scale,
@@ -35,17 +36,24 @@ impl MergeAccumulator<'_> {
         let all_sparse = self.sparse_channels();
         let sparse: [bool; 4] = std::array::from_fn(|ch| all_sparse[ch] && channels[ch]);
         if !sparse.contains(&true) {
-            gather_rows(&mut sums, &self.gather(self.fine_grid(), channels, inv_cov));
+            gather_rows(
+                &mut sums,
+                &self.gather(self.fine_grid(), channels, inv_cov, with_flux),
+            );
             return sums;
         }
-        let coarse = self.coarse_bins(sparse);
+        let planes = if with_flux { PLANES } else { 3 };
+        let coarse = self.coarse_bins(sparse, planes);
         let dense: [bool; 4] = std::array::from_fn(|ch| channels[ch] && !sparse[ch]);
         if !(0..4).any(|ch| dense[ch] && self.channel_scale[ch] > 0.0) {
-            gather_rows(&mut sums, &self.gather(coarse.grid(), sparse, inv_cov));
+            gather_rows(
+                &mut sums,
+                &self.gather(coarse.grid(), sparse, inv_cov, with_flux),
+            );
             return sums;
         }
-        let fine = self.gather(self.fine_grid(), dense, inv_cov);
-        let coarse = self.gather(coarse.grid(), sparse, inv_cov);
+        let fine = self.gather(self.fine_grid(), dense, inv_cov, with_flux);
+        let coarse = self.gather(coarse.grid(), sparse, inv_cov, with_flux);
         sums.par_chunks_mut(ws).enumerate().for_each_init(
             || vec![[0.0f32; SUMS]; ws],
             |sparse_row, (oy, row)| {
@@ -53,7 +61,8 @@ impl MergeAccumulator<'_> {
                 gather_row(&coarse, isa, oy, sparse_row);
                 for (out, s) in row.iter_mut().zip(sparse_row.iter()) {
                     for ch in (0..4).filter(|&ch| sparse[ch]) {
-                        out[ch * 3..ch * 3 + 3].copy_from_slice(&s[ch * 3..ch * 3 + 3]);
+                        let sums = ch * PLANES..(ch + 1) * PLANES;
+                        out[sums.clone()].copy_from_slice(&s[sums]);
                     }
                 }
             },
@@ -62,12 +71,13 @@ impl MergeAccumulator<'_> {
     }
 
     /// What the regression of `channels` over the bins of `grid` reads ([`Gather`]), with the
-    /// (H, W, 3) inverse kernel covariances `inv_cov`.
+    /// (H, W, 3) inverse kernel covariances `inv_cov`; `with_flux`: the bins' flux planes too.
     pub(super) fn gather<'g>(
         &self,
         grid: BinGrid<'g>,
         channels: [bool; 4],
         inv_cov: &'g [f32],
+        with_flux: bool,
     ) -> Gather<'g> {
         let scale = self.config.scale;
         let (h, w) = (self.cfa.height(), self.cfa.width());
@@ -79,11 +89,12 @@ impl MergeAccumulator<'_> {
         // at or above the cutoff (rounding is monotone and the form is then positive), so the
         // gather only visits the bins of each row inside that widest ellipse, widened by a bin
         // on each side against rounding ([`ellipse_span`]).
+        let present: [bool; 4] =
+            std::array::from_fn(|ch| channels[ch] && self.channel_scale[ch] > 0.0);
         let min_inv_scale = (0..4)
-            .filter(|&ch| channels[ch])
+            .filter(|&ch| present[ch])
             .map(|ch| inv_scale[ch])
             .fold(f32::INFINITY, f32::min);
-        let present = std::array::from_fn(|ch| channels[ch] && self.channel_scale[ch] > 0.0);
         // The sparsest channel makes its weights with exponentials; a channel whose factor is
         // the same reuses them (R, G and B of most CFAs: the same values, computed once), one
         // whose factor is k times it takes their k-th power ([`snap_scales`]). Without the
@@ -119,6 +130,7 @@ impl MergeAccumulator<'_> {
             cutoff,
             inv_scale,
             present,
+            with_flux,
             base: base.unwrap_or(0),
             source,
             power,
@@ -158,6 +170,8 @@ pub(super) struct Gather<'g> {
     pub(super) inv_scale: [f32; 4],
     /// Channels with sites in the CFA.
     pub(super) present: [bool; 4],
+    /// Whether Σ g·S3 (the bins' own fluxes) is gathered as well.
+    pub(super) with_flux: bool,
     /// The sparsest channel (the smallest factor), whose weights are exponentials.
     pub(super) base: usize,
     /// The channel whose weights each channel uses (itself, or `base` for a channel of the
@@ -190,7 +204,8 @@ pub(super) fn gather_row(g: &Gather, isa: Isa, oy: usize, row: &mut [[f32; SUMS]
 /// Kernel regression of one output row over the phase bins (supplement Eq. 1–3): for every
 /// output pixel p and every bin within the gather radius (and inside the widest channel's
 /// ellipse), the weight g = exp(−½·dᵀΩ_c⁻¹d) of the bin's offset d for every channel c with
-/// dᵀΩ_c⁻¹d below the cutoff, accumulated as Σ g·S0, Σ g·S1, Σ g²·S2 of the bin's sums.
+/// dᵀΩ_c⁻¹d below the cutoff, accumulated as Σ g·S0, Σ g·S1, Σ g²·S2 (and Σ g·S3 with
+/// `with_flux`) of the bin's sums.
 ///
 /// Eight bins of a row at a time: the quadratic forms, the exponentials ([`fastmath::exp`])
 /// and the products are lane-wise, with bins outside the row segment or the cutoff weighted 0
@@ -338,13 +353,13 @@ impl RowScratch {
             c,
         };
         // acc[channel][sum][lane]
-        let mut acc = [[[0.0f32; LANES]; 3]; 4];
+        let mut acc = [[[0.0f32; LANES]; PLANES]; 4];
         for (row, by) in (self.by0..=self.by1).enumerate() {
             self.bin_row(g, &pixel, row, by, &mut acc);
         }
         for (ch, acc) in acc.iter().enumerate() {
             for (sum, lanes) in acc.iter().enumerate() {
-                out[ch * 3 + sum] = lane_sum(lanes);
+                out[ch * PLANES + sum] = lane_sum(lanes);
             }
         }
     }
@@ -359,7 +374,7 @@ impl RowScratch {
         pixel: &PixelKernel,
         row: usize,
         by: isize,
-        acc: &mut [[[f32; LANES]; 3]; 4],
+        acc: &mut [[[f32; LANES]; PLANES]; 4],
     ) {
         let (bins, stride) = (g.bins, g.stride);
         let (u, inv_u, margin) = (g.u, g.inv_u, g.margin);
@@ -421,12 +436,15 @@ impl RowScratch {
                 stride,
                 groups: ranges[members[0]],
             };
-            if let &[c0, c1, c2] = members {
-                pass.run3(acc, [c0, c1, c2]);
-            } else {
-                for &ch in members {
-                    pass.run1(&mut acc[ch], ch);
-                }
+            match (members, g.with_flux) {
+                (&[c0, c1, c2], false) => pass.run3::<false>(acc, [c0, c1, c2]),
+                (&[c0, c1, c2], true) => pass.run3::<true>(acc, [c0, c1, c2]),
+                (_, false) => members
+                    .iter()
+                    .for_each(|&ch| pass.run1::<false>(&mut acc[ch], ch)),
+                (_, true) => members
+                    .iter()
+                    .for_each(|&ch| pass.run1::<true>(&mut acc[ch], ch)),
             }
         }
     }
@@ -533,46 +551,56 @@ struct RowPass<'p> {
 }
 
 impl RowPass<'_> {
-    /// The three planes (S0, S1, S2) of channel `ch` over the pass's groups.
+    /// The four planes (S0, S1, S2, S3) of channel `ch` over the pass's groups.
     #[inline(always)]
-    fn planes(&self, ch: usize) -> [&[f32]; 3] {
+    fn planes(&self, ch: usize) -> [&[f32]; PLANES] {
         let len = self.groups.1 * LANES;
-        let at = self.start + ch * 3 * self.stride;
+        let at = self.start + ch * PLANES * self.stride;
         std::array::from_fn(|k| &self.bins[at + k * self.stride..at + k * self.stride + len])
     }
 
     /// Adds the pass's products to channel `ch`'s partial sums acc[sum][lane]: Σ g·S0, Σ g·S1
-    /// and Σ g²·S2, group by group.
+    /// and Σ g²·S2 (and Σ g·S3 with `FLUX`), group by group.
     #[inline(always)]
-    fn run1(&self, acc: &mut [[f32; LANES]; 3], ch: usize) {
-        let [p0, p1, p2] = self.planes(ch);
-        let [mut s0acc, mut s1acc, mut s2acc] = *acc;
+    fn run1<const FLUX: bool>(&self, acc: &mut [[f32; LANES]; PLANES], ch: usize) {
+        let [p0, p1, p2, p3] = self.planes(ch);
+        let [mut s0acc, mut s1acc, mut s2acc, mut s3acc] = *acc;
         for group in self.groups.0..self.groups.1 {
             let r = group * LANES..(group + 1) * LANES;
             let weight: &[f32; LANES] = self.weights[r.clone()].try_into().expect("lanes");
             let s0: &[f32; LANES] = p0[r.clone()].try_into().expect("lanes");
             let s1: &[f32; LANES] = p1[r.clone()].try_into().expect("lanes");
-            let s2: &[f32; LANES] = p2[r].try_into().expect("lanes");
+            let s2: &[f32; LANES] = p2[r.clone()].try_into().expect("lanes");
             for i in 0..LANES {
                 s0acc[i] += weight[i] * s0[i];
                 s1acc[i] += weight[i] * s1[i];
                 s2acc[i] += weight[i] * weight[i] * s2[i];
             }
+            if FLUX {
+                let s3: &[f32; LANES] = p3[r].try_into().expect("lanes");
+                for i in 0..LANES {
+                    s3acc[i] += weight[i] * s3[i];
+                }
+            }
         }
-        *acc = [s0acc, s1acc, s2acc];
+        *acc = [s0acc, s1acc, s2acc, s3acc];
     }
 
-    /// [`RowPass::run1`] of three channels in one pass over the groups (nine independent
-    /// partial sums in flight instead of three): the same products in the same order per
-    /// partial sum.
+    /// [`RowPass::run1`] of three channels in one pass over the groups (nine or twelve
+    /// independent partial sums in flight instead of three or four): the same products in the
+    /// same order per partial sum.
     #[inline(always)]
-    fn run3(&self, acc: &mut [[[f32; LANES]; 3]; 4], [c0, c1, c2]: [usize; 3]) {
-        let [p00, p01, p02] = self.planes(c0);
-        let [p10, p11, p12] = self.planes(c1);
-        let [p20, p21, p22] = self.planes(c2);
-        let [mut a0, mut a1, mut a2] = acc[c0];
-        let [mut b0, mut b1, mut b2] = acc[c1];
-        let [mut d0, mut d1, mut d2] = acc[c2];
+    fn run3<const FLUX: bool>(
+        &self,
+        acc: &mut [[[f32; LANES]; PLANES]; 4],
+        [c0, c1, c2]: [usize; 3],
+    ) {
+        let [p00, p01, p02, p03] = self.planes(c0);
+        let [p10, p11, p12, p13] = self.planes(c1);
+        let [p20, p21, p22, p23] = self.planes(c2);
+        let [mut a0, mut a1, mut a2, mut a3] = acc[c0];
+        let [mut b0, mut b1, mut b2, mut b3] = acc[c1];
+        let [mut d0, mut d1, mut d2, mut d3] = acc[c2];
         for group in self.groups.0..self.groups.1 {
             let r = group * LANES..(group + 1) * LANES;
             let w: &[f32; LANES] = self.weights[r.clone()].try_into().expect("lanes");
@@ -592,10 +620,18 @@ impl RowPass<'_> {
                 d1[i] += w[i] * x21[i];
                 d2[i] += sq * x22[i];
             }
+            if FLUX {
+                let (x03, x13, x23) = (lanes(p03), lanes(p13), lanes(p23));
+                for i in 0..LANES {
+                    a3[i] += w[i] * x03[i];
+                    b3[i] += w[i] * x13[i];
+                    d3[i] += w[i] * x23[i];
+                }
+            }
         }
-        acc[c0] = [a0, a1, a2];
-        acc[c1] = [b0, b1, b2];
-        acc[c2] = [d0, d1, d2];
+        acc[c0] = [a0, a1, a2, a3];
+        acc[c1] = [b0, b1, b2, b3];
+        acc[c2] = [d0, d1, d2, d3];
     }
 }
 

@@ -15,6 +15,7 @@ impl MergeAccumulator<'_> {
             self.fine_grid(),
             [true; 4],
             inv_cov.as_slice().expect("standard layout"),
+            true,
         );
         f(&gather)
     }
@@ -61,7 +62,7 @@ pub(super) fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]
             }
         }
         // acc[channel][sum][lane]
-        let mut acc = [[[0.0f32; LANES]; 3]; 4];
+        let mut acc = [[[0.0f32; LANES]; PLANES]; 4];
         for (row, by) in (by0..=by1).enumerate() {
             let dy = dys[row];
             let ady2 = a * dy * dy;
@@ -95,7 +96,7 @@ pub(super) fn gather_row_reference(g: &Gather, oy: usize, row: &mut [[f32; SUMS]
         }
         for (ch, acc) in acc.iter().enumerate() {
             for (sum, lanes) in acc.iter().enumerate() {
-                out[ch * 3 + sum] = lane_sum(lanes);
+                out[ch * PLANES + sum] = lane_sum(lanes);
             }
         }
     }
@@ -131,7 +132,7 @@ fn reference_groups(
     span: &[(isize, isize); 4],
     (ady2, bdy, c): (f32, f32, f32),
     px: f32,
-    acc: &mut [[[f32; LANES]; 3]; 4],
+    acc: &mut [[[f32; LANES]; PLANES]; 4],
 ) {
     let (bins, stride) = (g.bins, g.stride);
     let (inv_u, margin) = (g.inv_u, g.margin);
@@ -164,16 +165,21 @@ fn reference_groups(
                 0 => exps(ch),
                 k => power_weights(g, ch, &quad, exps(g.base), k),
             };
-            let at = first + ch * 3 * stride;
+            let at = first + ch * PLANES * stride;
             let s0: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
             let at = at + stride;
             let s1: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
             let at = at + stride;
             let s2: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
+            let at = at + stride;
+            let s3: &[f32; LANES] = bins[at..at + LANES].try_into().expect("lanes");
             for i in 0..LANES {
                 acc[0][i] += weight[i] * s0[i];
                 acc[1][i] += weight[i] * s1[i];
                 acc[2][i] += weight[i] * weight[i] * s2[i];
+                if g.with_flux {
+                    acc[3][i] += weight[i] * s3[i];
+                }
             }
         }
         bx += LANES as isize;

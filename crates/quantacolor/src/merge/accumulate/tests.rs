@@ -30,14 +30,14 @@ fn coarse_bins_share_each_fine_bin_between_the_nearest_coarse_bins() {
     assert_eq!(sparse, [true, true, true, false]);
     let (stride, fine_w) = (acc.stride, acc.bins_w);
     let at = |by: usize, plane: usize, bx: usize| (by * SUMS + plane) * stride + bx;
-    // Plane 3 (G's Σ r·counts): a sample on coarse bin (3, 4), one between (3, 5) and
-    // (4, 5) vertically, one between (4, 6), (4, 7), (5, 6) and (5, 7); W's plane too.
-    let plane = 3;
+    // G's Σ r·counts: a sample on coarse bin (3, 4), one between (3, 5) and (4, 5)
+    // vertically, one between (4, 6), (4, 7), (5, 6) and (5, 7); W's plane too.
+    let plane = PLANES;
     acc.bins[at(6, plane, 8)] = 8.0;
     acc.bins[at(7, plane, 10)] = 4.0;
     acc.bins[at(9, plane, 13)] = 16.0;
-    acc.bins[at(6, 9, 8)] = 5.0;
-    let coarse = acc.coarse_bins(sparse);
+    acc.bins[at(6, 3 * PLANES, 8)] = 5.0;
+    let coarse = acc.coarse_bins(sparse, PLANES);
     let get = |cy: usize, p: usize, cx: usize| coarse.bins[(cy * SUMS + p) * coarse.stride + cx];
     assert_eq!(get(3, plane, 4), 8.0);
     assert_eq!((get(3, plane, 5), get(4, plane, 5)), (2.0, 2.0));
@@ -471,7 +471,7 @@ fn extra_cfas(h: usize, w: usize) -> [Cfa; 2] {
 }
 
 /// Every output row (`hs` of them) of `acc`'s regression over its bins, AVX2 (where the CPU has
-/// it) and portable, against the group-by-group reference, bit for bit.
+/// it) and portable, against the group-by-group reference, bit for bit (the flux planes too).
 fn assert_rows_match_the_reference(acc: &MergeAccumulator, hs: usize, what: &str) {
     let ws = acc.cfa.width() * acc.config.scale;
     acc.with_gather(|g| {
@@ -487,6 +487,8 @@ fn assert_rows_match_the_reference(acc: &MergeAccumulator, hs: usize, what: &str
             assert_eq!(bits(&fast), bits(&reference), "{what} {oy}");
             assert_eq!(bits(&generic), bits(&reference), "{what}");
             assert!(reference.iter().flatten().any(|&v| v > 0.0));
+            // The bins' flux planes (S3) are gathered too.
+            assert!(reference.iter().any(|s| s[PLANES - 1] > 0.0));
         }
     });
 }
