@@ -467,6 +467,9 @@ fn reconstruct_denoise_and_preview_options() {
         config["burst"]["refine"]["max_sub_block_motion_px"].as_float(),
         Some(0.7)
     );
+    let trajectory = &config["burst"]["trajectory"];
+    assert_eq!(trajectory["early_row_step"].as_integer(), Some(2));
+    assert_eq!(trajectory["informative_fraction"].as_float(), Some(0.9));
     assert_ne!(fast, chroma);
     let passes = tmp.path().join("passes.toml");
     std::fs::write(&passes, "[burst.refine]\npasses = 2\n").unwrap();
