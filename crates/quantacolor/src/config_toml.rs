@@ -95,7 +95,12 @@ mod tests {
         assert_eq!(fast.burst.refine.passes, 1);
         assert_eq!(fast.burst.refine.max_sub_block_motion_px, 0.7);
         assert_eq!(fast.burst.merge, default.burst.merge);
-        assert_eq!(fast.burst.trajectory, default.burst.trajectory);
+        let trajectory = crate::align::trajectory::TrajectoryConfig {
+            early_row_step: 2,
+            informative_fraction: 0.9,
+            ..default.burst.trajectory.clone()
+        };
+        assert_eq!(fast.burst.trajectory, trajectory);
         assert_ne!(fast.denoise.bm3d, default.denoise.bm3d);
         assert_eq!(fast.method, default.method);
         // A user's config goes over the profile.
