@@ -214,12 +214,12 @@ impl MergeAccumulator<'_> {
     /// `bins_per_output_px` to `sparse_bins_per_output_px`, in the same plane layout (the other
     /// channels' planes stay 0): coarse bin (k, j) sits on fine bin (f·k, f·j) and takes every
     /// fine bin within f − 1 of it along each axis with the tent weight (1 − |d|/f) per axis
-    /// (each channel's first `planes` sums: the fine bin's samples are shared between the nearest
-    /// coarse bins, as when splatting with bilinear weights). Unlike rounding to the coarse grid it moves no
-    /// sample on average: the positions of a static burst (every site on a whole reference
-    /// pixel) stay where they are (rounding pairs of fine bins instead shifted the sparse
-    /// channels by a quarter pixel; measured in docs/tuning.md). The
-    /// splat itself stays one pass over the fine bins.
+    /// (each channel's first `planes` sums: the fine bin's samples are shared between the
+    /// nearest coarse bins, as when splatting with bilinear weights). Unlike rounding to the
+    /// coarse grid it moves no sample on average: the positions of a static burst (every site
+    /// on a whole reference pixel) stay where they are (rounding pairs of fine bins instead
+    /// shifted the sparse channels by a quarter pixel; measured in docs/tuning.md). The splat
+    /// itself stays one pass over the fine bins.
     pub(super) fn coarse_bins(&self, sparse: [bool; 4], planes: usize) -> CoarseBins {
         let f = self.config.bins_per_output_px / self.config.sparse_bins_per_output_px;
         // (bins − 1) is a multiple of the bins per reference px, hence of f.

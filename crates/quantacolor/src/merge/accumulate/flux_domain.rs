@@ -10,8 +10,9 @@
 //!
 //! Each phase bin's flux is its own inversion f(p_b) over its own (Kish) frames, less its
 //! second-order bias ([`PixelModel::flux_bias`]: a bin holds few frames, and f(p̂_b) of a
-//! noisy p̂_b is biased upward by the same convexity); the bins' fluxes (a fourth plane per channel) are regressed in the same pass, with the
-//! same kernels and weights, and a pixel takes the larger of that and f(p̄). In a flat region
+//! noisy p̂_b is biased upward by the same convexity); the bins' fluxes, a fourth plane per
+//! channel, are regressed in the same pass as the other sums, with the same kernels and
+//! weights, and a pixel takes the larger of that and f(p̄). In a flat region
 //! f(p̄) pools the frames before the inversion and is the better (maximum-likelihood)
 //! estimate, and the bias-corrected flux mean falls below it on average, so f(p̄) stays;
 //! across a step in flux the flux mean is larger by the Jensen gap and replaces it. Binary
