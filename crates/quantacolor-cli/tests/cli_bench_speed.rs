@@ -1,8 +1,9 @@
 //! `quantacolor bench speed` end to end at a tiny size (`--frames 200 --runs 1`): each capture
-//! reports every stage, its blocks, the naive sum, the whole pipeline and a real-time factor, and
-//! the summary has a row per capture; bad scenes exit with status 2 before anything is
-//! simulated, and a missing default scene folder only narrows the run to the chart. No
-//! wall-clock value is asserted, only that the numbers are there and parse.
+//! reports every stage, its blocks, the naive sum, the whole pipeline, both again as whole
+//! `reconstruct` processes, and a real-time factor, and the summary has a row per capture; bad
+//! scenes exit with status 2 before anything is simulated, and a missing default scene folder
+//! only narrows the run to the chart. No wall-clock value is asserted, only that the numbers
+//! are there and parse.
 
 mod cli_support;
 use cli_support::{ok, quantacolor, table_cells};
@@ -102,6 +103,14 @@ fn check_capture(stdout: &str, label: &str) {
         number_before(whole, "x the naive sum") > 0.0,
         "{whole}: no ratio"
     );
+    let process = lines
+        .iter()
+        .find(|l| l.starts_with("whole process (`quantacolor reconstruct`"))
+        .unwrap_or_else(|| panic!("no whole-process line in {lines:?}"));
+    assert!(
+        number_before(process, "x the naive process") > 0.0,
+        "{process}: no ratio"
+    );
     let factor_line = lines
         .iter()
         .find(|l| l.starts_with("real-time factor at 16 kfps: "))
@@ -136,7 +145,9 @@ fn summary_rows(stdout: &str) -> Vec<Vec<String>> {
         .unwrap_or_else(|| panic!("no summary in {stdout}"));
     let lines: Vec<&str> = stdout.lines().skip(start + 1).collect();
     assert!(lines[0].starts_with("| scene | blocks | sub-blocks | naive |"));
-    assert!(lines[0].ends_with("| denoise | whole | x naive | x real time |"));
+    assert!(lines[0].ends_with(
+        "| denoise | whole | x naive | x real time | process | naive process | x naive process |"
+    ));
     lines[2..]
         .iter()
         .take_while(|l| l.starts_with("| "))

@@ -24,6 +24,7 @@ use quantacolor::denoise::chroma::{DenoiseConfig, DenoiseMethod};
 use quantacolor::pipeline::Profile;
 use quantacolor::progress::Progress;
 use quantacolor::simulate::MotionConfig;
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
@@ -109,7 +110,8 @@ pub enum BenchCommand {
     /// Speed: align + merge + denoise of simulated 10,000-frame handheld captures (the built-in
     /// chart and the quality suite's validation photographs, or --scene), every stage timed,
     /// against the naive sum of the same frames in the same process, and against the capture's
-    /// own duration at the colour SwissSPAD2's 16,000 frames per second.
+    /// own duration at the colour SwissSPAD2's 16,000 frames per second; then both again as
+    /// whole `quantacolor reconstruct` processes (the capture written to the temporary folder).
     Speed {
         #[arg(long, default_value_t = 10_000)]
         frames: usize,
@@ -192,13 +194,18 @@ pub fn run(args: &BenchArgs, progress: &dyn Progress) -> Result<()> {
                 ),
                 None => (profile.config()?, format!("{profile} pipeline")),
             };
+            // The same selection for the whole `reconstruct` processes.
+            let mut pipeline_args = vec![OsString::from("--profile"), profile.to_string().into()];
+            if let Some(path) = config {
+                pipeline_args.extend([OsString::from("--config"), path.clone().into()]);
+            }
             // Every scene is loaded before anything is simulated, so a bad one fails at once.
             let scenes = speed::speed_scenes(scene, scenes.as_deref())?;
             speed::speed(
                 &scenes,
                 *frames,
                 *runs as usize,
-                (&pipeline, &name),
+                (&pipeline, &name, &pipeline_args),
                 progress,
             )
         }

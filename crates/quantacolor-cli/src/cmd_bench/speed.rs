@@ -1,7 +1,8 @@
 //! `bench speed`: align + merge (and the whole pipeline with denoising) of a simulated capture
 //! against the naive sum of the same frames, in interleaved rounds in the same process, on the
 //! built-in chart and photographs; with each capture's real-time factor at the colour
-//! SwissSPAD2's 16,000 frames per second.
+//! SwissSPAD2's 16,000 frames per second; and both as whole `quantacolor reconstruct`
+//! processes, reading and writing included (the speed issue's measure).
 
 #![forbid(unsafe_code)]
 
@@ -17,8 +18,10 @@ use quantacolor::progress::{Progress, Silent};
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
 use quantacolor::stats::median_f64;
 use quantacolor::timing::StageTiming;
+use std::ffi::OsString;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
 use std::time::Instant;
 
 /// Naive sums timed in each round of [`speed`]: it takes tens of milliseconds against about a
@@ -130,6 +133,8 @@ struct Measured {
     whole_range: (f64, f64),
     /// The pipeline's run of median whole time.
     median: WholeRun,
+    /// The same as whole processes.
+    process: Option<ProcessTimes>,
 }
 
 /// Seconds of one timed call of `f`, with its result.
@@ -145,13 +150,17 @@ fn real_time_factor(whole_s: f64, frames: usize) -> f64 {
     whole_s / (frames as f64 / SENSOR_FPS)
 }
 
+/// `pipeline_args`: the `reconstruct` options that select `pipeline` (`--profile`, `--config`),
+/// for the whole-process timings.
 pub(super) fn speed(
     scenes: &[SpeedScene],
     frames: usize,
     runs: usize,
-    (pipeline, name): (&ReconstructConfig, &str),
+    (pipeline, name, pipeline_args): (&ReconstructConfig, &str, &[OsString]),
     progress: &dyn Progress,
 ) -> Result<()> {
+    let exe = std::env::current_exe().context("cannot find the quantacolor executable")?;
+    let work = WorkDir::new()?;
     let config = SimulationConfig {
         frames,
         flux: FluxSpec::Mean { flux: FLUX },
@@ -164,12 +173,29 @@ pub(super) fn speed(
             "simulating {frames} frames of {}x{} of {} (not timed)",
             config.width, config.height, scene.label
         );
+        let capture_dir = work.path.join("capture");
         let capture = simulate_with_cfa(&config, &scene.scene, &colorspad_cfa(), progress)
-            .and_then(|sim| sim.to_capture())
+            .and_then(|sim| {
+                sim.write(&capture_dir)?;
+                sim.to_capture()
+            })
             .with_context(|| format!("simulating {}", scene.label))?;
         eprintln!("timing {} ({runs} rounds)", scene.label);
-        let measured = measure(&scene.label, &capture, pipeline, frames, runs)?;
+        let mut measured = measure(&scene.label, &capture, pipeline, frames, runs)?;
         drop(capture);
+        eprintln!(
+            "timing {} as whole reconstruct processes ({runs} rounds)",
+            scene.label
+        );
+        measured.process = Some(time_processes(
+            &exe,
+            &capture_dir,
+            &work.path,
+            pipeline_args,
+            runs,
+        )?);
+        std::fs::remove_dir_all(&capture_dir)
+            .with_context(|| format!("cannot remove {}", capture_dir.display()))?;
         if i > 0 {
             println!();
         }
@@ -210,6 +236,7 @@ fn measure(
         naive_s,
         whole_range,
         median,
+        process: None,
     })
 }
 
@@ -269,6 +296,22 @@ fn capture_report(
         whole_s / naive_s
     )
     .ok();
+    if let Some(p) = &m.process {
+        writeln!(
+            out,
+            "whole process (`quantacolor reconstruct`, reading and writing included): {:.3} s \
+             ({:.3}-{:.3} s), naive process (`--method naive --denoise none`) {:.3} s ({:.3}-{:.3} \
+             s), ratio {:.1}x the naive process",
+            p.pipeline_s,
+            p.pipeline_range.0,
+            p.pipeline_range.1,
+            p.naive_s,
+            p.naive_range.0,
+            p.naive_range.1,
+            p.pipeline_s / p.naive_s
+        )
+        .ok();
+    }
     let factor = real_time_factor(whole_s, frames);
     writeln!(
         out,
@@ -313,9 +356,11 @@ fn summary_table(results: &[Measured], frames: usize, name: &str) -> String {
     for stage in &stages {
         write!(header, " {} |", short_stage(stage)).ok();
     }
-    header.push_str(" denoise | whole | x naive | x real time |");
+    header.push_str(
+        " denoise | whole | x naive | x real time | process | naive process | x naive process |",
+    );
     writeln!(out, "{header}").ok();
-    writeln!(out, "{}", "|---".repeat(stages.len() + 8) + "|").ok();
+    writeln!(out, "{}", "|---".repeat(stages.len() + 11) + "|").ok();
     for m in results {
         let w = &m.median;
         let mut row = format!(
@@ -337,6 +382,17 @@ fn summary_table(results: &[Measured], frames: usize, name: &str) -> String {
             real_time_factor(w.whole_s, frames)
         )
         .ok();
+        match &m.process {
+            Some(p) => write!(
+                row,
+                " {:.3} | {:.3} | {:.1}x |",
+                p.pipeline_s,
+                p.naive_s,
+                p.pipeline_s / p.naive_s
+            )
+            .ok(),
+            None => write!(row, " | | |").ok(),
+        };
         writeln!(out, "{row}").ok();
     }
     out
@@ -399,4 +455,112 @@ fn time_rounds(
         });
     }
     Ok((naive_times, whole_runs))
+}
+
+/// A folder of its own in the system's temporary folder for [`speed`]'s captures and outputs,
+/// removed when dropped (also when the benchmark fails).
+struct WorkDir {
+    path: PathBuf,
+}
+
+impl WorkDir {
+    fn new() -> Result<WorkDir> {
+        let path =
+            std::env::temp_dir().join(format!("quantacolor-bench-speed-{}", std::process::id()));
+        if path.exists() {
+            std::fs::remove_dir_all(&path)
+                .with_context(|| format!("cannot clear {}", path.display()))?;
+        }
+        std::fs::create_dir_all(&path)
+            .with_context(|| format!("cannot create {}", path.display()))?;
+        Ok(WorkDir { path })
+    }
+}
+
+impl Drop for WorkDir {
+    fn drop(&mut self) {
+        // Best effort: a leftover folder in the temporary folder is harmless.
+        let _ = std::fs::remove_dir_all(&self.path);
+    }
+}
+
+/// Medians (and ranges) of whole `quantacolor reconstruct` processes: the pipeline timed, and
+/// the naive sum (`--method naive --denoise none`).
+struct ProcessTimes {
+    pipeline_s: f64,
+    pipeline_range: (f64, f64),
+    naive_s: f64,
+    naive_range: (f64, f64),
+}
+
+/// Times `runs` rounds of whole processes on the capture folder `capture`, each
+/// [`NAIVE_RUNS_PER_ROUND`] naive processes then one of the pipeline (`pipeline_args`), as a
+/// user runs them in a shell: start-up, reading the capture and writing every output included.
+fn time_processes(
+    exe: &Path,
+    capture: &Path,
+    work: &Path,
+    pipeline_args: &[OsString],
+    runs: usize,
+) -> Result<ProcessTimes> {
+    let naive_args: Vec<OsString> = ["--method", "naive", "--denoise", "none"]
+        .into_iter()
+        .map(OsString::from)
+        .collect();
+    let (mut naive, mut pipeline) = (Vec::new(), Vec::new());
+    for _ in 0..runs.max(1) {
+        for _ in 0..NAIVE_RUNS_PER_ROUND {
+            naive.push(process_seconds(
+                exe,
+                capture,
+                &work.join("naive"),
+                &naive_args,
+            )?);
+        }
+        pipeline.push(process_seconds(
+            exe,
+            capture,
+            &work.join("pipeline"),
+            pipeline_args,
+        )?);
+    }
+    let range = |v: &[f64]| {
+        (
+            v.iter().copied().fold(f64::INFINITY, f64::min),
+            v.iter().copied().fold(0.0, f64::max),
+        )
+    };
+    Ok(ProcessTimes {
+        pipeline_range: range(&pipeline),
+        naive_range: range(&naive),
+        pipeline_s: median_f64(&mut pipeline),
+        naive_s: median_f64(&mut naive),
+    })
+}
+
+/// Wall-clock seconds of one `quantacolor reconstruct CAPTURE --out OUT --overwrite ARGS`
+/// child process; its error output in the error if it fails.
+fn process_seconds(exe: &Path, capture: &Path, out: &Path, args: &[OsString]) -> Result<f64> {
+    let start = Instant::now();
+    let output = Command::new(exe)
+        .arg("reconstruct")
+        .arg(capture)
+        .arg("--out")
+        .arg(out)
+        .arg("--overwrite") // the benchmark's own output folder, run again
+        .args(args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .output()
+        .with_context(|| format!("cannot run {}", exe.display()))?;
+    let seconds = start.elapsed().as_secs_f64();
+    anyhow::ensure!(
+        output.status.success(),
+        "quantacolor reconstruct {} failed ({}): {}",
+        capture.display(),
+        output.status,
+        String::from_utf8_lossy(&output.stderr).trim()
+    );
+    Ok(seconds)
 }
