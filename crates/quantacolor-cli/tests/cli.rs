@@ -215,6 +215,9 @@ fn bad_inputs_exit_2_name_the_file_and_leave_no_output() {
     let err = reconstruct_with_config("[burst.align.blocks]\nmax_steady_smear_px = -1\n");
     assert!(err.contains("max_steady_smear_px"), "{err}");
     assert!(!out.exists(), "partial output left behind");
+    let err = reconstruct_with_config("[burst.merge]\nsharpen_blocks_px = -0.5\n");
+    assert!(err.contains("sharpen_blocks_px"), "{err}");
+    assert!(!out.exists(), "partial output left behind");
     let err = reconstruct_with_config("[burst.refine]\npases = 1\n");
     assert!(err.contains("`burst.refine.pases`"), "{err}");
     assert!(!out.exists(), "partial output left behind");

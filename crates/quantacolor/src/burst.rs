@@ -33,11 +33,14 @@ use crate::align::{
     track_span, AlignConfig, Alignment, BlockConfig, FrameMotion, GreyMethod, RefineConfig,
     TrackConfig, TrajectoryConfig, TrajectorySpan,
 };
+use crate::align::{GreyImager, HotPixelCorrector};
 use crate::capture::Capture;
 use crate::error::{Error, Result};
+use crate::merge::warp::relative_flow;
 use crate::merge::{
-    block_robustness, merge_guide_streamed, GreyNoise, MergeAccumulator, MergeConfig, MergeGuide,
-    MergedBurst, ReferenceStats, RobustnessConfig, SubBlock, SubBlockMotion, SubBlockRobustness,
+    block_robustness, merge_guide_streamed, warp_to_reference, GreyNoise, MergeAccumulator,
+    MergeConfig, MergeGuide, MergedBurst, ReferenceStats, RobustnessConfig, SubBlock,
+    SubBlockMotion, SubBlockRobustness,
 };
 use crate::progress::Progress;
 use crate::timing::{Laps, StageTiming};
@@ -76,6 +79,12 @@ impl BurstConfig {
                 "[burst.align.blocks] max_steady_smear_px must be a non-negative number, got {max_smear}"
             )));
         }
+        let sharpen = self.merge.sharpen_blocks_px;
+        if sharpen.is_nan() || sharpen < 0.0 {
+            return Err(Error::invalid(format!(
+                "[burst.merge] sharpen_blocks_px must be a non-negative number or inf, got {sharpen}"
+            )));
+        }
         Ok(())
     }
 }
@@ -91,6 +100,9 @@ pub struct BurstReconstruction {
     pub merged: MergedBurst,
     /// Frame ranges of the sub-blocks that were merged.
     pub sub_blocks: Vec<Range<usize>>,
+    /// How many grey block images were remade sharp for the merge guide (the alignment's
+    /// `grey` holds them; see `[burst.merge] sharpen_blocks_px`).
+    pub sharpened_blocks: usize,
     /// Wall-clock time of each stage.
     pub timings: Vec<StageTiming>,
     /// The noise of a grey block value and the robustness settings the merge used
@@ -581,7 +593,7 @@ fn shorter_block_size(
 /// result takes.
 pub(crate) fn merge_at_motion(
     capture: &Capture,
-    alignment: Alignment,
+    mut alignment: Alignment,
     motion: FrameMotion,
     oracle: Option<MotionOracle<'_>>,
     config: &BurstConfig,
@@ -593,13 +605,20 @@ pub(crate) fn merge_at_motion(
             "merge: the motion's blocks are not the alignment's",
         ));
     }
+    let block_centres = motion.plan.center_frames();
+    let sharpened_blocks = sharpen_grey_blocks(
+        capture,
+        &mut alignment,
+        &motion,
+        oracle.map(|oracle| (oracle, &block_centres[..])),
+        config,
+    )?;
     let grey_blocks = &alignment.grey;
     let grey_noise = GreyNoise {
         trials: alignment.plan.block_size as f32,
         model: capture.meta.pixel_model(),
     };
     let reference_block = motion.plan.reference_block;
-    let block_centres = motion.plan.center_frames();
     let block_flow = |b: usize| match oracle {
         Some(oracle) => oracle(block_centres[b]),
         None => motion.block_flow(b),
@@ -633,12 +652,83 @@ pub(crate) fn merge_at_motion(
     Ok(BurstReconstruction {
         alignment,
         sub_blocks: motion.sub_blocks.clone(),
+        sharpened_blocks,
         motion,
         merged,
         timings: std::mem::take(&mut laps.timings),
         grey_noise,
         robustness: config.merge.robustness.clone(),
     })
+}
+
+/// Remakes the grey images of the blocks whose frames smear them (this project's step; the
+/// paper's blocks of §4.1 are short enough that the camera barely moves within one): a block
+/// whose sub-block cameras lie more than [`MergeConfig::sharpen_blocks_px`] from the block's
+/// camera ([`FrameMotion::block_spread`]) becomes the frame-weighted mean of the grey images
+/// (hot pixels corrected as in the alignment) of its runs of sub-blocks within half that
+/// distance of each other ([`FrameMotion::block_runs`]), each resampled onto the block's grid
+/// at its own motion ([`FrameMotion::flow_from_block`]; with an `oracle`, its flows at the
+/// run's and the block's centre frame, `block_centres`). The merge guide
+/// then sees the scene as sharp as the motion is known: a smeared block softened the Wiener
+/// reference, hence the kernels, and the robustness compared every sub-block with a blurred
+/// scene (fast hand shake, 2,000 frames: +4.5 dB before denoising; docs/tuning.md). Block
+/// motion and the other blocks stay as they are. Returns how many blocks were remade.
+fn sharpen_grey_blocks(
+    capture: &Capture,
+    alignment: &mut Alignment,
+    motion: &FrameMotion,
+    oracle: Option<(MotionOracle<'_>, &[f64])>,
+    config: &BurstConfig,
+) -> Result<usize> {
+    let limit = config.merge.sharpen_blocks_px;
+    let blocks: Vec<usize> = (0..motion.plan.len())
+        .filter(|&b| {
+            motion.block_of.iter().filter(|&&of| of == b).count() > 1
+                && motion.block_spread(b) > limit
+        })
+        .collect();
+    if blocks.is_empty() {
+        return Ok(0);
+    }
+    let imager = GreyImager::new(&capture.cfa, alignment.grey_method);
+    let corrector = capture
+        .hot_pixels
+        .as_ref()
+        .map(|mask| {
+            let hot = &config.align.hot_pixels;
+            HotPixelCorrector::new(&capture.cfa, mask, hot.k, hot.seed)
+        })
+        .transpose()?;
+    // Runs of sub-blocks within half the limit of each other share one image.
+    let tolerance_px = limit / 2.0;
+    let sharp: Vec<Array2<f32>> = blocks
+        .par_iter()
+        .with_max_len(1)
+        .map(|&b| {
+            let mut sum = Array2::<f32>::zeros(alignment.grey[b].dim());
+            let mut frames = 0usize;
+            for (range, camera, centre) in motion.block_runs(b, tolerance_px) {
+                let counts = match &corrector {
+                    Some(c) => c.corrected_block_sum(&capture.frames, range.clone()),
+                    None => capture.frames.shared_sum(range.clone()),
+                };
+                let image = imager.image(&counts, range.len())?;
+                let flow = match oracle {
+                    Some((oracle, block_centres)) => {
+                        relative_flow(&oracle(block_centres[b]), &oracle(centre))?
+                    }
+                    None => motion.flow_from_block(b, &camera, centre)?,
+                };
+                sum.scaled_add(range.len() as f32, &warp_to_reference(&image, &flow)?);
+                frames += range.len();
+            }
+            Ok(sum / frames.max(1) as f32)
+        })
+        .collect::<Result<_>>()?;
+    for (&b, image) in blocks.iter().zip(sharp) {
+        alignment.grey[b] = image;
+    }
+    Ok(blocks.len())
 }
 
 /// Cuts every sub-block of `motion` so that the `oracle`'s motion travels at most

@@ -104,6 +104,9 @@ struct Report<'a> {
     sub_blocks: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     alignment_blocks: Option<usize>,
+    /// Grey block images remade sharp for the merge guide (`[burst.merge] sharpen_blocks_px`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sharpened_blocks: Option<usize>,
     #[serde(skip_serializing_if = "Option::is_none")]
     denoise: Option<&'a DenoiseReport>,
     config: &'a ReconstructConfig,
@@ -175,6 +178,7 @@ pub fn write_reconstruction(
         w_weights: capture.meta.w_weights,
         sub_blocks: rec.burst.as_ref().map(|b| b.sub_blocks.len()),
         alignment_blocks: rec.burst.as_ref().map(|b| b.alignment.plan.len()),
+        sharpened_blocks: rec.burst.as_ref().map(|b| b.sharpened_blocks),
         denoise: rec.denoise.as_ref(),
         config,
         preview,

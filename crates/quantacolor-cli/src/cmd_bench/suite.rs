@@ -90,7 +90,7 @@ impl Case {
 /// The quality suite. Tuning set: kodim02, kodim07, kodim15, ScanLines_StillLife, seeds 200+;
 /// validation set: kodim04, kodim12, kodim22, ScanLines_Cannon, MultiResolution_Bonita, seeds
 /// 300+. Each set has one capture of every kind (handheld, pan or static, moving object, fast
-/// handheld, long HDR handheld, dark, Bayer, 2x detail, bright HDR handheld).
+/// handheld, long HDR handheld, dark, Bayer, 2x detail, bright HDR handheld, shaky handheld).
 pub(super) fn suite() -> Vec<Case> {
     let mut cases = tuning_cases();
     cases.extend(validation_cases());
@@ -129,6 +129,16 @@ const SMALL: (usize, usize) = (127, 248);
 
 fn handheld() -> MotionConfig {
     "handheld".parse::<MotionConfig>().expect("known motion")
+}
+
+/// Hand shake of a few pixels per block (12 px, 2°, 3 cycles over the capture): each block's
+/// frames smear its grey image, the case of `[burst.merge] sharpen_blocks_px` (issue 45).
+fn shaky_handheld() -> MotionConfig {
+    MotionConfig::Handheld {
+        amplitude_px: 12.0,
+        rotation_deg: 2.0,
+        cycles: 3.0,
+    }
 }
 
 fn fast_handheld() -> MotionConfig {
@@ -210,6 +220,14 @@ fn tuning_cases() -> Vec<Case> {
             2000,
             BRIGHT,
         ),
+        case(
+            T,
+            "kodim07.png",
+            "shaky handheld",
+            shaky_handheld(),
+            2000,
+            MEAN,
+        ),
     ]
 }
 
@@ -274,6 +292,14 @@ fn validation_cases() -> Vec<Case> {
             handheld(),
             2000,
             BRIGHT,
+        ),
+        case(
+            V,
+            "kodim04.png",
+            "shaky handheld",
+            shaky_handheld(),
+            2000,
+            MEAN,
         ),
     ]
 }

@@ -71,13 +71,31 @@ impl GreyNoise {
 }
 
 /// Configuration of the whole merge.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct MergeConfig {
+    /// A grey block image whose sub-block cameras lie more than this far from the block's
+    /// camera (px at the image corners) is smeared by its own frames' motion; the burst remakes
+    /// it from its sub-blocks, each at its own motion, before the merge guide (this project's
+    /// step: `crate::burst`'s `sharpen_grey_blocks`). 0 remakes every block of two or more
+    /// sub-blocks; `inf` none. Tuning: docs/tuning.md ("Sharp grey blocks for the merge guide").
+    pub sharpen_blocks_px: f64, // 1 px
     pub wiener: WienerConfig,
     pub kernels: KernelConfig,
     pub robustness: RobustnessConfig,
     pub accumulate: AccumulateConfig,
+}
+
+impl Default for MergeConfig {
+    fn default() -> Self {
+        MergeConfig {
+            sharpen_blocks_px: 1.0,
+            wiener: WienerConfig::default(),
+            kernels: KernelConfig::default(),
+            robustness: RobustnessConfig::default(),
+            accumulate: AccumulateConfig::default(),
+        }
+    }
 }
 
 /// Everything [`merge_burst`] needs besides its config.

@@ -9,7 +9,7 @@ use crate::align::motion::{flow_at, frame_flow};
 use crate::align::patch::TileGrid;
 use crate::align::{affine_fit_field, solve3, Alignment, Flow};
 use crate::error::{Error, Result};
-use crate::merge::warp::warp_rows_to_reference;
+use crate::merge::warp::{relative_flow, warp_rows_to_reference};
 use crate::merge::SubBlockMotion;
 use ndarray::{Array2, Array3, Axis};
 use rayon::prelude::*;
@@ -36,6 +36,21 @@ pub struct FrameMotion {
     pub local: Flow,
     /// Whether any tile has a local residual.
     pub(super) has_local: bool,
+}
+
+/// The frame-weighted mean of sub-block cameras given with their frame counts (a block
+/// image is the time average of its frames).
+fn mean_camera<'a>(cameras: impl Iterator<Item = (&'a AffineMotion, usize)>) -> AffineMotion {
+    let mut sum = [0.0f64; 6];
+    let mut n = 0.0;
+    for (camera, frames) in cameras {
+        let f = frames as f64;
+        sum.iter_mut()
+            .zip(camera.params())
+            .for_each(|(s, v)| *s += f * v);
+        n += f;
+    }
+    AffineMotion::from_params(sum.map(|s| s / n.max(1.0)))
 }
 
 /// Least-squares affine displacement through the tile flows `field` (tiles_y, tiles_x, 2).
@@ -207,7 +222,7 @@ impl FrameMotion {
     }
 
     /// Dense (H, W, 2) flow of camera motion `camera` plus the local residual at frame `t`.
-    fn dense(&self, camera: &AffineMotion, t: f64) -> Array3<f32> {
+    pub(super) fn dense(&self, camera: &AffineMotion, t: f64) -> Array3<f32> {
         self.dense_with(camera, self.local_at(t).as_ref())
     }
 
@@ -436,20 +451,78 @@ impl FrameMotion {
         self.dense(&self.block_camera(b), self.plan.center_frames()[b])
     }
 
+    /// Block `b`'s frames in runs of consecutive sub-blocks whose cameras lie within
+    /// `tolerance_px` of the run's first (px at the image corners): each run's frames, its
+    /// frame-weighted mean camera and its centre frame. One image per run then stands for its
+    /// sub-blocks, smeared by at most about `tolerance_px` more than a sub-block.
+    pub fn block_runs(
+        &self,
+        b: usize,
+        tolerance_px: f64,
+    ) -> Vec<(Range<usize>, AffineMotion, f64)> {
+        let half = self.half_size();
+        let members: Vec<usize> = (0..self.sub_blocks.len())
+            .filter(|&k| self.block_of[k] == b)
+            .collect();
+        let mut runs = Vec::new();
+        let mut i = 0;
+        while i < members.len() {
+            let first = self.camera[members[i]];
+            let mut j = i + 1;
+            while j < members.len()
+                && self.sub_blocks[members[j]].start == self.sub_blocks[members[j - 1]].end
+                && self.camera[members[j]].distance(&first, half) <= tolerance_px
+            {
+                j += 1;
+            }
+            let run = &members[i..j];
+            let frames = self.sub_blocks[run[0]].start..self.sub_blocks[run[run.len() - 1]].end;
+            runs.push((
+                frames.clone(),
+                mean_camera(
+                    run.iter()
+                        .map(|&k| (&self.camera[k], self.sub_blocks[k].len())),
+                ),
+                (frames.start + frames.end - 1) as f64 / 2.0,
+            ));
+            i = j;
+        }
+        runs
+    }
+
+    /// Dense (H, W, 2) flow from block `b`'s grid (its grey image, which [`Self::block_flow`]
+    /// takes to the reference) to frames at camera `camera` and time `t`: a pixel q of the
+    /// block image shows the scene point at q + flow(q) there. The camera composition K ∘ B⁻¹
+    /// without a local residual; else [`relative_flow`] of the two dense flows (the residual
+    /// at `t`).
+    pub fn flow_from_block(&self, b: usize, camera: &AffineMotion, t: f64) -> Result<Array3<f32>> {
+        if !self.has_local {
+            if let Some(undo) = self.block_camera(b).inverse() {
+                return Ok(self.dense_with(&camera.after(&undo), None));
+            }
+        }
+        relative_flow(&self.block_flow(b), &self.dense(camera, t))
+    }
+
+    /// How far the cameras of block `b`'s sub-blocks lie from the block's camera (the largest,
+    /// px at the image corners): how much its frames smear its grey image.
+    pub fn block_spread(&self, b: usize) -> f64 {
+        let block = self.block_camera(b);
+        let half = self.half_size();
+        (0..self.sub_blocks.len())
+            .filter(|&k| self.block_of[k] == b)
+            .map(|k| self.camera[k].distance(&block, half))
+            .fold(0.0, f64::max)
+    }
+
     /// The camera part of [`Self::block_flow`]: the frame-weighted mean camera motion of block
     /// `b`'s sub-blocks.
     fn block_camera(&self, b: usize) -> AffineMotion {
-        let mut sum = [0.0f64; 6];
-        let mut n = 0.0;
-        for (k, range) in self.sub_blocks.iter().enumerate() {
-            if self.block_of[k] == b {
-                let p = self.camera[k].params();
-                let f = range.len() as f64;
-                sum.iter_mut().zip(p).for_each(|(s, v)| *s += f * v);
-                n += f;
-            }
-        }
-        AffineMotion::from_params(sum.map(|s| s / n.max(1.0)))
+        mean_camera(
+            (0..self.sub_blocks.len())
+                .filter(|&k| self.block_of[k] == b)
+                .map(|k| (&self.camera[k], self.sub_blocks[k].len())),
+        )
     }
 
     /// `image` (block `b`'s) warped onto the reference grid by [`Self::block_flow`]: the same

@@ -489,6 +489,100 @@ fn block_warp_equals_the_warp_by_the_dense_block_flow() {
     assert!(motion.warp_block(0, &Array2::zeros((h, w + 1))).is_err());
 }
 
+/// A block's runs cover its frames in order, each of consecutive sub-blocks whose cameras lie
+/// within the tolerance of the run's first; the flow from a block to a run's camera is the
+/// relative flow of the two dense flows, by the camera composition without a local residual
+/// and by the dense path with one.
+#[test]
+fn block_runs_and_flows_from_a_block() {
+    let (h, w) = (48, 80);
+    let grid = TileGrid::new(h, w, 16, 8);
+    let plan = BlockPlan::new(400, 100, 200).unwrap();
+    let sub_blocks: Vec<std::ops::Range<usize>> = (0..40).map(|i| 10 * i..10 * i + 10).collect();
+    let block_of: Vec<usize> = sub_blocks
+        .iter()
+        .map(|r| {
+            plan.blocks
+                .iter()
+                .position(|b| b.contains(&r.start))
+                .unwrap()
+        })
+        .collect();
+    // The camera pans 0.1 px per sub-block along x and turns slowly.
+    let camera: Vec<AffineMotion> = (0..40)
+        .map(|k| AffineMotion {
+            b: [0.02 * k as f64, 0.1 * k as f64],
+            m: [[0.0, 0.0002 * k as f64], [-0.0002 * k as f64, 0.0]],
+        })
+        .collect();
+    let mut local = Flow::zeros((plan.len(), grid.tiles_y, grid.tiles_x, 2));
+    local.slice_mut(s![1, 1..3, 2..5, 0]).fill(1.5);
+    let mut motion = FrameMotion {
+        height: h,
+        width: w,
+        plan,
+        grid,
+        sub_blocks,
+        block_of,
+        camera,
+        local,
+        has_local: true,
+    };
+    let half = [h as f64 / 2.0, w as f64 / 2.0];
+    for b in 0..motion.plan.len() {
+        let runs = motion.block_runs(b, 0.35);
+        assert_eq!(runs.first().unwrap().0.start, motion.plan.blocks[b].start);
+        assert_eq!(runs.last().unwrap().0.end, motion.plan.blocks[b].end);
+        assert!(runs.windows(2).all(|r| r[0].0.end == r[1].0.start));
+        assert!(runs.len() > 1, "block {b}: one run");
+        for (frames, _, _) in &runs {
+            let cameras: Vec<&AffineMotion> = (0..40)
+                .filter(|&k| frames.contains(&motion.sub_blocks[k].start))
+                .map(|k| &motion.camera[k])
+                .collect();
+            assert!(cameras.iter().all(|c| c.distance(cameras[0], half) <= 0.35));
+        }
+        assert_eq!(motion.block_runs(b, f64::INFINITY).len(), 1);
+        // The spread is the farthest sub-block camera from their mean (equal lengths here).
+        let members: Vec<usize> = (0..40).filter(|&k| motion.block_of[k] == b).collect();
+        let n = members.len() as f64;
+        let mean = AffineMotion::from_params(std::array::from_fn(|i| {
+            members
+                .iter()
+                .map(|&k| motion.camera[k].params()[i])
+                .sum::<f64>()
+                / n
+        }));
+        let farthest = members
+            .iter()
+            .map(|&k| motion.camera[k].distance(&mean, half))
+            .fold(0.0, f64::max);
+        assert!(farthest > 0.1);
+        assert!((motion.block_spread(b) - farthest).abs() < 1e-9);
+    }
+    for has_local in [true, false] {
+        if !has_local {
+            motion.drop_local_motion();
+        }
+        for b in [0, 1] {
+            for (_, camera, centre) in motion.block_runs(b, 0.35) {
+                let got = motion.flow_from_block(b, &camera, centre).unwrap();
+                let dense = crate::merge::warp::relative_flow(
+                    &motion.block_flow(b),
+                    &motion.dense(&camera, centre),
+                )
+                .unwrap();
+                let worst = got
+                    .iter()
+                    .zip(&dense)
+                    .map(|(a, d)| (a - d).abs())
+                    .fold(0.0f32, f32::max);
+                assert!(worst < 1e-3, "block {b}, local {has_local}: {worst} px");
+            }
+        }
+    }
+}
+
 /// The template's gradients are the differences divided by their span (2 px inside, 1 px
 /// at the edges) bit for bit.
 #[test]
