@@ -57,6 +57,9 @@ const LANES: usize = 8;
 /// Planes per channel: Σ r·counts, Σ r·F, Σ r²·F, and Σ r·F·λ_bin (each bin's own flux, filled
 /// by [`MergeAccumulator::fill_flux_planes`] before the regression; `flux_domain`).
 const PLANES: usize = 4;
+/// The first [`PLANES`] that hold counts and trials (all but the flux plane): what a regression
+/// without the flux-domain floor reads.
+const RATE_PLANES: usize = 3;
 /// Sums per bin: 4 channels × [`PLANES`].
 const SUMS: usize = 4 * PLANES;
 

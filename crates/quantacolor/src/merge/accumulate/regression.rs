@@ -42,7 +42,7 @@ impl MergeAccumulator<'_> {
             );
             return sums;
         }
-        let planes = if with_flux { PLANES } else { 3 };
+        let planes = if with_flux { PLANES } else { RATE_PLANES };
         let coarse = self.coarse_bins(sparse, planes);
         let dense: [bool; 4] = std::array::from_fn(|ch| channels[ch] && !sparse[ch]);
         if !(0..4).any(|ch| dense[ch] && self.channel_scale[ch] > 0.0) {
