@@ -8,7 +8,8 @@
 //!    stage, see [`crate::align::refine`]; the paper interpolates block motion linearly in
 //!    time);
 //! 4. [`merge_guide`]: the Wiener-merged reference (supplement §1.2), its kernels and the
-//!    blocks' robustness, from the refined block motion;
+//!    blocks' robustness, from the refined block motion (blocks that their own frames smear
+//!    are first remade from their sub-blocks, `sharpen_grey_blocks`, this project's step);
 //! 5. the joint demosaic-merge of every sub-block at its own motion, streamed through the
 //!    phase-bin [`MergeAccumulator`] (supplement Eq. 1–3), MLE flux (Eq. 6) and the RGBW
 //!    combination (Eq. 8).
@@ -662,17 +663,17 @@ pub(crate) fn merge_at_motion(
 }
 
 /// Remakes the grey images of the blocks whose frames smear them (this project's step; the
-/// paper's blocks of §4.1 are short enough that the camera barely moves within one): a block
-/// whose sub-block cameras lie more than [`MergeConfig::sharpen_blocks_px`] from the block's
-/// camera ([`FrameMotion::block_spread`]) becomes the frame-weighted mean of the grey images
-/// (hot pixels corrected as in the alignment) of its runs of sub-blocks within half that
-/// distance of each other ([`FrameMotion::block_runs`]), each resampled onto the block's grid
-/// at its own motion ([`FrameMotion::flow_from_block`]; with an `oracle`, its flows at the
-/// run's and the block's centre frame, `block_centres`). The merge guide
-/// then sees the scene as sharp as the motion is known: a smeared block softened the Wiener
-/// reference, hence the kernels, and the robustness compared every sub-block with a blurred
-/// scene (fast hand shake, 2,000 frames: +4.5 dB before denoising; docs/tuning.md). Block
-/// motion and the other blocks stay as they are. Returns how many blocks were remade.
+/// paper builds its reference from the block images as summed, §4.2): a block whose sub-block
+/// cameras lie more than [`MergeConfig::sharpen_blocks_px`] from the block's camera
+/// ([`FrameMotion::block_spread`]) becomes the frame-weighted mean of the grey images (hot
+/// pixels corrected as in the alignment) of its runs of sub-blocks within half that distance
+/// of each other ([`FrameMotion::block_runs`]), each resampled onto the block's grid at its
+/// own motion ([`FrameMotion::flow_from_block`]; with an `oracle`, its flows at the run's and
+/// the block's centre frame, `block_centres`). The merge guide then sees the scene as sharp as
+/// the motion is known: a smeared block softened the Wiener reference, hence the kernels, and
+/// the robustness compared every sub-block with a blurred scene (hand shake of 12 px over
+/// 2,000 frames: +4.3 dB before denoising; docs/tuning.md). Block motion and the other blocks
+/// stay as they are. Returns how many blocks were remade.
 fn sharpen_grey_blocks(
     capture: &Capture,
     alignment: &mut Alignment,
