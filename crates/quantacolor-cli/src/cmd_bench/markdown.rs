@@ -59,8 +59,9 @@ pub(super) fn report(
          held out to check that the tuning generalises. Each set holds a handheld capture, a pan \
          or static one, a moving object, fast handheld motion (40 px, 2°, 3 cycles over 512 \
          frames), a long HDR handheld capture, a dark capture, a Bayer capture, a 2x-detail \
-         capture, a bright HDR handheld capture and shaky hand shake (12 px, 2°, 3 cycles over \
-         2,000 frames: a few pixels within each alignment block).\n",
+         capture, a bright HDR handheld capture, and shaky hand shake (12 px, 2°, 3 cycles over \
+         2,000 frames: a few pixels within each alignment block) of a photograph, a bright HDR \
+         scene and a Bayer capture.\n",
         source_commit(),
         rows.len(),
         rayon::current_num_threads()

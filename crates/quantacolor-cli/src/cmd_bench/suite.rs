@@ -90,7 +90,8 @@ impl Case {
 /// The quality suite. Tuning set: kodim02, kodim07, kodim15, ScanLines_StillLife, seeds 200+;
 /// validation set: kodim04, kodim12, kodim22, ScanLines_Cannon, MultiResolution_Bonita, seeds
 /// 300+. Each set has one capture of every kind (handheld, pan or static, moving object, fast
-/// handheld, long HDR handheld, dark, Bayer, 2x detail, bright HDR handheld, shaky handheld).
+/// handheld, long HDR handheld, dark, Bayer, 2x detail, bright HDR handheld, and shaky
+/// handheld: a photograph, a bright HDR scene and a Bayer capture).
 pub(super) fn suite() -> Vec<Case> {
     let mut cases = tuning_cases();
     cases.extend(validation_cases());
@@ -228,6 +229,25 @@ fn tuning_cases() -> Vec<Case> {
             2000,
             MEAN,
         ),
+        case(
+            T,
+            "ScanLines_StillLife.exr",
+            "shaky handheld",
+            shaky_handheld(),
+            2000,
+            BRIGHT,
+        ),
+        Case {
+            cfa: CfaKind::Bayer,
+            ..case(
+                T,
+                "kodim07.png",
+                "shaky handheld",
+                shaky_handheld(),
+                2000,
+                MEAN,
+            )
+        },
     ]
 }
 
@@ -301,6 +321,25 @@ fn validation_cases() -> Vec<Case> {
             2000,
             MEAN,
         ),
+        case(
+            V,
+            "MultiResolution_Bonita.exr",
+            "shaky handheld",
+            shaky_handheld(),
+            2000,
+            BRIGHT,
+        ),
+        Case {
+            cfa: CfaKind::Bayer,
+            ..case(
+                V,
+                "kodim12.png",
+                "shaky handheld",
+                shaky_handheld(),
+                2000,
+                MEAN,
+            )
+        },
     ]
 }
 
