@@ -31,8 +31,8 @@
 use crate::align::{
     align, fast_motion_spans, fit_photon_trajectory_over, plan_sub_blocks, refine_camera_motion,
     shortest_sub_block, split_for_merge_in, steady_block_smear, track_fast_camera_motion,
-    track_span, AlignConfig, Alignment, BlockConfig, FrameMotion, GreyMethod, RefineConfig,
-    TrackConfig, TrajectoryConfig, TrajectorySpan,
+    track_span, tracking_channel, AlignConfig, Alignment, BlockConfig, FrameMotion, GreyMethod,
+    RefineConfig, TrackConfig, TrajectoryConfig, TrajectorySpan,
 };
 use crate::align::{GreyImager, HotPixelCorrector};
 use crate::capture::Capture;
@@ -287,7 +287,7 @@ pub(crate) fn estimate_motion(
     let followable_px_per_frame = config.refine.max_sub_block_motion_px
         / shortest_sub_block(detections_per_frame, &config.refine) as f64;
     let estimating = oracle.is_none() && config.refine.enabled;
-    let spans = if estimating && matches!(alignment.grey_method, GreyMethod::InterpolateW) {
+    let spans = if estimating && tracking_channel(&capture.cfa, alignment.grey_method).is_some() {
         fast_motion_spans(&motion, &config.track, followable_px_per_frame)
     } else {
         Vec::new()

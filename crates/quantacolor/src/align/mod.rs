@@ -37,7 +37,7 @@ pub use refine::{
 };
 pub use track::{
     fast_motion_spans, split_for_merge_in, steady_block_smear, track_fast_camera_motion,
-    track_span, TrackConfig,
+    track_span, tracking_channel, TrackConfig,
 };
 pub use trajectory::{
     fit_photon_trajectory, fit_photon_trajectory_over, TrajectoryConfig, TrajectorySpan,

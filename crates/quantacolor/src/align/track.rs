@@ -11,13 +11,14 @@
 //! (Refitting every sub-block against the finished mosaic measured no better; docs/tuning.md.)
 //!
 //! Tracking runs only when the block motion says the camera moves fast (see
-//! [`TrackConfig::trigger_px`]) and only on CFAs whose grey channel is W; afterwards the merge
+//! [`TrackConfig::trigger_px`]) and only on CFAs with a tracking channel ([`tracking_channel`]:
+//! W, or G of a Bayer CFA); afterwards the merge
 //! uses sub-blocks short enough for the tracked motion ([`split_for_merge_in`]).
 #![forbid(unsafe_code)]
 
 use super::grey::GreyMethod;
 use super::refine::{
-    bin_layout, fit_sub_block, template_level, validate_levels, AffineMotion, BinLayout,
+    channel_bin_layout, fit_sub_block, template_level, validate_levels, AffineMotion, BinLayout,
     FitSettings, FrameMotion, RefineLevel, TemplateLevel,
 };
 use crate::capture::Capture;
@@ -249,24 +250,39 @@ fn off_constant_velocity(
         .collect()
 }
 
-/// The growing template: counts of the W sites splatted to their reference positions.
+/// The channel whose sites fast-motion tracking and the photon trajectory fit one template to
+/// (this project's choice): W on a W-rich CFA (its grey image is W), G on a periodic CFA that
+/// holds at least a quarter of G (Bayer: the densest channel, and every G site sees the same
+/// filter, so one template fits them all); `None` (the refinement alone) otherwise.
+pub fn tracking_channel(cfa: &crate::cfa::Cfa, grey_method: GreyMethod) -> Option<Channel> {
+    match grey_method {
+        GreyMethod::InterpolateW => Some(Channel::W),
+        GreyMethod::TileAverage { .. } if cfa.fractions()[Channel::G.index()] >= 0.25 => {
+            Some(Channel::G)
+        }
+        _ => None,
+    }
+}
+
+/// The growing template: counts of the tracking channel's sites splatted to their reference
+/// positions.
 struct Mosaic {
     sum: Array2<f32>,
     frames: Array2<f32>,
     /// Frames of the sub-blocks added.
     frame_count: usize,
-    /// W sites that are not hot, row-major.
+    /// Sites of the tracking channel that are not hot, row-major.
     sites: Vec<(usize, usize)>,
 }
 
 impl Mosaic {
-    /// An empty mosaic of `(h, w)` over the capture's W sites that are not hot.
-    fn of_w_sites(capture: &Capture, (h, w): (usize, usize)) -> Self {
+    /// An empty mosaic of `(h, w)` over the capture's sites of `channel` that are not hot.
+    fn of_sites(capture: &Capture, channel: Channel, (h, w): (usize, usize)) -> Self {
         let hot = capture.hot_pixels.as_ref();
         let sites = (0..h)
             .flat_map(|y| (0..w).map(move |x| (y, x)))
             .filter(|&(y, x)| {
-                capture.cfa.channel(y, x) == Channel::W && !hot.is_some_and(|m| m[[y, x]])
+                capture.cfa.channel(y, x) == channel && !hot.is_some_and(|m| m[[y, x]])
             })
             .collect();
         Mosaic {
@@ -369,9 +385,10 @@ pub fn track_fast_camera_motion(
     followable_px_per_frame: f64,
     progress: &dyn Progress,
 ) -> Result<bool> {
-    if !matches!(grey_method, GreyMethod::InterpolateW)
-        || !moves_fast(motion, config, followable_px_per_frame)
-    {
+    let Some(channel) = tracking_channel(&capture.cfa, grey_method) else {
+        return Ok(false);
+    };
+    if !moves_fast(motion, config, followable_px_per_frame) {
         return Ok(false);
     }
     let n = motion.sub_blocks.len();
@@ -381,7 +398,7 @@ pub fn track_fast_camera_motion(
         .position(|r| r.contains(&motion.plan.reference_frame))
         .unwrap_or(0);
     let camera = vec![AffineMotion::default(); n];
-    let tracker = Tracker::new(capture, grey_method, motion, config, 0..n);
+    let tracker = Tracker::new(capture, channel, motion, config, 0..n);
     let Some(camera) = tracker.track_from(first, camera, progress) else {
         return Ok(false);
     };
@@ -406,7 +423,10 @@ pub fn track_span(
     config: &TrackConfig,
     progress: &dyn Progress,
 ) -> Result<Option<usize>> {
-    if !matches!(grey_method, GreyMethod::InterpolateW) || blocks.is_empty() {
+    let Some(channel) = tracking_channel(&capture.cfa, grey_method) else {
+        return Ok(None);
+    };
+    if blocks.is_empty() {
         return Ok(None);
     }
     let first = motion.block_of.partition_point(|&b| b < blocks.start);
@@ -438,7 +458,7 @@ pub fn track_span(
         let r = &motion.sub_blocks[seed];
         (r.start + r.end - 1) / 2
     };
-    let tracker = Tracker::new(capture, grey_method, motion, config, first..last);
+    let tracker = Tracker::new(capture, channel, motion, config, first..last);
     let Some(camera) = tracker.track_from(seed, camera, progress) else {
         return Ok(None);
     };
@@ -461,6 +481,8 @@ pub fn track_span(
 /// What [`track_fast_camera_motion`] fits each sub-block with.
 struct Tracker<'a> {
     capture: &'a Capture,
+    /// The channel whose sites are tracked ([`tracking_channel`]).
+    channel: Channel,
     motion: &'a FrameMotion,
     config: &'a TrackConfig,
     layouts: Vec<BinLayout>,
@@ -473,7 +495,7 @@ struct Tracker<'a> {
 impl<'a> Tracker<'a> {
     fn new(
         capture: &'a Capture,
-        grey_method: GreyMethod,
+        channel: Channel,
         motion: &'a FrameMotion,
         config: &'a TrackConfig,
         range: std::ops::Range<usize>,
@@ -482,10 +504,11 @@ impl<'a> Tracker<'a> {
         let layouts = config
             .levels
             .par_iter()
-            .map(|l| bin_layout(&capture.cfa, grey_method, hot, l.bin))
+            .map(|l| channel_bin_layout(&capture.cfa, channel, hot, l.bin))
             .collect();
         Tracker {
             capture,
+            channel,
             motion,
             config,
             layouts,
@@ -506,7 +529,8 @@ impl<'a> Tracker<'a> {
         progress: &dyn Progress,
     ) -> Option<Vec<AffineMotion>> {
         let motion = self.motion;
-        let mut mosaic = Mosaic::of_w_sites(self.capture, (motion.height, motion.width));
+        let mut mosaic =
+            Mosaic::of_sites(self.capture, self.channel, (motion.height, motion.width));
         progress.start("fast motion tracking", self.range.len() as u64);
         self.add_sub_block(&mut mosaic, seed, &self.counts(seed), &camera[seed]);
         progress.advance(1);

@@ -160,20 +160,44 @@ pub(in crate::align) fn bin_layout(
     hot: Option<&Array2<bool>>,
     bin: usize,
 ) -> BinLayout {
-    let (h, w) = (cfa.height(), cfa.width());
-    let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
     // Tile averages sit half a period from the pixel they are stored at.
     let offset = match method {
         GreyMethod::TileAverage { py, px } => [(py as f64 - 1.0) / 2.0, (px as f64 - 1.0) / 2.0],
         _ => [0.0, 0.0],
     };
+    bin_layout_of(cfa, offset, hot, bin, |y, x| match method {
+        GreyMethod::InterpolateW => cfa.channel(y, x) == Channel::W,
+        _ => true,
+    })
+}
+
+/// Bins of `bin` px over the sites of one `channel` of `cfa`, hot pixels left out: what a fit to
+/// a template of that channel's sites alone observes (the tracking channel, G of a Bayer CFA).
+pub(in crate::align) fn channel_bin_layout(
+    cfa: &Cfa,
+    channel: Channel,
+    hot: Option<&Array2<bool>>,
+    bin: usize,
+) -> BinLayout {
+    bin_layout_of(cfa, [0.0, 0.0], hot, bin, |y, x| {
+        cfa.channel(y, x) == channel
+    })
+}
+
+/// Bins of `bin` px over the sites `use_site` takes, hot pixels left out, each bin's centroid
+/// less `offset` (where its values are stored off the sites).
+fn bin_layout_of(
+    cfa: &Cfa,
+    offset: [f64; 2],
+    hot: Option<&Array2<bool>>,
+    bin: usize,
+    use_site: impl Fn(usize, usize) -> bool,
+) -> BinLayout {
+    let (h, w) = (cfa.height(), cfa.width());
+    let centre = [(h as f64 - 1.0) / 2.0, (w as f64 - 1.0) / 2.0];
     let (by, bx) = (h.div_ceil(bin), w.div_ceil(bin));
     let bin_of_site = |y: usize, x: usize| {
-        let use_site = match method {
-            GreyMethod::InterpolateW => cfa.channel(y, x) == Channel::W,
-            _ => true,
-        };
-        (use_site && !hot.is_some_and(|m| m[[y, x]])).then(|| (y / bin) * bx + x / bin)
+        (use_site(y, x) && !hot.is_some_and(|m| m[[y, x]])).then(|| (y / bin) * bx + x / bin)
     };
     // A counting sort: sites per bin and their coordinate sums in one pass, then each site at
     // its bin's next slot in a second (row-major order within a bin, as a scan visits them).

@@ -50,7 +50,7 @@ pub use frame_motion::FrameMotion;
 pub use pass::refine_camera_motion;
 pub use plan::{plan_sub_blocks, shortest_sub_block};
 
-pub(in crate::align) use bins::{bin_layout, BinLayout};
+pub(in crate::align) use bins::{channel_bin_layout, BinLayout};
 pub(in crate::align) use config::validate_levels;
 pub(in crate::align) use fit::{fit_sub_block, FitSettings};
 pub(in crate::align) use template::{sample_template, template_level, TemplateLevel};

@@ -12,7 +12,8 @@
 //! centre) is a piecewise-linear function of time through *knots* every few frames, and the
 //! knots are fitted jointly to the binary frames themselves by maximum likelihood:
 //!
-//! - each grey site (W, not hot) of frame `f` is a Bernoulli trial whose success probability is
+//! - each site of the tracking channel (W, or G of a Bayer CFA: `super::track::tracking_channel`;
+//!   not hot) of frame `f` is a Bernoulli trial whose success probability is
 //!   the template `p` (the mean bit rate per frame at that scene point, built from all frames
 //!   at the current trajectory) at the site's reference position; the log-likelihood is
 //!   `Σ_detections log p + Σ_no-detection log(1 − p)`, the single-photon form of the paper's
@@ -47,8 +48,8 @@ pub use config::TrajectoryConfig;
 
 use super::grey::GreyMethod;
 use super::refine::{template_level, AffineMotion, FrameMotion};
+use super::track::tracking_channel;
 use crate::capture::{BinaryFrames, Capture};
-use crate::cfa::Channel;
 use crate::cpu::Isa;
 use crate::error::Result;
 use crate::progress::Progress;
@@ -62,7 +63,7 @@ use template::build_template;
 /// Fits the camera trajectory of every frame to the photons (see the module documentation),
 /// starting from `motion`'s camera, and replaces `motion`'s sub-blocks by runs of frames within
 /// one block over which the fitted camera moves at most `max_sub_block_motion_px`. Runs only
-/// on binary frames whose grey channel is W; returns whether it ran. The stage's entry: the
+/// on binary frames of a CFA with a tracking channel (W, or G of Bayer); returns whether it ran. The stage's entry: the
 /// instruction set of its kernels is taken here ([`Isa::current`]).
 pub fn fit_photon_trajectory(
     capture: &Capture,
@@ -124,11 +125,10 @@ pub fn fit_photon_trajectory_over(
     }
     let frame_span =
         sub_blocks[span.sub_blocks.start].start..sub_blocks[span.sub_blocks.end - 1].end;
-    if !config.enabled
-        || frames.is_multibit()
-        || !matches!(grey_method, GreyMethod::InterpolateW)
-        || frame_span.len() < 2
-    {
+    let Some(channel) = tracking_channel(&capture.cfa, grey_method) else {
+        return Ok(false);
+    };
+    if !config.enabled || frames.is_multibit() || frame_span.len() < 2 {
         return Ok(false);
     }
     let (h, w) = (motion.height, motion.width);
@@ -139,7 +139,7 @@ pub fn fit_photon_trajectory_over(
             .map(|y| {
                 (0..w)
                     .filter(|&x| {
-                        capture.cfa.channel(y, x) == Channel::W && !hot.is_some_and(|m| m[[y, x]])
+                        capture.cfa.channel(y, x) == channel && !hot.is_some_and(|m| m[[y, x]])
                     })
                     .map(|x| x as u16)
                     .collect()
