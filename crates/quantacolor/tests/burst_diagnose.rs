@@ -11,11 +11,10 @@
 
 mod burst_support;
 
-use burst_support::median_epe;
+use burst_support::{median_epe, psnr_srgb};
 use quantacolor::align::AffineMotion;
 use quantacolor::burst::{reconstruct_burst, reconstruct_burst_with_motion, BurstConfig};
 use quantacolor::cfa::colorspad_cfa;
-use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulationConfig};
 use std::time::Instant;
@@ -28,10 +27,6 @@ fn diagnose_frame_motion() {
     });
     let scenes =
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/scenes");
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
     for (i, case) in cases.split(';').enumerate() {
         let parts: Vec<&str> = case.rsplitn(4, ':').collect();
         let (flux, frames, motion, scene) = (parts[0], parts[1], parts[2], parts[3]);
@@ -71,11 +66,7 @@ fn diagnose_frame_motion() {
         let reference = capture.reference_frame();
         let (h, w) = (capture.cfa.height(), capture.cfa.width());
         let oracle = |t: f64| sim.motion.dense_flow(t, h, w);
-        let score = |l: &ndarray::Array3<f32>| {
-            evaluate(l.view(), sim.ground_truth.view(), &opts)
-                .unwrap()
-                .psnr_srgb
-        };
+        let score = |l: &ndarray::Array3<f32>| psnr_srgb(&sim, l);
         let epe = |b: &quantacolor::burst::BurstReconstruction| median_epe(&sim, b);
         let mut variants: Vec<(String, BurstConfig)> =
             vec![("refined".into(), BurstConfig::default())];

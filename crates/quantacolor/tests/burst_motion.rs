@@ -4,13 +4,12 @@
 
 mod burst_support;
 
-use burst_support::median_epe;
+use burst_support::{median_epe, psnr_srgb};
 use ndarray::Axis;
 use quantacolor::align::AffineMotion;
 use quantacolor::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use quantacolor::capture::{BinaryFrames, Capture};
 use quantacolor::cfa::{colorspad_cfa, generate, Pattern};
-use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{
     simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulatedCapture, SimulationConfig,
@@ -44,20 +43,12 @@ fn refined_motion_beats_interpolated_block_motion() {
     let sim = capture("handheld", 1024, 21);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
     let refined = reconstruct_burst(&capture, reference, &BurstConfig::default(), &Silent).unwrap();
     let mut off = BurstConfig::default();
     off.refine.enabled = false;
     let interpolated = reconstruct_burst(&capture, reference, &off, &Silent).unwrap();
     let (e_refined, e_interp) = (median_epe(&sim, &refined), median_epe(&sim, &interpolated));
-    let score = |b: &BurstReconstruction| {
-        evaluate(b.merged.linear.view(), sim.ground_truth.view(), &opts)
-            .unwrap()
-            .psnr_srgb
-    };
+    let score = |b: &BurstReconstruction| psnr_srgb(&sim, &b.merged.linear);
     let (p_refined, p_interp) = (score(&refined), score(&interpolated));
     println!(
         "chart, handheld, 1024 frames, {} sub-blocks: median EPE refined {e_refined:.3} px, \
@@ -166,15 +157,7 @@ fn fast_shake_is_tracked_and_merged_at_single_frames() {
     .unwrap();
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
-    let score = |b: &BurstReconstruction| {
-        evaluate(b.merged.linear.view(), sim.ground_truth.view(), &opts)
-            .unwrap()
-            .psnr_srgb
-    };
+    let score = |b: &BurstReconstruction| psnr_srgb(&sim, &b.merged.linear);
     let tracked = reconstruct_burst(&capture, reference, &BurstConfig::default(), &Silent).unwrap();
     let mut off = BurstConfig::default();
     off.track.trigger_px = f64::INFINITY;
@@ -267,10 +250,6 @@ fn fast_shake_is_tracked_and_merged_at_single_frames() {
 /// on the refinement's path (3 px shake) and on the photon trajectory's (6 px).
 #[test]
 fn smeared_blocks_are_remade_sharp_for_the_merge_guide() {
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
     let mut off = BurstConfig::default();
     off.merge.sharpen_blocks_px = f64::INFINITY;
     for (amplitude_px, trajectory, least_gain_db) in [(3.0, false, 0.2), (6.0, true, 1.0)] {
@@ -288,9 +267,7 @@ fn smeared_blocks_are_remade_sharp_for_the_merge_guide() {
         let score = |config: &BurstConfig| {
             let burst = reconstruct_burst(&capture, reference, config, &Silent).unwrap();
             let fitted = burst.timings.iter().any(|t| t.stage == "photon trajectory");
-            let psnr = evaluate(burst.merged.linear.view(), sim.ground_truth.view(), &opts)
-                .unwrap()
-                .psnr_srgb;
+            let psnr = psnr_srgb(&sim, &burst.merged.linear);
             (psnr, fitted, burst.sharpened_blocks)
         };
         let ((sharp, fitted, remade), (smeared, _, none)) =
@@ -349,15 +326,7 @@ fn a_shaking_bayer_capture_is_tracked_on_its_g_sites() {
         stages(&tracked)
     );
     let (e_tracked, e_refined) = (median_epe(&sim, &tracked), median_epe(&sim, &refined));
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
-    let score = |b: &BurstReconstruction| {
-        evaluate(b.merged.linear.view(), sim.ground_truth.view(), &opts)
-            .unwrap()
-            .psnr_srgb
-    };
+    let score = |b: &BurstReconstruction| psnr_srgb(&sim, &b.merged.linear);
     let (p_tracked, p_refined) = (score(&tracked), score(&refined));
     println!(
         "Bayer shake: tracked on G {p_tracked:.2} dB (EPE {e_tracked:.3} px), refinement alone \
@@ -479,15 +448,7 @@ fn a_jolt_is_tracked_around_itself_only() {
         .into_iter()
         .map(error_at)
         .collect();
-    let opts = EvalOptions {
-        border: 16,
-        normalize_percentile: Some(99.5),
-    };
-    let score = |b: &BurstReconstruction| {
-        evaluate(b.merged.linear.view(), first.ground_truth.view(), &opts)
-            .unwrap()
-            .psnr_srgb
-    };
+    let score = |b: &BurstReconstruction| psnr_srgb(&first, &b.merged.linear);
     let (tracked_db, untracked_db) = (score(&burst), score(&untracked));
     eprintln!(
         "jolt of {corner_jump:.1} px: worst-point error median {median:.3} px, near the jolt \

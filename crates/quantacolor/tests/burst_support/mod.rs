@@ -1,8 +1,23 @@
 //! Shared by the burst tests: scoring the motion a burst reconstruction used against the
-//! simulator's.
+//! simulator's, and its image against the ground truth.
 
+use ndarray::Array3;
 use quantacolor::burst::BurstReconstruction;
+use quantacolor::metrics::{evaluate, EvalOptions};
 use quantacolor::simulate::SimulatedCapture;
+
+/// sRGB PSNR (dB) of the linear image `linear` against `sim`'s ground truth by the quality
+/// suite's protocol: a 16-pixel border left out, both scaled so that the truth's 99.5th
+/// percentile is 1.
+pub fn psnr_srgb(sim: &SimulatedCapture, linear: &Array3<f32>) -> f64 {
+    let opts = EvalOptions {
+        border: 16,
+        normalize_percentile: Some(99.5),
+    };
+    evaluate(linear.view(), sim.ground_truth.view(), &opts)
+        .unwrap()
+        .psnr_srgb
+}
 
 /// Median end-point error (px) of the merge's motion at 16 frames spread over the burst.
 pub fn median_epe(sim: &SimulatedCapture, burst: &BurstReconstruction) -> f64 {
