@@ -9,7 +9,7 @@ use ndarray::Axis;
 use quantacolor::align::AffineMotion;
 use quantacolor::burst::{reconstruct_burst, BurstConfig, BurstReconstruction};
 use quantacolor::capture::{BinaryFrames, Capture};
-use quantacolor::cfa::{colorspad_cfa, generate, Pattern};
+use quantacolor::cfa::{colorspad_cfa, generate, Cfa, Pattern};
 use quantacolor::progress::Silent;
 use quantacolor::simulate::{
     simulate_with_cfa, FluxSpec, MotionConfig, Scene, SimulatedCapture, SimulationConfig,
@@ -21,6 +21,11 @@ fn capture(motion: &str, frames: usize, seed: u64) -> SimulatedCapture {
 
 /// A capture of the built-in chart at 0.1 photons/pixel/frame under `motion`.
 fn capture_moving(motion: MotionConfig, frames: usize, seed: u64) -> SimulatedCapture {
+    capture_behind(&colorspad_cfa(), motion, frames, seed)
+}
+
+/// [`capture_moving`] behind `cfa`.
+fn capture_behind(cfa: &Cfa, motion: MotionConfig, frames: usize, seed: u64) -> SimulatedCapture {
     let config = SimulationConfig {
         frames,
         flux: FluxSpec::Mean { flux: 0.1 },
@@ -32,7 +37,7 @@ fn capture_moving(motion: MotionConfig, frames: usize, seed: u64) -> SimulatedCa
     simulate_with_cfa(
         &config,
         &Scene::from_spec("builtin:chart").unwrap(),
-        &colorspad_cfa(),
+        cfa,
         &Silent,
     )
     .unwrap()
@@ -136,25 +141,15 @@ fn affine_motions_compose_and_invert() {
 
 #[test]
 fn fast_shake_is_tracked_and_merged_at_single_frames() {
-    let config = SimulationConfig {
-        frames: 512,
-        flux: FluxSpec::Mean { flux: 0.1 },
-        motion: MotionConfig::FastHandheld {
+    let sim = capture_moving(
+        MotionConfig::FastHandheld {
             amplitude_px: 40.0,
             rotation_deg: 2.0,
             cycles: 3.0,
         },
-        hot_fraction: 0.02,
-        seed: 23,
-        ..SimulationConfig::default()
-    };
-    let sim = simulate_with_cfa(
-        &config,
-        &Scene::from_spec("builtin:chart").unwrap(),
-        &colorspad_cfa(),
-        &Silent,
-    )
-    .unwrap();
+        512,
+        23,
+    );
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let score = |b: &BurstReconstruction| psnr_srgb(&sim, &b.merged.linear);
@@ -291,26 +286,14 @@ fn smeared_blocks_are_remade_sharp_for_the_merge_guide() {
 /// end-point errors of 1.9–5.4 px on `bench quality`'s shaky Bayer captures.
 #[test]
 fn a_shaking_bayer_capture_is_tracked_on_its_g_sites() {
-    let config = SimulationConfig {
-        frames: 1024,
-        flux: FluxSpec::Mean { flux: 0.1 },
-        motion: MotionConfig::FastHandheld {
-            amplitude_px: 12.0,
-            rotation_deg: 2.0,
-            cycles: 3.0,
-        },
-        hot_fraction: 0.02,
-        seed: 9,
-        ..SimulationConfig::default()
+    let size = SimulationConfig::default();
+    let bayer = generate(&Pattern::Bayer, size.height, size.width, 0).unwrap();
+    let motion = MotionConfig::FastHandheld {
+        amplitude_px: 12.0,
+        rotation_deg: 2.0,
+        cycles: 3.0,
     };
-    let cfa = generate(&Pattern::Bayer, config.height, config.width, 0).unwrap();
-    let sim = simulate_with_cfa(
-        &config,
-        &Scene::from_spec("builtin:chart").unwrap(),
-        &cfa,
-        &Silent,
-    )
-    .unwrap();
+    let sim = capture_behind(&bayer, motion, 1024, 9);
     let capture = sim.to_capture().unwrap();
     let reference = capture.reference_frame();
     let tracked = reconstruct_burst(&capture, reference, &BurstConfig::default(), &Silent).unwrap();
